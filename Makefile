@@ -1,0 +1,33 @@
+# symcal: `make demo` runs the bundled default calibration, `make test` runs the suite.
+# Each target creates .venv and installs what it needs.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+DEMO_DIR := build/demo
+
+.PHONY: demo test lint clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+
+$(VENV)/.installed: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e .
+	touch $@
+
+$(VENV)/.installed-test: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e ".[test]"
+	touch $@ $(VENV)/.installed
+
+demo: $(VENV)/.installed
+	$(BIN)/symcal simulate problems/scenarios/courier_platen.yaml -o $(DEMO_DIR)/courier.csv --seed 1
+	$(BIN)/symcal solve problems/platen_self_calibration.yaml \
+	  --data calibration=$(DEMO_DIR)/courier.calibration.csv \
+	  --data flyby=$(DEMO_DIR)/courier.flyby.csv --out $(DEMO_DIR)/result
+
+test: $(VENV)/.installed-test
+	$(BIN)/ruff check symcal tests
+	$(BIN)/python -m pytest
+
+clean:
+	rm -rf $(VENV) build

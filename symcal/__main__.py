@@ -1,0 +1,7 @@
+"""``python -m symcal`` runs the command line."""
+
+import sys
+
+from symcal.cli import main
+
+sys.exit(main())

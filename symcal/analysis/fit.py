@@ -1,0 +1,108 @@
+"""How well the model agrees with the measurements, per dataset, before and after."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from symcal.data import Dataset
+from symcal.numeric import mapped
+from symcal.problem import Problem
+from symcal.spec.common import DISPLAY_UNITS
+
+
+@dataclass(frozen=True)
+class Spread:
+    """RMS, mean and standard deviation of a residual series (internal units)."""
+
+    rms: float
+    mean: float
+    std: float
+
+    @classmethod
+    def of(cls, values: np.ndarray) -> Spread:
+        """Spread of ``values``."""
+        return cls(float(np.sqrt(np.mean(values**2))), float(np.mean(values)),
+                   float(np.std(values)))
+
+
+@dataclass(frozen=True)
+class SeriesStats:
+    """A constraint residual or a reference comparison on one dataset, before and after.
+
+    ``kind`` is ``"constraint"`` (model against itself: the redundancy) or ``"comparison"``
+    (model against an independent reference sensor; ``remove_mean`` says whether its mean,
+    an arbitrary zero, is removed before the spread is taken, as in the paper).
+    """
+
+    name: str
+    kind: str
+    dataset: str
+    unit: str
+    n: int
+    before: Spread
+    after: Spread
+    remove_mean: bool = False
+
+    @property
+    def headline(self) -> tuple[float, float]:
+        """The figure a report shows, in the display unit: RMS for constraints, std for
+        comparisons with their mean removed."""
+        scale = DISPLAY_UNITS[self.unit]
+        pick = (lambda s: s.std) if self.remove_mean else (lambda s: s.rms)
+        return pick(self.before) / scale, pick(self.after) / scale
+
+    def to_dict(self) -> dict:
+        """Plain-data form, values in the display unit."""
+        scale = DISPLAY_UNITS[self.unit]
+        return {
+            "name": self.name, "kind": self.kind, "dataset": self.dataset,
+            "unit": self.unit or "(internal)", "n": self.n, "remove_mean": self.remove_mean,
+            "before": {k: v / scale for k, v in self.before.__dict__.items()},
+            "after": {k: v / scale for k, v in self.after.__dict__.items()},
+        }
+
+
+def series_statistics(
+    problem: Problem, datasets: dict[str, Dataset], theta0: np.ndarray, theta: np.ndarray
+) -> tuple[tuple[SeriesStats, ...], tuple[str, ...]]:
+    """Statistics of every constraint and applicable comparison on every dataset.
+
+    Returns
+    -------
+    (stats, notes)
+        The statistics, and one note per comparison skipped on a dataset (why).
+    """
+    stats: list[SeriesStats] = []
+    notes: list[str] = []
+    for ds in datasets.values():
+        names, kinds, exprs, units, means = [], [], [], [], []
+        for c in problem.constraints:
+            names.append(c.name)
+            kinds.append("constraint")
+            exprs.append(c.sx)
+            units.append(c.unit)
+            means.append(False)
+        for comp in problem.comparisons:
+            if comp.datasets is not None and ds.name not in comp.datasets:
+                continue
+            missing = [c for c in problem.columns_of(comp.reference) if c not in ds.columns]
+            if missing:
+                notes.append(f"comparison '{comp.name}' skipped on '{ds.name}': "
+                             f"no column {', '.join(repr(m) for m in missing)}")
+                continue
+            names.append(comp.name)
+            kinds.append("comparison")
+            exprs.append(comp.estimate - comp.reference)
+            units.append(comp.unit)
+            means.append(comp.remove_mean)
+        fn = mapped(problem.theta, problem.u, [ca.vertcat(*exprs)], "series")
+        u = ds.matrix(problem.columns)
+        before = fn(theta0, u)[0]
+        after = fn(theta, u)[0]
+        for j, name in enumerate(names):
+            stats.append(SeriesStats(name, kinds[j], ds.name, units[j], ds.n,
+                                     Spread.of(before[:, j]), Spread.of(after[:, j]), means[j]))
+    return tuple(stats), tuple(notes)

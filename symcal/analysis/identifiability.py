@@ -1,0 +1,238 @@
+"""Identifiability and uncertainty from the (scaled) Jacobian of the weighted residuals.
+
+Everything is computed from the SVD of ``J·D`` where ``D = diag(scale)`` makes the
+parameters commensurate.  Unidentifiable directions are never inverted: they are reported
+as named parameter combinations, and standard errors are given on the identifiable
+subspace only, with a reason where a value cannot be given.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+_ZERO = 1e-9  # relative size below which a coefficient counts as zero
+
+
+@dataclass(frozen=True)
+class Combination:
+    """A linear combination of parameters, e.g. ``s1.k0 - s2.k0 - s3.k0 + s4.k0``."""
+
+    coefficients: dict[str, float]
+    text: str
+    value: float | None = None
+    se: float | None = None
+
+    def to_dict(self) -> dict:
+        """Plain-data form."""
+        return {"combination": self.text, "coefficients": dict(self.coefficients),
+                "value": self.value, "se": self.se}
+
+
+@dataclass(frozen=True)
+class Identifiability:
+    """What the data can and cannot determine.
+
+    Attributes
+    ----------
+    rank
+        Numerical rank of the scaled Jacobian.
+    singular_values
+        All singular values of the scaled Jacobian, largest first.
+    condition_number
+        Ratio of the largest to the smallest singular value of the identifiable part.
+    null_space
+        Directions (in parameter names) along which no residual changes.
+    identifiable_combinations
+        Within each group of parameters touched by the null space, the combinations the
+        data does determine, with value and standard error.
+    """
+
+    n_free: int
+    rank: int
+    singular_values: tuple[float, ...]
+    condition_number: float
+    null_space: tuple[Combination, ...]
+    identifiable_combinations: tuple[Combination, ...]
+
+    @property
+    def deficiency(self) -> int:
+        """Number of unidentifiable directions."""
+        return self.n_free - self.rank
+
+    def to_dict(self) -> dict:
+        """Plain-data form."""
+        return {
+            "n_free": self.n_free, "rank": self.rank,
+            "condition_number": self.condition_number,
+            "singular_values": list(self.singular_values),
+            "null_space": [c.text for c in self.null_space],
+            "identifiable_combinations": [c.to_dict() for c in self.identifiable_combinations],
+        }
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """Standard errors and correlations of the free parameters.
+
+    ``se[name]`` is None where the parameter is not identifiable; ``reason[name]`` says why.
+    The covariance is ``s² (JᵀJ)⁺`` on the identifiable subspace, with ``s²`` the residual
+    variance (weighted RSS over degrees of freedom).
+    """
+
+    residual_variance: float
+    dof: int
+    names: tuple[str, ...]
+    se: dict[str, float | None]
+    reason: dict[str, str]
+    covariance: np.ndarray
+    correlation: np.ndarray
+
+    def to_dict(self) -> dict:
+        """Plain-data form (correlation with None where undefined)."""
+        corr = [[None if not np.isfinite(v) else float(v) for v in row] for row in
+                self.correlation]
+        return {"residual_variance": self.residual_variance, "dof": self.dof,
+                "se": dict(self.se), "reason": dict(self.reason),
+                "correlation": {"names": list(self.names), "matrix": corr}}
+
+
+def format_combination(coefficients: dict[str, float]) -> str:
+    """Render ``{a: 1, b: -1, c: 0.5}`` as ``a - b + 0.5*c``."""
+    parts: list[str] = []
+    for name, coef in coefficients.items():
+        sign = "-" if coef < 0 else "+"
+        mag = abs(coef)
+        term = name if abs(mag - 1) < 1e-6 else f"{mag:.3g}*{name}"
+        parts.append(f"{sign} {term}" if parts else (f"-{term}" if sign == "-" else term))
+    return " ".join(parts)
+
+
+def _named(vector: np.ndarray, names: tuple[str, ...]) -> dict[str, float]:
+    vector = vector / np.max(np.abs(vector))
+    rounded = np.where(np.abs(vector - np.round(vector)) < 1e-6, np.round(vector), vector)
+    return {names[i]: float(rounded[i]) for i in np.flatnonzero(np.abs(rounded) > _ZERO)}
+
+
+def _rref_rows(basis: np.ndarray) -> np.ndarray:
+    """Reduced row echelon form of the rows of ``basis`` (readable null directions)."""
+    m = basis.copy()
+    rows, cols = m.shape
+    pivot_row = 0
+    for col in range(cols):
+        if pivot_row >= rows:
+            break
+        best = pivot_row + int(np.argmax(np.abs(m[pivot_row:, col])))
+        if abs(m[best, col]) < 1e-8:
+            continue
+        m[[pivot_row, best]] = m[[best, pivot_row]]
+        m[pivot_row] /= m[pivot_row, col]
+        for r in range(rows):
+            if r != pivot_row:
+                m[r] -= m[r, col] * m[pivot_row]
+        pivot_row += 1
+    m[np.abs(m) < 1e-10] = 0.0
+    return m[:pivot_row]
+
+
+def _groups(null_rows: np.ndarray) -> list[np.ndarray]:
+    """Connected groups of parameters that share a null direction."""
+    n = null_rows.shape[1]
+    parent = list(range(n))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for row in null_rows:
+        idx = np.flatnonzero(row)
+        for j in idx[1:]:
+            parent[find(j)] = find(idx[0])
+    involved = np.flatnonzero(np.any(null_rows != 0, axis=0))
+    groups: dict[int, list[int]] = {}
+    for i in involved:
+        groups.setdefault(find(i), []).append(int(i))
+    return [np.array(g) for g in groups.values()]
+
+
+def rank_tolerance(singular_values: np.ndarray, rows: int) -> float:
+    """Threshold below which a singular value counts as zero."""
+    if singular_values.size == 0:
+        return 0.0
+    return float(singular_values[0]) * max(rows, singular_values.size) * np.finfo(float).eps * 10
+
+
+def analyse(
+    r_factor: np.ndarray,
+    rows: int,
+    rss: float,
+    names: tuple[str, ...],
+    scales: np.ndarray,
+    values: np.ndarray,
+) -> tuple[Identifiability, Uncertainty]:
+    """Identifiability and uncertainty from the R factor of the weighted Jacobian.
+
+    Parameters
+    ----------
+    r_factor
+        Upper-triangular ``R`` (``n × n``) with ``JᵀJ = RᵀR`` for the free parameters.
+    rows
+        Number of residual rows behind ``R`` (observations × constraints).
+    rss
+        Weighted residual sum of squares at the estimate.
+    names, scales, values
+        Free parameters' names, nominal scales and estimated values.
+    """
+    n = len(names)
+    d = np.asarray(scales, dtype=float)
+    _, s, vt = np.linalg.svd(r_factor * d[None, :]) if n else (None, np.zeros(0), np.zeros((0, 0)))
+    tol = rank_tolerance(s, rows)
+    rank = int(np.sum(s > tol))
+    cond = float(s[0] / s[rank - 1]) if rank else float("inf")
+    v = vt.T
+    null_theta = (d[:, None] * v[:, rank:]).T  # rows: null directions in parameter space
+    null_rows = _rref_rows(null_theta) if rank < n else np.zeros((0, n))
+    null_space = tuple(Combination(_named(r, names), format_combination(_named(r, names)))
+                       for r in null_rows)
+    dof = rows - rank
+    variance = rss / dof if dof > 0 else float("nan")
+    vr = v[:, :rank] / s[:rank][None, :]
+    cov = variance * (d[:, None] * vr) @ (d[:, None] * vr).T
+    in_null = np.any(null_rows != 0, axis=0) if rank < n else np.zeros(n, dtype=bool)
+    se: dict[str, float | None] = {}
+    reason: dict[str, str] = {}
+    for i, name in enumerate(names):
+        if in_null[i]:
+            se[name] = None
+            reason[name] = ("not identifiable on its own: the data determine it only in a "
+                            "combination (see identifiability)")
+        elif dof <= 0:
+            se[name] = None
+            reason[name] = "no degrees of freedom left to estimate the residual variance"
+        else:
+            se[name] = float(np.sqrt(max(cov[i, i], 0.0)))
+    combos: list[Combination] = []
+    for group in _groups(null_rows):
+        sub = null_rows[:, group]
+        _, sg, vtg = np.linalg.svd(sub)
+        k = int(np.sum(sg > 1e-9 * max(1.0, sg[0] if sg.size else 1.0)))
+        for c in vtg[k:]:
+            full = np.zeros(n)
+            full[group] = c
+            coeffs = _named(full, names)
+            vec = np.array([coeffs.get(nm, 0.0) for nm in names])
+            var = float(vec @ cov @ vec)
+            combos.append(Combination(coeffs, format_combination(coeffs),
+                                      float(vec @ values),
+                                      float(np.sqrt(max(var, 0.0))) if dof > 0 else None))
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(sd, sd)
+    corr[in_null, :] = np.nan
+    corr[:, in_null] = np.nan
+    ident = Identifiability(n, rank, tuple(float(x) for x in s), cond, null_space, tuple(combos))
+    unc = Uncertainty(variance, dof, names, se, reason, cov, corr)
+    return ident, unc

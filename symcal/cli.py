@@ -1,0 +1,148 @@
+"""Command-line interface: a thin argparse layer over the public API.
+
+``main(argv)`` returns the exit code: 0 success, 1 failed solve, 2 bad input.  Errors are
+printed as one message without a traceback unless ``--debug`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import yaml
+
+from symcal.errors import EXIT_BAD_INPUT, SymcalError
+
+
+class _Parser(argparse.ArgumentParser):
+    """ArgumentParser whose usage errors exit with symcal's bad-input code."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.print_usage(sys.stderr)
+        self.exit(EXIT_BAD_INPUT, f"symcal: error: {message}\n")
+
+
+def _data_option(text: str) -> tuple[str, str]:
+    name, sep, path = text.partition("=")
+    if not sep or not name or not path:
+        raise argparse.ArgumentTypeError(f"expected NAME=PATH, found '{text}'")
+    return name, path
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="symcal", description="Autonomous calibration through sensor "
+                                                "redundancy.")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    solve = sub.add_parser("solve", help="calibrate a problem and print the report")
+    solve.add_argument("problem", help="problem YAML file")
+    solve.add_argument("--data", action="append", type=_data_option, default=[],
+                       metavar="NAME=PATH", help="replace dataset NAME with a CSV/NPZ file")
+    solve.add_argument("--json", action="store_true", help="print the result as JSON")
+    solve.add_argument("--out", metavar="DIR", help="write result.json and report.txt to DIR")
+    solve.add_argument("--drop-invalid", action="store_true",
+                       help="drop rows with NaN/inf instead of refusing the data")
+    solve.add_argument("--quiet", action="store_true", help="print nothing on success")
+    solve.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                       help=argparse.SUPPRESS)
+
+    sim = sub.add_parser("simulate", help="simulate a courier scenario to CSV")
+    sim.add_argument("scenario", help="scenario YAML file")
+    sim.add_argument("-o", "--output", required=True, metavar="OUT.csv",
+                     help="output file (.csv or .npz); with several runs, OUT.<run>.csv")
+    sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    sim.add_argument("--run", help="simulate only this run")
+    sim.add_argument("-n", type=int, help="number of samples per run (overrides the scenario)")
+    sim.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                     help=argparse.SUPPRESS)
+    return parser
+
+
+def _inputs_of(args: argparse.Namespace) -> set[Path]:
+    paths = {Path(args.problem).resolve()}
+    paths |= {Path(p).resolve() for _, p in args.data}
+    return paths
+
+
+def _cmd_solve(args: argparse.Namespace) -> int:
+    from symcal.calibrate import solve
+    from symcal.data import atomic_write_text
+    from symcal.problem import load_problem
+    from symcal.report import json_report
+
+    problem = load_problem(args.problem)
+    data = dict(args.data)
+    for name, _ in args.data:
+        if list(data).count(name) > 1:
+            raise SymcalError(f"--data {name}=... given twice")
+    result = solve(problem, data, drop_invalid=args.drop_invalid)
+    text, doc = result.report(), json_report(result)
+    if args.out:
+        out = Path(args.out)
+        inputs = _inputs_of(args) | {s.path for s in problem.datasets.values() if s.path}
+        for target in (out / "result.json", out / "report.txt"):
+            if target.resolve() in inputs:
+                raise SymcalError(f"--out {args.out}: refusing to overwrite input file {target}")
+            atomic_write_text(target, doc if target.suffix == ".json" else text)
+    if not args.quiet:
+        sys.stdout.write(doc if args.json else text)
+        if args.out and not args.json:
+            sys.stdout.write(f"\nwrote {Path(args.out) / 'result.json'} and "
+                             f"{Path(args.out) / 'report.txt'}\n")
+    return 0 if result.success else 1
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from symcal.data import atomic_write_text, write_table
+    from symcal.simulate import load_scenario, simulate_run, truth
+
+    scenario = load_scenario(args.scenario)
+    runs = list(scenario.runs)
+    if args.run is not None:
+        if args.run not in scenario.runs:
+            from symcal.suggest import did_you_mean
+
+            raise SymcalError(f"--run {args.run}: the scenario has no run '{args.run}'"
+                              f"{did_you_mean(args.run, runs)}; it has: {', '.join(runs)}")
+        runs = [args.run]
+    if args.n is not None and args.n < 1:
+        raise SymcalError(f"-n {args.n}: the number of samples must be at least 1")
+    out = Path(args.output)
+    if out.suffix.lower() not in (".csv", ".npz"):
+        raise SymcalError(f"-o {args.output}: the output must end in .csv or .npz")
+    if out.resolve() == Path(args.scenario).resolve():
+        raise SymcalError(f"-o {args.output}: refusing to overwrite the scenario file")
+    stem = out.with_suffix("")
+    written = []
+    for run in runs:
+        target = out if len(runs) == 1 else stem.with_name(f"{stem.name}.{run}{out.suffix}")
+        write_table(target, simulate_run(scenario, run, seed=args.seed, n=args.n))
+        written.append(target)
+    truth_path = stem.with_name(f"{stem.name}.truth.yaml")
+    doc = truth(scenario)
+    doc["seed"] = args.seed
+    atomic_write_text(truth_path, yaml.safe_dump(doc, sort_keys=False))
+    for target in written:
+        print(f"wrote {target}")
+    print(f"wrote {truth_path}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; return the exit code."""
+    args = _parser().parse_args(argv)
+    command = {"solve": _cmd_solve, "simulate": _cmd_simulate}[args.command]
+    try:
+        return command(args)
+    except SymcalError as exc:
+        if args.debug:
+            raise
+        print(f"symcal: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,69 @@
+"""Error types shared by every layer of symcal.
+
+Every error a user can cause derives from :class:`SymcalError`; the CLI prints its
+message (no traceback unless ``--debug``) and exits with its ``exit_code``:
+2 for bad input, 1 for a failed solve.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+EXIT_BAD_INPUT = 2
+EXIT_FAILED = 1
+
+
+class SymcalError(Exception):
+    """Base class of every error symcal reports to a user.
+
+    Parameters
+    ----------
+    message
+        Text a person can act on; it names the offending file, key, symbol or column.
+    """
+
+    exit_code: int = EXIT_BAD_INPUT
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+@dataclass(frozen=True)
+class Where:
+    """Provenance of a value in a YAML file: file, 1-based line and key path."""
+
+    file: str
+    line: int | None = None
+    keypath: str = ""
+
+    def __str__(self) -> str:
+        loc = self.file if self.line is None else f"{self.file}:{self.line}"
+        return f"{loc}: {self.keypath}" if self.keypath else loc
+
+    def child(self, key: str | int, line: int | None = None) -> Where:
+        """Provenance of a child key (``parent.key``) at ``line`` (default: this line)."""
+        path = f"{self.keypath}.{key}" if self.keypath else str(key)
+        return Where(self.file, self.line if line is None else line, path)
+
+
+class SpecError(SymcalError):
+    """A YAML model, problem or scenario that cannot be used as written."""
+
+    def __init__(self, where: Where, message: str) -> None:
+        super().__init__(f"{where}: {message}")
+        self.where = where
+        self.detail = message
+
+
+class DataError(SymcalError):
+    """A dataset that does not satisfy the data contract."""
+
+
+class SolveError(SymcalError):
+    """A solve that could not produce a usable estimate."""
+
+    exit_code = EXIT_FAILED

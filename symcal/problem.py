@@ -1,0 +1,335 @@
+"""Spec → symbolic :class:`Problem`: parameters θ, per-observation inputs u, named residuals.
+
+Names are resolved lazily and memoised: a constraint pulls in the problem expressions and
+instance outputs it refers to, an instance pulls in its input bindings, and a cycle among
+definitions is reported with its path.  Models see only their own symbols; problems see
+constants, parameters, expressions, data columns and dotted instance signals (``s1.p_hat``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import casadi as ca
+
+from symcal import expr
+from symcal.errors import SpecError, Where
+from symcal.spec.common import ExprSpec, ParameterSpec, apply_parameter_overrides
+from symcal.spec.problem import DatasetSpec, InstanceSpec, ProblemSpec, load_problem_spec
+from symcal.suggest import did_you_mean
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One scalar parameter of the problem, named ``instance.name`` or ``name``."""
+
+    name: str
+    value: float
+    unit: str
+    lower: float
+    upper: float
+    fixed: bool
+    scale: float
+    doc: str
+    where: Where
+
+
+@dataclass(frozen=True, eq=False)
+class Quantity:
+    """A named symbolic quantity of one observation (constraint, expression or signal)."""
+
+    name: str
+    sx: ca.SX
+    unit: str = ""
+    sigma: float = 1.0
+    doc: str = ""
+    period: float | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Comparison:
+    """An estimate of a quantity and its independent reference."""
+
+    name: str
+    estimate: ca.SX
+    reference: ca.SX
+    unit: str
+    datasets: tuple[str, ...] | None
+    remove_mean: bool
+    doc: str
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """A calibration problem in symbolic form.
+
+    Attributes
+    ----------
+    parameters
+        Every scalar parameter, in the order of ``theta``.
+    theta
+        SX column of parameter symbols.
+    columns
+        Names of the data columns the problem reads, in the order of ``u``.
+    u
+        SX column of per-observation input symbols.
+    constraints
+        Named residuals g(θ, u) that must vanish for consistent measurements.
+    expressions
+        The problem's named expressions.
+    signals
+        Every instance input and output (``s1.p``, ``s1.p_hat``).
+    comparisons
+        Estimates to compare with a reference sensor.
+    datasets
+        Where each named dataset comes from.
+    """
+
+    name: str
+    doc: str
+    path: Path
+    parameters: tuple[Parameter, ...]
+    theta: ca.SX
+    columns: tuple[str, ...]
+    u: ca.SX
+    constraints: tuple[Quantity, ...]
+    expressions: tuple[Quantity, ...]
+    signals: tuple[Quantity, ...]
+    comparisons: tuple[Comparison, ...]
+    datasets: dict[str, DatasetSpec]
+    index: dict[str, int] = field(repr=False)
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        """Names of all parameters, in the order of ``theta``."""
+        return tuple(p.name for p in self.parameters)
+
+    @property
+    def free(self) -> tuple[bool, ...]:
+        """Which parameters are free (not fixed)."""
+        return tuple(not p.fixed for p in self.parameters)
+
+    def columns_of(self, sx: ca.SX) -> list[str]:
+        """Data columns an expression depends on, in ``u`` order."""
+        used = {v.name() for v in ca.symvar(sx)}
+        return [c for c in self.columns if c in used]
+
+
+class _Scope:
+    """Lazy, memoised resolution of names to SX with cycle detection.
+
+    ``values`` are ready symbols; ``defs`` are expressions resolved on first use;
+    ``fallback`` resolves other names (columns, dotted signals) or returns None.
+    """
+
+    def __init__(
+        self,
+        label: str,
+        values: dict[str, ca.SX],
+        defs: dict[str, ExprSpec],
+        fallback: Callable[[str, Where, list[str]], ca.SX | None],
+        known: Callable[[], list[str]],
+        stack: list[str],
+    ) -> None:
+        self.label = label
+        self.values = dict(values)
+        self.defs = defs
+        self.fallback = fallback
+        self.known = known
+        self.stack = stack
+
+    def build(self, spec: ExprSpec, owner: str) -> ca.SX:
+        """Build one expression, reporting errors at its provenance."""
+        return expr.to_casadi(spec.node, lambda node: self.lookup(node.name, spec.where))
+
+    def lookup(self, name: str, where: Where) -> ca.SX:
+        if name in self.values:
+            return self.values[name]
+        if name in self.defs:
+            key = f"{self.label}{name}"
+            if key in self.stack:
+                cycle = self.stack[self.stack.index(key):] + [key]
+                raise SpecError(where, f"cyclic definition: {' -> '.join(cycle)}")
+            self.stack.append(key)
+            try:
+                value = self.build(self.defs[name], name)
+            finally:
+                self.stack.pop()
+            self.values[name] = value
+            return value
+        found = self.fallback(name, where, self.stack)
+        if found is not None:
+            return found
+        pool = [k for k in self.known() if k != "pi"]  # pi is never what a typo meant
+        raise SpecError(where, f"unknown symbol '{name}'{did_you_mean(name, pool)}")
+
+
+def _model_scope(
+    inst: InstanceSpec, inputs: dict[str, ca.SX], params: dict[str, ca.SX], stack: list[str]
+) -> _Scope:
+    model = inst.model
+    values: dict[str, ca.SX] = {k: ca.SX(c.value) for k, c in model.constants.items()}
+    values.update(inputs)
+    values.update(params)
+    values["pi"] = ca.SX(ca.pi)
+    defs = dict(model.expressions)
+    defs.update({k: o.expr for k, o in model.outputs.items()})
+
+    def fallback(name: str, where: Where, _stack: list[str]) -> None:
+        if "." in name:
+            raise SpecError(where, f"'{name}': a model refers only to its own symbols; dotted "
+                                   "names (instance.output) belong in problem files")
+        return None
+
+    return _Scope(f"{inst.name}.", values, defs, fallback,
+                  lambda: [*values, *defs], stack)
+
+
+class _Builder:
+    """Builds a :class:`Problem` from a :class:`ProblemSpec`."""
+
+    def __init__(self, spec: ProblemSpec) -> None:
+        self.spec = spec
+        self.stack: list[str] = []
+        self.parameters: list[Parameter] = []
+        self.symbols: dict[str, ca.SX] = {}
+        self.column_symbols: dict[str, ca.SX] = {}
+        self.signals: dict[str, Quantity] = {}
+        self.built: set[str] = set()
+        for inst in spec.instances.values():
+            for pname, pspec in inst.model.parameters.items():
+                if pname in inst.overrides:
+                    entry, at = inst.overrides[pname]
+                    pspec = apply_parameter_overrides(pspec, entry, at)
+                self._add_parameter(f"{inst.name}.{pname}", pspec)
+        for pspec in spec.parameters.values():
+            self._add_parameter(pspec.name, pspec)
+        values = {k: ca.SX(c.value) for k, c in spec.constants.items()}
+        values.update({p.name: self.symbols[p.name] for p in spec.parameters.values()})
+        values["pi"] = ca.SX(ca.pi)
+        defs = {k: q.expr for k, q in spec.expressions.items()}
+        self.scope = _Scope("", values, defs, self._fallback, self._known, self.stack)
+
+    def _add_parameter(self, name: str, p: ParameterSpec) -> None:
+        self.parameters.append(Parameter(name, p.value, p.unit, p.lower, p.upper, p.fixed,
+                                         p.scale, p.doc, p.where))
+        self.symbols[name] = ca.SX.sym(name)
+
+    def _known(self) -> list[str]:
+        return [*self.scope.values, *self.scope.defs, *self.spec.columns, *self._signal_names(),
+                *self.symbols]
+
+    def _signal_names(self) -> list[str]:
+        return [f"{i}.{n}" for i, inst in self.spec.instances.items()
+                for n in (*inst.model.outputs, *inst.model.inputs)]
+
+    def _fallback(self, name: str, where: Where, stack: list[str]) -> ca.SX | None:
+        if "." in name:
+            if name in self.symbols:
+                return self.symbols[name]
+            inst_name = name.split(".", 1)[0]
+            if inst_name in self.spec.instances:
+                self._instance(self.spec.instances[inst_name], where)
+                if name in self.signals:
+                    return self.signals[name].sx
+                inst = self.spec.instances[inst_name]
+                known = [f"{inst_name}.{n}" for n in (*inst.model.outputs, *inst.model.inputs,
+                                                      *inst.model.parameters)]
+                raise SpecError(where, f"unknown symbol '{name}': instance '{inst_name}' has no "
+                                       f"output, input or parameter '{name.split('.', 1)[1]}'"
+                                       f"{did_you_mean(name, known)}")
+            return None
+        if name in self.spec.columns:
+            if name not in self.column_symbols:
+                self.column_symbols[name] = ca.SX.sym(name)
+            return self.column_symbols[name]
+        return None
+
+    def _instance(self, inst: InstanceSpec, where: Where) -> None:
+        if inst.name in self.built:
+            return
+        key = f"{inst.name} (inputs)"
+        if key in self.stack:
+            cycle = self.stack[self.stack.index(key):] + [key]
+            raise SpecError(where, f"cyclic definition: {' -> '.join(cycle)}")
+        self.stack.append(key)
+        try:
+            inputs = {k: self.scope.build(b, k) for k, b in inst.bindings.items()}
+        finally:
+            self.stack.pop()
+        params = {k: self.symbols[f"{inst.name}.{k}"] for k in inst.model.parameters}
+        scope = _model_scope(inst, inputs, params, self.stack)
+        model = inst.model
+        for name, out in model.outputs.items():
+            sx = scope.lookup(name, out.where)
+            self.signals[f"{inst.name}.{name}"] = Quantity(f"{inst.name}.{name}", sx, out.unit,
+                                                           doc=out.doc)
+        for name, inp in model.inputs.items():
+            period = None
+            if inp.period is not None:
+                value = scope.build(inp.period, name)
+                if not value.is_constant():
+                    raise SpecError(inp.period.where, "a period must be a constant expression")
+                period = float(ca.evalf(value))
+            self.signals[f"{inst.name}.{name}"] = Quantity(
+                f"{inst.name}.{name}", inputs[name], inp.unit, doc=inp.doc, period=period)
+        self.built.add(inst.name)
+
+    def build(self) -> Problem:
+        spec = self.spec
+        for inst in spec.instances.values():
+            self._instance(inst, inst.where)
+        expressions = tuple(
+            Quantity(k, self.scope.lookup(k, q.where), q.unit, doc=q.doc)
+            for k, q in spec.expressions.items()
+        )
+        constraints = tuple(
+            Quantity(k, self.scope.build(q.expr, k), q.unit, q.sigma, q.doc)
+            for k, q in spec.constraints.items()
+        )
+        comparisons = tuple(
+            Comparison(k, self.scope.build(c.estimate, k), self.scope.build(c.reference, k),
+                       c.unit, c.datasets, c.remove_mean, c.doc)
+            for k, c in spec.comparisons.items()
+        )
+        for q in constraints:
+            if not any(ca.depends_on(q.sx, self.symbols[p.name]) for p in self.parameters):
+                raise SpecError(spec.constraints[q.name].where,
+                                f"constraint '{q.name}' does not depend on any parameter")
+        columns = tuple(c for c in spec.columns if c in self.column_symbols)
+        u = ca.vertcat(*(self.column_symbols[c] for c in columns)) if columns else ca.SX(0, 1)
+        theta = ca.vertcat(*(self.symbols[p.name] for p in self.parameters))
+        signal_order = self._signal_names()
+        signals = tuple(self.signals[n] for n in signal_order if n in self.signals)
+        return Problem(
+            spec.name, spec.doc, spec.path, tuple(self.parameters), theta, columns, u,
+            constraints, expressions, signals, comparisons, dict(spec.datasets),
+            {p.name: i for i, p in enumerate(self.parameters)},
+        )
+
+
+def build_problem(spec: ProblemSpec) -> Problem:
+    """Turn a validated spec into a symbolic :class:`Problem`."""
+    return _Builder(spec).build()
+
+
+def load_problem(path: str | Path) -> Problem:
+    """Load a problem file, its models, and build the symbolic problem.
+
+    Parameters
+    ----------
+    path
+        The problem's YAML file.
+
+    Returns
+    -------
+    Problem
+
+    Raises
+    ------
+    SpecError
+        For any problem in the files, naming file, line, key path and symbol.
+    """
+    return build_problem(load_problem_spec(path))

@@ -1,0 +1,106 @@
+"""Text and JSON reports of a :class:`~symcal.result.Result`."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from symcal.result import Result
+
+
+def _num(x: float | None, fmt: str = ".6g") -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "—"
+    return format(x, fmt)
+
+
+def _table(rows: list[list[str]], align: str) -> list[str]:
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    out = []
+    for r in rows:
+        cells = [c.rjust(w) if a == "r" else c.ljust(w) for c, w, a in zip(r, widths, align,
+                                                                           strict=True)]
+        out.append("  " + "  ".join(cells).rstrip())
+    return out
+
+
+def _fit_lines(result: Result) -> list[str]:
+    rows = [["dataset", "quantity", "measure", "before", "after", "unit"]]
+    last = None
+    for s in result.statistics:
+        before, after = s.headline
+        measure = "std (mean removed)" if s.remove_mean else "RMS"
+        what = s.name if s.kind == "constraint" else f"{s.name} vs reference"
+        rows.append([s.dataset if s.dataset != last else "", what, measure,
+                     f"{before:.4g}", f"{after:.4g}", s.unit or "(internal)"])
+        last = s.dataset
+    return _table(rows, "lllrrl")
+
+
+def _identifiability_lines(result: Result) -> list[str]:
+    ident = result.identifiability
+    lines = [f"  rank {ident.rank} of {ident.n_free} free parameters; condition number of "
+             f"the identifiable part {ident.condition_number:.4g}"]
+    if ident.null_space:
+        lines.append(f"  {ident.deficiency} direction(s) the data cannot determine "
+                     "(each leaves every constraint unchanged; the estimate keeps the initial "
+                     "values along them):")
+        lines += [f"    {c.text}" for c in ident.null_space]
+    if ident.identifiable_combinations:
+        lines.append("  determined only in combination:")
+        units = {p.name: p.unit for p in result.parameters}
+        for c in ident.identifiable_combinations:
+            unit = {units[n] for n in c.coefficients}
+            shown = f" {unit.pop()}" if len(unit) == 1 else ""
+            lines.append(f"    {c.text} = {_num(c.value)} ± {_num(c.se, '.2g')}{shown}")
+    return lines
+
+
+def _parameter_lines(result: Result) -> list[str]:
+    rows = [["parameter", "value", "± se", "initial", "unit", "note"]]
+    for p in result.parameters:
+        note = "fixed" if p.fixed else ""
+        if not p.fixed and p.se is None:
+            note = "only in combination" if "combination" in (p.se_reason or "") else (
+                p.se_reason or "")
+        if p.at_bound:
+            note = (note + "; " if note else "") + f"at {p.at_bound} bound"
+        rows.append([p.name, _num(p.value), _num(p.se, ".2g"), _num(p.initial), p.unit, note])
+    return _table(rows, "lrrrll")
+
+
+def text_report(result: Result) -> str:
+    """The report a person reads: data, solver, identifiability, fit, parameters."""
+    state = "" if result.success else "  *** FAILED ***"
+    lines = [f"symcal: {result.problem} ({result.problem_path}){state}", "", "Data"]
+    lines += _table([[d.name, f"{d.n} observations", d.source
+                      + (f" ({d.dropped} invalid rows dropped)" if d.dropped else "")]
+                     for d in result.datasets], "lrl")
+    n_free = result.identifiability.n_free
+    lines += ["", "Solver",
+              f"  {result.method}: {result.message}",
+              f"  status: {result.status}; {n_free} free parameters; "
+              f"{result.iterations} iterations; {result.seconds:.3g} s",
+              "", "Identifiability"]
+    lines += _identifiability_lines(result)
+    lines += ["", "Fit: initial parameters (before) and estimate (after)"]
+    lines += _fit_lines(result)
+    lines += ["", "Parameters"]
+    lines += _parameter_lines(result)
+    if result.notes:
+        lines += ["", "Notes"] + [f"  - {n}" for n in result.notes]
+    return "\n".join(lines) + "\n"
+
+
+def json_report(result: Result) -> str:
+    """The machine-readable document (``--json``)."""
+    def clean(x: object) -> object:
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        return x
+
+    return json.dumps(clean(result.to_dict()), indent=2) + "\n"

@@ -1,0 +1,181 @@
+"""Spec pieces shared by models and problems: constants, parameters, expressions, units."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from symcal import expr
+from symcal.errors import SpecError, Where
+from symcal.spec.fields import (
+    check_keys,
+    child_where,
+    expect_bool,
+    expect_map,
+    expect_name,
+    expect_number,
+    expect_str,
+)
+from symcal.spec.yamlio import YMap
+from symcal.suggest import did_you_mean
+
+#: Display units and their size in symcal's internal units (mm, rad, s).
+DISPLAY_UNITS: dict[str, float] = {
+    "": 1.0,
+    "1": 1.0,
+    "mm": 1.0,
+    "um": 1e-3,
+    "µm": 1e-3,
+    "nm": 1e-6,
+    "m": 1e3,
+    "rad": 1.0,
+    "mrad": 1e-3,
+    "urad": 1e-6,
+    "µrad": 1e-6,
+    "deg": math.pi / 180.0,
+    "s": 1.0,
+}
+
+
+def display_unit(value: Any, where: Where) -> str:
+    """Validate a display unit (one of :data:`DISPLAY_UNITS`)."""
+    if value is None:
+        return ""
+    text = str(value) if isinstance(value, (int, float)) else value
+    if not isinstance(text, str) or text not in DISPLAY_UNITS:
+        known = [u for u in DISPLAY_UNITS if u]
+        raise SpecError(
+            where,
+            f"unknown unit '{value}'{did_you_mean(str(value), known)}; "
+            f"known units: {', '.join(known)}",
+        )
+    return text
+
+
+@dataclass(frozen=True, eq=False)
+class ExprSpec:
+    """An expression as written, parsed, with its provenance."""
+
+    text: str
+    node: expr.Node
+    where: Where
+
+
+def parse_expr(value: Any, where: Where) -> ExprSpec:
+    """Parse an expression (text or a plain number) into an :class:`ExprSpec`."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = repr(expect_number(value, where))
+    text = expect_str(value, where)
+    try:
+        node = expr.parse(text)
+    except expr.ExprError as exc:
+        raise SpecError(where, exc.detail) from None
+    return ExprSpec(" ".join(text.split()), node, where)
+
+
+@dataclass(frozen=True)
+class ConstantSpec:
+    """A named constant."""
+
+    name: str
+    value: float
+    unit: str
+    doc: str
+    where: Where
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """A named parameter: initial value, unit, bounds, fixed flag, nominal scale."""
+
+    name: str
+    value: float
+    unit: str
+    lower: float
+    upper: float
+    fixed: bool
+    scale: float
+    doc: str
+    where: Where
+
+
+def _doc(entry: YMap, where: Where) -> str:
+    return expect_str(entry["doc"], child_where(entry, where, "doc")) if "doc" in entry else ""
+
+
+def _unit(entry: YMap, where: Where) -> str:
+    if "unit" not in entry:
+        return ""
+    value = entry["unit"]
+    return expect_str(str(value) if isinstance(value, (int, float)) else value,
+                      child_where(entry, where, "unit"))
+
+
+def parse_constant(name: str, value: Any, where: Where) -> ConstantSpec:
+    """Parse ``name: 1.5`` or ``name: {value, unit, doc}``."""
+    expect_name(name, where, "a constant's name")
+    if not isinstance(value, dict):
+        return ConstantSpec(name, expect_number(value, where), "", "", where)
+    entry = check_keys(value, where, required=["value"], optional=["unit", "doc"])
+    number = expect_number(entry["value"], child_where(entry, where, "value"))
+    return ConstantSpec(name, number, _unit(entry, where), _doc(entry, where), where)
+
+
+PARAMETER_KEYS = ["value", "unit", "lower", "upper", "fixed", "scale", "doc"]
+
+
+def parse_parameter(name: str, value: Any, where: Where) -> ParameterSpec:
+    """Parse ``name: 0.1`` or ``name: {value, unit, lower, upper, fixed, scale, doc}``."""
+    expect_name(name, where, "a parameter's name")
+    if not isinstance(value, dict):
+        number = expect_number(value, where)
+        return ParameterSpec(name, number, "", -math.inf, math.inf, False, 1.0, "", where)
+    entry = check_keys(value, where, optional=PARAMETER_KEYS)
+    return apply_parameter_overrides(
+        ParameterSpec(name, 0.0, "", -math.inf, math.inf, False, 1.0, "", where), entry, where
+    )
+
+
+def apply_parameter_overrides(base: ParameterSpec, entry: YMap, where: Where) -> ParameterSpec:
+    """Return ``base`` with the keys of ``entry`` applied, validating bounds and value."""
+    fields = dict(base.__dict__)
+    for key in entry:
+        at = child_where(entry, where, key)
+        if key in ("value", "lower", "upper"):
+            fields[key] = expect_number(entry[key], at)
+        elif key == "scale":
+            fields[key] = expect_number(entry[key], at)
+            if fields[key] <= 0:
+                raise SpecError(at, f"scale must be positive, found {entry[key]}")
+        elif key == "fixed":
+            fields[key] = expect_bool(entry[key], at)
+        elif key == "unit":
+            fields[key] = _unit(entry, where)
+        elif key == "doc":
+            fields[key] = _doc(entry, where)
+    spec = ParameterSpec(**{**fields, "where": where})
+    if spec.lower > spec.upper:
+        raise SpecError(where, f"lower bound {spec.lower:g} is above upper bound {spec.upper:g}")
+    if not spec.lower <= spec.value <= spec.upper:
+        raise SpecError(
+            where,
+            f"initial value {spec.value:g} is outside its bounds [{spec.lower:g}, {spec.upper:g}]",
+        )
+    return spec
+
+
+def section(doc: YMap, where: Where, key: str) -> tuple[YMap, Where]:
+    """The mapping under ``key`` (empty if absent) and its provenance."""
+    at = child_where(doc, where, key)
+    return expect_map(doc.get(key), at), at
+
+
+def check_unique(names_by_section: dict[str, list[tuple[str, Where]]]) -> None:
+    """Reject a name defined in two sections (e.g. a constant and a parameter)."""
+    seen: dict[str, str] = {}
+    for sect, entries in names_by_section.items():
+        for name, where in entries:
+            if name in seen:
+                raise SpecError(where, f"'{name}' is already defined in {seen[name]}")
+            seen[name] = sect

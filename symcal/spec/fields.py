@@ -1,0 +1,128 @@
+"""Strict validation of loaded YAML mappings: known keys, required keys, types."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from typing import Any
+
+from symcal.errors import SpecError, Where
+from symcal.spec.yamlio import YList, YMap
+from symcal.suggest import did_you_mean
+
+
+def child_where(parent: Any, where: Where, key: str | int) -> Where:
+    """Provenance of ``parent[key]``, using the key's own line when known."""
+    line = None
+    if isinstance(parent, YMap):
+        line = parent.key_lines.get(key)
+    elif isinstance(parent, YList) and isinstance(key, int) and key < len(parent.item_lines):
+        line = parent.item_lines[key]
+    return where.child(key, line)
+
+
+def check_keys(
+    mapping: Any, where: Where, required: Iterable[str] = (), optional: Iterable[str] = ()
+) -> YMap:
+    """Check that ``mapping`` is a mapping with exactly the allowed keys.
+
+    Raises
+    ------
+    SpecError
+        On a non-mapping, an unknown key (with a did-you-mean) or a missing required key.
+    """
+    mapping = expect_map(mapping, where)
+    required = list(required)
+    allowed = required + list(optional)
+    for key in mapping:
+        if key not in allowed:
+            raise SpecError(
+                child_where(mapping, where, key),
+                f"unknown key '{key}'{did_you_mean(str(key), allowed)}"
+                f"; allowed keys: {', '.join(allowed)}",
+            )
+    for key in required:
+        if key not in mapping:
+            raise SpecError(where, f"missing required key '{key}'")
+    return mapping
+
+
+def _type_name(value: Any) -> str:
+    if value is None:
+        return "nothing (null)"
+    if isinstance(value, bool):
+        return f"a boolean ({value})"
+    if isinstance(value, (int, float)):
+        return f"a number ({value})"
+    if isinstance(value, str):
+        return f"text ('{value}')"
+    if isinstance(value, dict):
+        return "a mapping"
+    if isinstance(value, list):
+        return "a list"
+    return type(value).__name__
+
+
+def expect_map(value: Any, where: Where) -> YMap:
+    """Return ``value`` if it is a mapping (``None`` counts as empty), else raise."""
+    if value is None:
+        empty = YMap()
+        empty.key_lines = {}
+        empty.line = where.line
+        return empty
+    if not isinstance(value, YMap):
+        raise SpecError(where, f"expected a mapping, found {_type_name(value)}")
+    return value
+
+
+def expect_list(value: Any, where: Where) -> YList:
+    """Return ``value`` if it is a list, else raise."""
+    if not isinstance(value, YList):
+        raise SpecError(where, f"expected a list, found {_type_name(value)}")
+    return value
+
+
+def expect_str(value: Any, where: Where) -> str:
+    """Return ``value`` if it is non-empty text, else raise."""
+    if not isinstance(value, str) or not value.strip():
+        raise SpecError(where, f"expected text, found {_type_name(value)}")
+    return value
+
+
+def expect_number(value: Any, where: Where) -> float:
+    """Return ``value`` as a finite float if it is a number, else raise."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SpecError(where, f"expected a number, found {_type_name(value)}")
+    if not math.isfinite(value):
+        raise SpecError(where, f"expected a finite number, found {value}")
+    return float(value)
+
+
+def expect_int(value: Any, where: Where, minimum: int | None = None) -> int:
+    """Return ``value`` if it is an integer (at least ``minimum``), else raise."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise SpecError(where, f"expected a whole number, found {_type_name(value)}")
+    if minimum is not None and value < minimum:
+        raise SpecError(where, f"expected a whole number of at least {minimum}, found {value}")
+    return value
+
+
+def expect_bool(value: Any, where: Where) -> bool:
+    """Return ``value`` if it is a boolean, else raise."""
+    if not isinstance(value, bool):
+        raise SpecError(where, f"expected true or false, found {_type_name(value)}")
+    return value
+
+
+def is_name(text: str) -> bool:
+    """Whether ``text`` is a plain identifier usable as a symbol name."""
+    return text.isidentifier() and text.isascii()
+
+
+def expect_name(value: Any, where: Where, what: str = "name") -> str:
+    """Return ``value`` if it is a plain identifier, else raise."""
+    if not isinstance(value, str) or not is_name(value):
+        raise SpecError(
+            where, f"{what} must be a plain name (letters, digits, underscore), found {value!r}"
+        )
+    return value

@@ -1,0 +1,326 @@
+"""Calibration problem files (``problems/*.yaml``) → validated, frozen :class:`ProblemSpec`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from symcal.errors import SpecError, Where
+from symcal.spec.common import (
+    ConstantSpec,
+    ExprSpec,
+    ParameterSpec,
+    check_unique,
+    display_unit,
+    parse_constant,
+    parse_expr,
+    parse_parameter,
+    section,
+)
+from symcal.spec.fields import (
+    check_keys,
+    child_where,
+    expect_bool,
+    expect_int,
+    expect_list,
+    expect_map,
+    expect_name,
+    expect_number,
+    expect_str,
+)
+from symcal.spec.model import ModelSpec, load_model
+from symcal.spec.yamlio import YMap, display_path, load_yaml
+from symcal.suggest import did_you_mean
+
+PROBLEM_KEYS = ["doc", "constants", "parameters", "columns", "expressions", "comparisons"]
+
+#: The courier data contract (DESIGN.md): column → (unit, doc).
+COURIER_COLUMNS: dict[str, tuple[str, str]] = {
+    "t": ("s", "time of the observation"),
+    "p1": ("mm", "raw reading of platen segment 1 (x)"),
+    "p2": ("mm", "raw reading of platen segment 2 (y)"),
+    "p3": ("mm", "raw reading of platen segment 3 (x)"),
+    "p4": ("mm", "raw reading of platen segment 4 (y)"),
+    "psi_x": ("rad", "coordination sensor angle to the beacon, x"),
+    "psi_y": ("rad", "coordination sensor angle to the beacon, y"),
+    "x_ref": ("mm", "interferometer x (ground truth)"),
+    "y_ref": ("mm", "interferometer y (ground truth)"),
+    "theta_ref": ("rad", "interferometer angle (ground truth)"),
+}
+
+
+@dataclass(frozen=True)
+class ColumnSpec:
+    """A data column the problem may refer to by name."""
+
+    name: str
+    unit: str
+    doc: str
+    where: Where
+
+
+@dataclass(frozen=True)
+class InstanceSpec:
+    """A sensor instance: a model with its inputs bound and parameter overrides."""
+
+    name: str
+    model: ModelSpec
+    bindings: dict[str, ExprSpec]
+    overrides: dict[str, tuple[YMap, Where]]
+    doc: str
+    where: Where
+
+
+@dataclass(frozen=True)
+class QuantitySpec:
+    """A named expression, constraint or comparison side, with display unit and weight."""
+
+    name: str
+    expr: ExprSpec
+    unit: str
+    sigma: float
+    doc: str
+    where: Where
+
+
+@dataclass(frozen=True)
+class ComparisonSpec:
+    """An estimate compared against an independent reference sensor."""
+
+    name: str
+    estimate: ExprSpec
+    reference: ExprSpec
+    unit: str
+    datasets: tuple[str, ...] | None
+    remove_mean: bool
+    doc: str
+    where: Where
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """Where a named dataset comes from: a CSV/NPZ file or a simulated scenario run."""
+
+    name: str
+    path: Path | None
+    scenario: Path | None
+    run: str | None
+    seed: int
+    n: int | None
+    doc: str
+    where: Where
+
+    @property
+    def source(self) -> str:
+        """Human-readable origin of the data."""
+        if self.path is not None:
+            return display_path(self.path)
+        return f"simulated {display_path(self.scenario)} run '{self.run}' seed {self.seed}"
+
+
+@dataclass(frozen=True)
+class ProblemSpec:
+    """A calibration problem as declared in YAML."""
+
+    name: str
+    doc: str
+    path: Path
+    constants: dict[str, ConstantSpec]
+    parameters: dict[str, ParameterSpec]
+    columns: dict[str, ColumnSpec]
+    instances: dict[str, InstanceSpec]
+    expressions: dict[str, QuantitySpec]
+    constraints: dict[str, QuantitySpec]
+    datasets: dict[str, DatasetSpec]
+    comparisons: dict[str, ComparisonSpec]
+    where: Where
+
+
+def _doc(entry: YMap, where: Where) -> str:
+    return expect_str(entry["doc"], child_where(entry, where, "doc")) if "doc" in entry else ""
+
+
+def _relative(base: Path, value: Any, where: Where) -> Path:
+    text = expect_str(value, where)
+    return (base.parent / text).resolve()
+
+
+class _ModelCache:
+    def __init__(self) -> None:
+        self.models: dict[Path, ModelSpec] = {}
+
+    def get(self, path: Path, where: Where) -> ModelSpec:
+        if path not in self.models:
+            if not path.exists():
+                raise SpecError(where, f"model file not found: {display_path(path)}")
+            self.models[path] = load_model(path)
+        return self.models[path]
+
+
+def _parse_instance(
+    name: str, value: Any, where: Where, base: Path, cache: _ModelCache
+) -> InstanceSpec:
+    expect_name(name, where, "an instance's name")
+    entry = check_keys(value, where, required=["model", "inputs"],
+                       optional=["parameters", "doc"])
+    model_at = child_where(entry, where, "model")
+    model = cache.get(_relative(base, entry["model"], model_at), model_at)
+    inputs_at = child_where(entry, where, "inputs")
+    inputs = expect_map(entry["inputs"], inputs_at)
+    bindings: dict[str, ExprSpec] = {}
+    for key, text in inputs.items():
+        at = child_where(inputs, inputs_at, key)
+        if key not in model.inputs:
+            raise SpecError(at, _not_in(key, "an input", model.name, list(model.inputs)))
+        bindings[key] = parse_expr(text, at)
+    for key in model.inputs:
+        if key not in bindings:
+            raise SpecError(inputs_at, f"input '{key}' of model '{model.name}' is not bound "
+                                       f"(add '{key}: <column or expression>')")
+    params_at = child_where(entry, where, "parameters")
+    params = expect_map(entry.get("parameters"), params_at)
+    overrides: dict[str, tuple[YMap, Where]] = {}
+    for key, val in params.items():
+        at = child_where(params, params_at, key)
+        if key not in model.parameters:
+            raise SpecError(at, _not_in(key, "a parameter", model.name, list(model.parameters)))
+        overrides[key] = (check_keys(val, at, optional=["value", "lower", "upper", "fixed",
+                                                         "scale"]), at)
+    return InstanceSpec(name, model, bindings, overrides, _doc(entry, where), where)
+
+
+def _not_in(key: str, what: str, model: str, names: list[str]) -> str:
+    return (f"'{key}' is not {what} of model '{model}'{did_you_mean(key, names)}; "
+            f"it has: {', '.join(names) or 'none'}")
+
+
+def _parse_quantity(name: str, value: Any, where: Where, weighted: bool) -> QuantitySpec:
+    expect_name(name, where)
+    if not isinstance(value, dict):
+        return QuantitySpec(name, parse_expr(value, where), "", 1.0, "", where)
+    optional = ["unit", "doc"] + (["sigma"] if weighted else [])
+    entry = check_keys(value, where, required=["expr"], optional=optional)
+    sigma = 1.0
+    if "sigma" in entry:
+        at = child_where(entry, where, "sigma")
+        sigma = expect_number(entry["sigma"], at)
+        if sigma <= 0:
+            raise SpecError(at, f"sigma must be positive, found {entry['sigma']}")
+    return QuantitySpec(
+        name, parse_expr(entry["expr"], child_where(entry, where, "expr")),
+        display_unit(entry.get("unit"), child_where(entry, where, "unit")), sigma,
+        _doc(entry, where), where,
+    )
+
+
+def _parse_comparison(name: str, value: Any, where: Where) -> ComparisonSpec:
+    expect_name(name, where)
+    entry = check_keys(value, where, required=["estimate", "reference"],
+                       optional=["unit", "datasets", "remove_mean", "doc"])
+    datasets = None
+    if "datasets" in entry:
+        at = child_where(entry, where, "datasets")
+        items = expect_list(entry["datasets"], at)
+        datasets = tuple(expect_name(v, child_where(items, at, i), "a dataset name")
+                         for i, v in enumerate(items))
+    remove_mean = True
+    if "remove_mean" in entry:
+        remove_mean = expect_bool(entry["remove_mean"], child_where(entry, where, "remove_mean"))
+    return ComparisonSpec(
+        name,
+        parse_expr(entry["estimate"], child_where(entry, where, "estimate")),
+        parse_expr(entry["reference"], child_where(entry, where, "reference")),
+        display_unit(entry.get("unit"), child_where(entry, where, "unit")),
+        datasets, remove_mean, _doc(entry, where), where,
+    )
+
+
+def _parse_dataset(name: str, value: Any, where: Where, base: Path) -> DatasetSpec:
+    expect_name(name, where, "a dataset's name")
+    entry = check_keys(value, where, optional=["path", "simulate", "run", "seed", "n", "doc"])
+    has_path, has_sim = "path" in entry, "simulate" in entry
+    if has_path == has_sim:
+        raise SpecError(where, "a dataset needs exactly one of 'path' (a CSV or NPZ file) "
+                               "or 'simulate' (a scenario file)")
+    if has_path:
+        for key in ("run", "seed", "n"):
+            if key in entry:
+                raise SpecError(child_where(entry, where, key),
+                                f"'{key}' only applies to simulated datasets")
+        path = _relative(base, entry["path"], child_where(entry, where, "path"))
+        return DatasetSpec(name, path, None, None, 0, None, _doc(entry, where), where)
+    scenario = _relative(base, entry["simulate"], child_where(entry, where, "simulate"))
+    run = (expect_name(entry["run"], child_where(entry, where, "run"), "a run name")
+           if "run" in entry else name)
+    seed = (expect_int(entry["seed"], child_where(entry, where, "seed"), 0)
+            if "seed" in entry else 0)
+    n = expect_int(entry["n"], child_where(entry, where, "n"), 1) if "n" in entry else None
+    return DatasetSpec(name, None, scenario, run, seed, n, _doc(entry, where), where)
+
+
+def _parse_column(name: str, value: Any, where: Where) -> ColumnSpec:
+    expect_name(name, where, "a column's name")
+    entry = check_keys(value, where, optional=["unit", "doc"])
+    return ColumnSpec(name, str(entry.get("unit", "")), _doc(entry, where), where)
+
+
+def load_problem_spec(path: str | Path) -> ProblemSpec:
+    """Load and validate a problem file and the model files it names.
+
+    Parameters
+    ----------
+    path
+        The problem's YAML file; relative paths inside it are relative to it.
+
+    Returns
+    -------
+    ProblemSpec
+
+    Raises
+    ------
+    SpecError
+        Naming file, line and key path for any problem in the files.
+    """
+    path = Path(path).resolve() if Path(path).exists() else Path(path)
+    doc, where = load_yaml(path, "problem")
+    check_keys(doc, where, required=["problem", "instances", "constraints", "datasets"],
+               optional=PROBLEM_KEYS)
+    name = expect_name(doc["problem"], child_where(doc, where, "problem"), "the problem's name")
+    cache = _ModelCache()
+
+    def entries(key: str, parse: Any) -> dict[str, Any]:
+        mapping, at = section(doc, where, key)
+        return {k: parse(k, v, child_where(mapping, at, k)) for k, v in mapping.items()}
+
+    constants = entries("constants", parse_constant)
+    parameters = entries("parameters", parse_parameter)
+    if "columns" in doc:
+        columns = entries("columns", _parse_column)
+    else:
+        columns = {k: ColumnSpec(k, u, d, where) for k, (u, d) in COURIER_COLUMNS.items()}
+    instances = entries("instances", lambda k, v, at: _parse_instance(k, v, at, path, cache))
+    expressions = entries("expressions", lambda k, v, at: _parse_quantity(k, v, at, False))
+    constraints = entries("constraints", lambda k, v, at: _parse_quantity(k, v, at, True))
+    datasets = entries("datasets", lambda k, v, at: _parse_dataset(k, v, at, path))
+    comparisons = entries("comparisons", _parse_comparison)
+    for key, at in (("constraints", constraints), ("instances", instances),
+                    ("datasets", datasets)):
+        if not at:
+            raise SpecError(child_where(doc, where, key), f"'{key}' must not be empty")
+    if "calibration" not in datasets:
+        raise SpecError(child_where(doc, where, "datasets"),
+                        "a problem needs a dataset named 'calibration' (the data it is solved on)")
+    for comp in comparisons.values():
+        for ds in comp.datasets or ():
+            if ds not in datasets:
+                raise SpecError(comp.where.child("datasets"),
+                                f"unknown dataset '{ds}'{did_you_mean(ds, datasets)}")
+    check_unique({
+        sect: [(k, v.where) for k, v in group.items()]
+        for sect, group in (("columns", columns), ("constants", constants),
+                            ("parameters", parameters), ("instances", instances),
+                            ("expressions", expressions), ("constraints", constraints))
+    })
+    return ProblemSpec(name, _doc(doc, where), path, constants, parameters, columns, instances,
+                       expressions, constraints, datasets, comparisons, where)

@@ -1,0 +1,66 @@
+"""Shared fixtures: paths, and small model-consistent courier data made with numpy only."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+RHO = 1.016
+F = 2 * np.pi / RHO
+L_S = 9.7
+L_O = 4.85
+HARMONICS = (1, 2, 4, 6)
+
+
+def basis(p: np.ndarray) -> np.ndarray:
+    """The nine eq. (3) regressors of a segment reading (independent of symcal)."""
+    cols = [np.ones_like(p)]
+    for h in HARMONICS:
+        cols += [np.sin(h * F * p), np.cos(h * F * p)]
+    return np.column_stack(cols)
+
+
+def courier_data(n: int, k: np.ndarray, noise: float, seed: int) -> dict[str, np.ndarray]:
+    """Scatter poses and readings with p̄ + e(p̄) = p* exactly, plus Gaussian noise.
+
+    ``k`` is 4 × 9 (segments 1..4, eq. 3 coefficients); small enough for a contraction.
+    """
+    rng = np.random.default_rng(seed)
+    x, y = rng.uniform(0, 10 * RHO, n), rng.uniform(0, 10 * RHO, n)
+    th = np.deg2rad(rng.uniform(-0.5, 0.5, n))
+    c, s = np.cos(th), np.sin(th)
+    true = [x - L_O * c + L_S / 2 * s, y + L_S / 2 * s - L_O * c,
+            x + L_O * c - L_S / 2 * s, y - L_S / 2 * s + L_O * c]
+    cols = {"t": np.arange(n) * 0.1}
+    for i in range(4):
+        pb = true[i].copy()
+        for _ in range(100):
+            pb = true[i] - basis(pb) @ k[i]
+        cols[f"p{i + 1}"] = pb + rng.normal(0, noise, n)
+    cols.update(x_ref=x, y_ref=y, theta_ref=th)
+    return cols
+
+
+@pytest.fixture
+def root() -> Path:
+    """The repository root."""
+    return ROOT
+
+
+@pytest.fixture
+def true_k() -> np.ndarray:
+    """Eq. (3) coefficients of the four segments (mm), a few µm each."""
+    rng = np.random.default_rng(42)
+    k = rng.normal(0, 0.004, (4, 9)) / np.array([1, 1, 1, 2, 2, 4, 4, 6, 6])
+    return k
+
+
+def write_csv(path: Path, cols: dict[str, np.ndarray]) -> Path:
+    """Write columns as CSV with a header."""
+    with path.open("w") as fh:
+        fh.write(",".join(cols) + "\n")
+        np.savetxt(fh, np.column_stack(list(cols.values())), delimiter=",", fmt="%.15g")
+    return path

@@ -1,0 +1,82 @@
+"""The data contract: reading, checking and writing tables (exact messages)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from symcal.data import make_dataset, read_table, write_table
+from symcal.errors import DataError
+
+
+def _csv(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "d.csv"
+    path.write_text(text)
+    return path
+
+
+def test_reads_header_and_rows(tmp_path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    cols = read_table(_csv(tmp_path, "t, p1,p2\n0,1.5,2e-3\n1,-1,3\n"))
+    assert list(cols) == ["t", "p1", "p2"]
+    np.testing.assert_array_equal(cols["p2"], [2e-3, 3])
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("", "d.csv: empty file (expected a header row naming the columns)"),
+    ("t,p1\n", "d.csv: no observations (the file has a header but no rows)"),
+    ("t,p1\n0,1\n1,abc\n", "d.csv:3: column 'p1': 'abc' is not a number"),
+    ("t,p1\n0,1\n1,2,3\n", "d.csv:3: row has 3 fields, the header has 2"),
+    ("t,t\n0,1\n", "d.csv:1: column 't' appears twice in the header"),
+])
+def test_malformed_files(tmp_path, monkeypatch, text, message) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(DataError) as err:
+        read_table(_csv(tmp_path, text))
+    assert str(err.value) == message
+
+
+def test_missing_file(tmp_path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(DataError, match="^nope.csv: data file not found$"):
+        read_table("nope.csv")
+
+
+def test_missing_column_suggests() -> None:
+    cols = {"t": np.zeros(2), "p_1": np.zeros(2)}
+    with pytest.raises(DataError) as err:
+        make_dataset("calibration", "d.csv", cols, ["p1"])
+    assert str(err.value) == ("d.csv: missing column 'p1' (did you mean 'p_1'?); "
+                              "the file has: t, p_1")
+
+
+def test_non_finite_rows_refused_or_dropped() -> None:
+    cols = {"p1": np.array([1.0, np.nan, 3.0, np.inf]), "x_ref": np.array([np.nan] * 4)}
+    with pytest.raises(DataError) as err:
+        make_dataset("calibration", "d.csv", cols, ["p1"])
+    assert str(err.value) == ("d.csv: 2 row(s) with NaN or inf in a needed column (lines 3, 5); "
+                              "fix them or pass --drop-invalid to drop them")
+    ds = make_dataset("calibration", "d.csv", cols, ["p1"], drop_invalid=True)
+    assert ds.dropped == 2 and ds.n == 2
+    np.testing.assert_array_equal(ds.columns["p1"], [1.0, 3.0])
+
+
+def test_dataset_is_read_only() -> None:
+    ds = make_dataset("c", "s", {"p1": np.arange(3.0)}, ["p1"])
+    with pytest.raises(ValueError):
+        ds.columns["p1"][0] = 5.0
+    np.testing.assert_array_equal(ds.matrix(["p1", "zz"])[1], [np.nan] * 3)
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".npz"])
+def test_write_read_round_trip(tmp_path, suffix) -> None:
+    rng = np.random.default_rng(0)
+    cols = {"t": np.arange(5.0), "p1": rng.normal(size=5) * 1e-3 + 10.0}
+    path = tmp_path / f"out{suffix}"
+    write_table(path, cols)
+    back = read_table(path)
+    assert list(back) == ["t", "p1"]
+    np.testing.assert_allclose(back["p1"], cols["p1"], rtol=1e-14)
+    assert not list(tmp_path.glob(".*tmp*")), "temporary file left behind"
