@@ -99,17 +99,15 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from symcal.data import atomic_write_text, write_table
     from symcal.simulate import load_scenario, simulate_run, truth
 
-    scenario = load_scenario(args.scenario)
-    runs = list(scenario.runs)
-    if args.run is not None:
-        if args.run not in scenario.runs:
-            from symcal.suggest import did_you_mean
-
-            raise SymcalError(f"--run {args.run}: the scenario has no run '{args.run}'"
-                              f"{did_you_mean(args.run, runs)}; it has: {', '.join(runs)}")
-        runs = [args.run]
     if args.n is not None and args.n < 1:
         raise SymcalError(f"-n {args.n}: the number of samples must be at least 1")
+    if args.seed < 0:
+        raise SymcalError(f"--seed {args.seed}: the seed must not be negative")
+    scenario = load_scenario(args.scenario)
+    runs = list(scenario.run_names)
+    if args.run is not None:
+        scenario.run_index(args.run)  # raises with a did-you-mean for an unknown run
+        runs = [args.run]
     out = Path(args.output)
     if out.suffix.lower() not in (".csv", ".npz"):
         raise SymcalError(f"-o {args.output}: the output must end in .csv or .npz")

@@ -25,16 +25,19 @@ def _table(rows: list[list[str]], align: str) -> list[str]:
 
 
 def _fit_lines(result: Result) -> list[str]:
-    rows = [["dataset", "quantity", "measure", "before", "after", "unit"]]
+    rows = [["dataset", "quantity", "std before", "std after", "mean before", "mean after",
+             "unit"]]
     last = None
     for s in result.statistics:
-        before, after = s.headline
-        measure = "std (mean removed)" if s.remove_mean else "RMS"
+        before, after = s.shown("before"), s.shown("after")
         what = s.name if s.kind == "constraint" else f"{s.name} vs reference"
-        rows.append([s.dataset if s.dataset != last else "", what, measure,
-                     f"{before:.4g}", f"{after:.4g}", s.unit or "(internal)"])
+        tiny = 1e-9 * max(before.std, after.std, 1e-300)
+        means = (["(arbitrary zero)", ""] if s.remove_mean
+                 else [f"{m:.4g}" if abs(m) > tiny else "0" for m in (before.mean, after.mean)])
+        rows.append([s.dataset if s.dataset != last else "", what, f"{before.std:.4g}",
+                     f"{after.std:.4g}", *means, s.unit or "(internal)"])
         last = s.dataset
-    return _table(rows, "lllrrl")
+    return _table(rows, "llrrrrl")
 
 
 def _identifiability_lines(result: Result) -> list[str]:
@@ -83,7 +86,8 @@ def text_report(result: Result) -> str:
               f"{result.iterations} iterations; {result.seconds:.3g} s",
               "", "Identifiability"]
     lines += _identifiability_lines(result)
-    lines += ["", "Fit: initial parameters (before) and estimate (after)"]
+    lines += ["", "Fit: standard deviation and mean of each residual with the initial "
+              "parameters (before) and the estimate (after)"]
     lines += _fit_lines(result)
     lines += ["", "Parameters"]
     lines += _parameter_lines(result)

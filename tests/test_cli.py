@@ -97,3 +97,33 @@ def test_python_dash_m(csvs) -> None:
                            "--quiet"], capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout == ""
+
+
+def test_simulate_then_solve_on_the_files(tmp_path, capsys) -> None:
+    scenario = str(ROOT / "problems" / "scenarios" / "courier_platen.yaml")
+    out = tmp_path / "run.csv"
+    assert main(["simulate", scenario, "-o", str(out), "--seed", "4", "-n", "300"]) == 0
+    assert capsys.readouterr().out.splitlines() == [
+        f"wrote {tmp_path / 'run.calibration.csv'}", f"wrote {tmp_path / 'run.flyby.csv'}",
+        f"wrote {tmp_path / 'run.truth.yaml'}"]
+    import yaml
+
+    truth = yaml.safe_load((tmp_path / "run.truth.yaml").read_text())
+    assert truth["seed"] == 4 and truth["parameters"]["s1.k1"] == 0.017
+    header = (tmp_path / "run.calibration.csv").read_text().splitlines()[0]
+    assert header == "t,p1,p2,p3,p4,x_ref,y_ref,theta_ref"
+    assert main(["solve", PROBLEM, "--json",
+                 "--data", f"calibration={tmp_path}/run.calibration.csv",
+                 "--data", f"flyby={tmp_path}/run.flyby.csv"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [d["n"] for d in doc["datasets"]] == [300, 300]
+
+
+def test_simulate_single_run_and_unknown_run(tmp_path, capsys) -> None:
+    scenario = str(ROOT / "problems" / "scenarios" / "courier_platen.yaml")
+    assert main(["simulate", scenario, "-o", str(tmp_path / "c.csv"), "--run", "flyby",
+                 "-n", "10"]) == 0
+    assert (tmp_path / "c.csv").read_text().count("\n") == 11
+    capsys.readouterr()
+    assert main(["simulate", scenario, "-o", str(tmp_path / "c.csv"), "--run", "flyb"]) == 2
+    assert "no run named 'flyb' (did you mean 'flyby'?)" in capsys.readouterr().err

@@ -33,8 +33,8 @@ class SeriesStats:
     """A constraint residual or a reference comparison on one dataset, before and after.
 
     ``kind`` is ``"constraint"`` (model against itself: the redundancy) or ``"comparison"``
-    (model against an independent reference sensor; ``remove_mean`` says whether its mean,
-    an arbitrary zero, is removed before the spread is taken, as in the paper).
+    (model against an independent reference sensor; ``remove_mean`` says that its mean is
+    an arbitrary zero, e.g. the interferometer's, and carries no information).
     """
 
     name: str
@@ -46,22 +46,18 @@ class SeriesStats:
     after: Spread
     remove_mean: bool = False
 
-    @property
-    def headline(self) -> tuple[float, float]:
-        """The figure a report shows, in the display unit: RMS for constraints, std for
-        comparisons with their mean removed."""
+    def shown(self, which: str) -> Spread:
+        """``before`` or ``after`` in the display unit."""
+        spread = getattr(self, which)
         scale = DISPLAY_UNITS[self.unit]
-        pick = (lambda s: s.std) if self.remove_mean else (lambda s: s.rms)
-        return pick(self.before) / scale, pick(self.after) / scale
+        return Spread(spread.rms / scale, spread.mean / scale, spread.std / scale)
 
     def to_dict(self) -> dict:
         """Plain-data form, values in the display unit."""
-        scale = DISPLAY_UNITS[self.unit]
         return {
             "name": self.name, "kind": self.kind, "dataset": self.dataset,
             "unit": self.unit or "(internal)", "n": self.n, "remove_mean": self.remove_mean,
-            "before": {k: v / scale for k, v in self.before.__dict__.items()},
-            "after": {k: v / scale for k, v in self.after.__dict__.items()},
+            "before": self.shown("before").__dict__, "after": self.shown("after").__dict__,
         }
 
 

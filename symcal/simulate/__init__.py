@@ -1,0 +1,40 @@
+"""Courier simulator: scenario YAML -> synthetic datasets with known truth.
+
+Public API::
+
+    load_scenario(path) -> Scenario
+    simulate_run(scenario, run, seed=0, n=None) -> {column: array}
+    simulate(scenario, seed=0, n=None) -> {run: {column: array}}
+    truth(scenario) -> dict          # true parameters in the calibration models' names
+    noise_floor(scenario) -> dict    # standard deviations noise alone leaves
+"""
+
+from symcal.simulate.courier import (
+    COORDINATION_COLUMNS,
+    PLATEN_COLUMNS,
+    REFERENCE_COLUMNS,
+    SEGMENTS,
+    columns,
+    fourier_error,
+    noise_floor,
+    simulate,
+    simulate_run,
+    truth,
+)
+from symcal.simulate.scenario import Scenario, load_scenario, parse_scenario
+
+__all__ = [
+    "COORDINATION_COLUMNS",
+    "PLATEN_COLUMNS",
+    "REFERENCE_COLUMNS",
+    "SEGMENTS",
+    "Scenario",
+    "columns",
+    "fourier_error",
+    "load_scenario",
+    "noise_floor",
+    "parse_scenario",
+    "simulate",
+    "simulate_run",
+    "truth",
+]
