@@ -31,6 +31,7 @@ def load_datasets(
     problem: Problem,
     overrides: Mapping[str, str | Path] | None = None,
     drop_invalid: bool = False,
+    names: list[str] | None = None,
 ) -> dict[str, Dataset]:
     """Load every dataset of ``problem``, replacing those named in ``overrides``.
 
@@ -42,6 +43,8 @@ def load_datasets(
         Dataset name → CSV/NPZ path (``symcal solve --data NAME=PATH``).
     drop_invalid
         Drop rows with NaN/inf in a needed column instead of refusing the data.
+    names
+        Load only these datasets (default: all of them).
 
     Raises
     ------
@@ -55,8 +58,9 @@ def load_datasets(
                             f"{did_you_mean(name, problem.datasets)}; it has: "
                             f"{', '.join(problem.datasets)}")
     needed = needed_columns(problem)
-    return {name: load_dataset(spec, needed, overrides.get(name), drop_invalid)
-            for name, spec in problem.datasets.items()}
+    wanted = list(problem.datasets) if names is None else names
+    return {name: load_dataset(problem.datasets[name], needed, overrides.get(name), drop_invalid)
+            for name in wanted}
 
 
 def _solve_numerics(problem: Problem, data: Dataset, theta0: np.ndarray,
@@ -100,9 +104,13 @@ def solve(
     data = dict(data or {})
     given = {k: v for k, v in data.items() if isinstance(v, Dataset)}
     paths = {k: v for k, v in data.items() if not isinstance(v, Dataset)}
-    remaining = [k for k in problem.datasets if k not in given]
-    loaded = load_datasets(problem, paths, drop_invalid) if remaining or paths else {}
-    datasets = {k: given.get(k) or loaded[k] for k in problem.datasets}
+    unknown = [k for k in given if k not in problem.datasets]
+    if unknown:
+        raise DataError(f"the problem has no dataset '{unknown[0]}'"
+                        f"{did_you_mean(unknown[0], problem.datasets)}")
+    loaded = load_datasets(problem, paths, drop_invalid,
+                           [k for k in problem.datasets if k not in given])
+    datasets = {k: given[k] if k in given else loaded[k] for k in problem.datasets}
     theta0 = np.array([p.value for p in problem.parameters])
     free = np.array(problem.free)
     out = _solve_numerics(problem, datasets["calibration"], theta0, free)

@@ -140,7 +140,7 @@ class _Scope:
         self.known = known
         self.stack = stack
 
-    def build(self, spec: ExprSpec, owner: str) -> ca.SX:
+    def build(self, spec: ExprSpec) -> ca.SX:
         """Build one expression, reporting errors at its provenance."""
         return expr.to_casadi(spec.node, lambda node: self.lookup(node.name, spec.where))
 
@@ -154,7 +154,7 @@ class _Scope:
                 raise SpecError(where, f"cyclic definition: {' -> '.join(cycle)}")
             self.stack.append(key)
             try:
-                value = self.build(self.defs[name], name)
+                value = self.build(self.defs[name])
             finally:
                 self.stack.pop()
             self.values[name] = value
@@ -256,7 +256,7 @@ class _Builder:
             raise SpecError(where, f"cyclic definition: {' -> '.join(cycle)}")
         self.stack.append(key)
         try:
-            inputs = {k: self.scope.build(b, k) for k, b in inst.bindings.items()}
+            inputs = {k: self.scope.build(b) for k, b in inst.bindings.items()}
         finally:
             self.stack.pop()
         params = {k: self.symbols[f"{inst.name}.{k}"] for k in inst.model.parameters}
@@ -269,7 +269,7 @@ class _Builder:
         for name, inp in model.inputs.items():
             period = None
             if inp.period is not None:
-                value = scope.build(inp.period, name)
+                value = scope.build(inp.period)
                 if not value.is_constant():
                     raise SpecError(inp.period.where, "a period must be a constant expression")
                 period = float(ca.evalf(value))
@@ -286,11 +286,11 @@ class _Builder:
             for k, q in spec.expressions.items()
         )
         constraints = tuple(
-            Quantity(k, self.scope.build(q.expr, k), q.unit, q.sigma, q.doc)
+            Quantity(k, self.scope.build(q.expr), q.unit, q.sigma, q.doc)
             for k, q in spec.constraints.items()
         )
         comparisons = tuple(
-            Comparison(k, self.scope.build(c.estimate, k), self.scope.build(c.reference, k),
+            Comparison(k, self.scope.build(c.estimate), self.scope.build(c.reference),
                        c.unit, c.datasets, c.remove_mean, c.doc)
             for k, c in spec.comparisons.items()
         )
