@@ -1,22 +1,28 @@
-"""The public entry points: load a problem's data, solve it, and analyse the estimate."""
+"""The public entry points: load a problem's data, solve it stage by stage, analyse."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
 
 from symcal.analysis.fit import series_statistics
-from symcal.analysis.identifiability import analyse
+from symcal.analysis.identifiability import analyse, conditioning
 from symcal.data import Dataset, load_dataset
 from symcal.errors import DataError, SolveError
-from symcal.problem import Problem, load_problem
-from symcal.result import DatasetInfo, ParameterResult, Result
+from symcal.problem import Problem, Stage, load_problem
+from symcal.result import ConstraintCost, DatasetInfo, ParameterResult, Result, StageResult
 from symcal.solve.base import SolverOutput
-from symcal.solve.linear import nonlinear_constraints, solve_linear
+from symcal.solve.linear import solve_linear
+from symcal.solve.nlp import solve_ipopt
+from symcal.solve.objective import Objective
+from symcal.spec.common import DISPLAY_UNITS
+from symcal.spec.problem import WEIGHTINGS
 from symcal.spec.yamlio import display_path
 from symcal.suggest import did_you_mean
+
+METHODS = ("auto", "linear", "ipopt")
 
 
 def needed_columns(problem: Problem) -> list[str]:
@@ -63,25 +69,141 @@ def load_datasets(
             for name in wanted}
 
 
-def _solve_numerics(problem: Problem, data: Dataset, theta0: np.ndarray,
-                    free: np.ndarray) -> SolverOutput:
-    if not free.any():
-        raise SolveError("every parameter is fixed: there is nothing to calibrate")
-    nonlinear = nonlinear_constraints(problem, free)
-    if nonlinear:
-        raise SolveError(
-            f"constraint(s) {', '.join(nonlinear)} are not linear in the free parameters; "
-            "this version of symcal solves only problems that are linear in their parameters"
-        )
-    return solve_linear(problem, data, theta0, free)
+def _out_of_bounds(problem: Problem, theta: np.ndarray, free: np.ndarray) -> list[str]:
+    return [p.name for p, v, f in zip(problem.parameters, theta, free, strict=True)
+            if f and not p.lower <= v <= p.upper]
+
+
+def _solve_stage(
+    objective: Objective, data: Dataset, theta: np.ndarray, method: str,
+    progress: Callable[[str], None] | None, label: str, max_iter: int,
+) -> tuple[SolverOutput, list[str]]:
+    nonlinear = objective.nonlinear()
+    notes: list[str] = []
+    if method == "linear" and nonlinear:
+        raise SolveError(f"stage '{label}': method 'linear' was asked for, but constraint(s) "
+                         f"{', '.join(nonlinear)} are not linear in its free parameters")
+    if method == "ipopt" or nonlinear:
+        return solve_ipopt(objective, data, theta, progress, max_iter, label=label), notes
+    out = solve_linear(objective, data, theta)
+    outside = _out_of_bounds(objective.problem, out.theta, objective.free)
+    if outside and method == "auto":
+        notes.append(f"the closed-form estimate put {', '.join(outside)} outside its bounds; "
+                     "solved again with IPOPT, which respects them")
+        return solve_ipopt(objective, data, theta, progress, max_iter, label=label), notes
+    if outside:
+        notes.append(f"{', '.join(outside)} lie(s) outside the bounds: the closed form "
+                     "does not apply bounds")
+    return out, notes
+
+
+def _sqrt_psd(matrix: np.ndarray) -> np.ndarray:
+    """L with L Lᵀ = matrix for a symmetric positive semi-definite matrix."""
+    w, v = np.linalg.eigh((matrix + matrix.T) / 2)
+    return v * np.sqrt(np.clip(w, 0.0, None))[None, :]
+
+
+def _constraint_costs(objective: Objective, data: Dataset, before: np.ndarray,
+                      after: np.ndarray) -> tuple[ConstraintCost, ...]:
+    start, end = objective.cost_terms(data, before), objective.cost_terms(data, after)
+    out = []
+    for name in objective.constraints:
+        q = objective.problem.constraint(name)
+        to_rms = q.sigma / np.sqrt(data.n) / DISPLAY_UNITS[q.unit]
+        out.append(ConstraintCost(name, q.unit, start[name], end[name],
+                                  float(np.sqrt(start[name]) * to_rms),
+                                  float(np.sqrt(end[name]) * to_rms)))
+    return tuple(out)
+
+
+def _reweighted(
+    objective: Objective, first: SolverOutput, data: Dataset, method: str,
+    progress: Callable[[str], None] | None, label: str, max_iter: int,
+) -> tuple[Objective, SolverOutput, str]:
+    """Solve again, weighted by the constraints' covariance estimated from the residuals."""
+    rank = int(np.linalg.matrix_rank(first.r_factor * objective.scales[None, :]))
+    cov = objective.residual_covariance(data, first.theta, rank)
+    w, v = np.linalg.eigh((cov + cov.T) / 2)
+    if w.min() <= 1e-12 * max(w.max(), 1e-300):
+        return objective, first, ("weighting: the constraints' residual covariance is "
+                                  "singular; kept equal weights")
+    whitened = Objective(objective.problem, objective.constraints, objective.free,
+                         (v / np.sqrt(w)[None, :]).T)
+    second, _ = _solve_stage(whitened, data, first.theta, method, progress, label, max_iter)
+    merged = SolverOutput(
+        second.theta, second.free, second.method, second.success, second.status,
+        second.message + "; weighted by the estimated covariance of the constraints",
+        second.r_factor, second.rows, second.rss, first.iterations + second.iterations,
+        first.seconds + second.seconds)
+    problem = objective.problem
+    sizes = []
+    for k, name in enumerate(objective.constraints):
+        q = problem.constraint(name)
+        sizes.append(f"{name} {np.sqrt(cov[k, k]) * q.sigma / DISPLAY_UNITS[q.unit]:.3g} "
+                     f"{q.unit or '(internal)'}")
+    note = ("weighting: solved with equal weights, then again with each observation's "
+            "constraints whitened by their covariance estimated from those residuals "
+            f"(residual std {', '.join(sizes)})")
+    return whitened, merged, note
+
+
+def run_stage(
+    problem: Problem, stage: Stage, data: Dataset, theta: np.ndarray,
+    method: str | None = None, progress: Callable[[str], None] | None = None,
+    max_iter: int = 200, weighting: str | None = None,
+) -> tuple[np.ndarray, StageResult]:
+    """Solve one stage from ``theta`` and analyse its outcome.
+
+    Returns
+    -------
+    (theta, StageResult)
+        The new parameter vector and what happened.
+    """
+    free = np.array([p.name in stage.free for p in problem.parameters])
+    plain = Objective(problem, stage.constraints, free)
+    method = method or stage.method
+    out, notes = _solve_stage(plain, data, theta, method, progress, stage.name, max_iter)
+    objective = plain
+    if (weighting or problem.weighting) == "estimated" and len(stage.constraints) > 1 \
+            and out.success:
+        objective, out, note = _reweighted(plain, out, data, method, progress, stage.name,
+                                           max_iter)
+        notes.append(note)
+    names, scales, idx = objective.names, objective.scales, objective.index
+    meat = None
+    if len(stage.constraints) > 1:
+        rank = int(np.linalg.matrix_rank(out.r_factor * scales[None, :]))
+        cov_g = objective.residual_covariance(data, out.theta, rank)
+        meat = objective.accumulate_r(data, out.theta, _sqrt_psd(cov_g).T)[0]
+    ident, unc = analyse(out.r_factor, out.rows, out.rss, names, scales, out.theta[idx],
+                         meat)
+    r_start = (out.r_factor if out.method == "linear"
+               else objective.accumulate_r(data, theta)[0])
+    moved = np.abs(out.theta[idx] - theta[idx]) > 1e-12 * scales
+    at_bound = [p.name for p in (problem.parameters[i] for i in idx)
+                if min(abs(out.theta[problem.index[p.name]] - b) for b in (p.lower, p.upper))
+                <= 1e-7 * p.scale]
+    result = StageResult(
+        stage.name, stage.doc, out.method, out.success, out.status, out.message,
+        out.iterations, out.seconds, names, _constraint_costs(plain, data, theta, out.theta),
+        tuple(n for n, m in zip(names, moved, strict=True) if not m), tuple(at_bound),
+        conditioning(r_start, out.rows, names, scales),
+        conditioning(out.r_factor, out.rows, names, scales), ident, unc, tuple(notes),
+    )
+    return out.theta, result
 
 
 def solve(
     problem: Problem | str | Path,
     data: Mapping[str, Dataset | str | Path] | None = None,
     drop_invalid: bool = False,
+    method: str | None = None,
+    progress: Callable[[str], None] | None = None,
+    initial: Mapping[str, float] | None = None,
+    max_iter: int = 200,
+    weighting: str | None = None,
 ) -> Result:
-    """Calibrate: estimate the free parameters on the ``calibration`` dataset.
+    """Calibrate: estimate the parameters on the ``calibration`` dataset, stage by stage.
 
     Parameters
     ----------
@@ -92,13 +214,31 @@ def solve(
         given come from the problem's ``datasets`` section.
     drop_invalid
         Drop rows with NaN/inf instead of refusing them.
+    method
+        Override every stage's method: ``"auto"`` (closed form when linear), ``"linear"``
+        or ``"ipopt"``.
+    progress
+        Called with one line per solver iteration (None: silent).
+    initial
+        Initial values by parameter name, replacing those of the problem file.
+    max_iter
+        Iteration limit of each IPOPT stage.
+    weighting
+        Override the problem's ``weighting``: ``"equal"`` or ``"estimated"``.
 
     Returns
     -------
     Result
         Frozen: estimates with standard errors, identifiability (rank, condition number,
-        named null space), and before/after statistics on every dataset.
+        named null space), every stage's report, and before/after statistics on every
+        dataset.  ``success`` is False when a stage failed.
     """
+    if method is not None and method not in METHODS:
+        raise SolveError(f"unknown method '{method}'{did_you_mean(method, METHODS)}; "
+                         f"methods: {', '.join(METHODS)}")
+    if weighting is not None and weighting not in WEIGHTINGS:
+        raise SolveError(f"unknown weighting '{weighting}'{did_you_mean(weighting, WEIGHTINGS)}"
+                         f"; choose from: {', '.join(WEIGHTINGS)}")
     if not isinstance(problem, Problem):
         problem = load_problem(problem)
     data = dict(data or {})
@@ -111,31 +251,49 @@ def solve(
     loaded = load_datasets(problem, paths, drop_invalid,
                            [k for k in problem.datasets if k not in given])
     datasets = {k: given[k] if k in given else loaded[k] for k in problem.datasets}
-    theta0 = np.array([p.value for p in problem.parameters])
-    free = np.array(problem.free)
-    out = _solve_numerics(problem, datasets["calibration"], theta0, free)
-    return _result(problem, datasets, theta0, out)
+    theta0 = _initial(problem, initial or {})
+    theta = theta0
+    stages: list[StageResult] = []
+    for stage in problem.stages:
+        theta, result = run_stage(problem, stage, datasets["calibration"], theta, method,
+                                  progress, max_iter, weighting)
+        stages.append(result)
+        if not result.success:
+            break
+    return _result(problem, datasets, theta0, theta, tuple(stages))
+
+
+def _initial(problem: Problem, initial: Mapping[str, float]) -> np.ndarray:
+    theta = np.array([p.value for p in problem.parameters])
+    names = problem.parameter_names
+    for name, value in initial.items():
+        if name not in problem.index:
+            raise SolveError(f"initial value for unknown parameter '{name}'"
+                             f"{did_you_mean(name, names)}")
+        theta[problem.index[name]] = float(value)
+    return theta
 
 
 def _result(problem: Problem, datasets: dict[str, Dataset], theta0: np.ndarray,
-            out: SolverOutput) -> Result:
-    idx = np.flatnonzero(out.free)
-    free_names = tuple(problem.parameters[i].name for i in idx)
-    scales = np.array([problem.parameters[i].scale for i in idx])
-    ident, unc = analyse(out.r_factor, out.rows, out.rss, free_names, scales, out.theta[idx])
+            theta: np.ndarray, stages: tuple[StageResult, ...]) -> Result:
+    last = stages[-1]
     params = tuple(
-        ParameterResult(p.name, float(out.theta[i]), p.value, p.unit, p.fixed,
-                        unc.se.get(p.name), unc.reason.get(p.name, "fixed" if p.fixed else None),
+        ParameterResult(p.name, float(theta[i]), float(theta0[i]), p.unit, p.fixed,
+                        last.uncertainty.se.get(p.name),
+                        last.uncertainty.reason.get(p.name, _no_se_reason(p.name, p.fixed,
+                                                                          last)),
                         p.lower, p.upper, p.doc)
         for i, p in enumerate(problem.parameters)
     )
-    stats, notes = series_statistics(problem, datasets, theta0, out.theta)
-    notes = list(notes)
-    for p in params:
-        if not p.fixed and not p.lower <= p.value <= p.upper:
-            notes.append(f"parameter '{p.name}' = {p.value:.6g} lies outside its bounds "
-                         f"[{p.lower:g}, {p.upper:g}]: the closed form does not apply bounds")
+    stats, notes = series_statistics(problem, datasets, theta0, theta)
     infos = tuple(DatasetInfo(d.name, d.source, d.n, d.dropped) for d in datasets.values())
-    return Result(problem.name, display_path(problem.path), out.method, out.success,
-                  out.status, out.message, out.iterations, out.seconds, params, ident, unc,
-                  stats, infos, tuple(notes))
+    return Result(problem.name, display_path(problem.path), stages, params,
+                  last.identifiability, last.uncertainty, stats, infos, tuple(notes))
+
+
+def _no_se_reason(name: str, fixed: bool, last: StageResult) -> str | None:
+    if fixed:
+        return "fixed"
+    if name not in last.free:
+        return f"not free in the last stage ('{last.name}')"
+    return None

@@ -45,7 +45,16 @@ def _parser() -> argparse.ArgumentParser:
     solve.add_argument("--out", metavar="DIR", help="write result.json and report.txt to DIR")
     solve.add_argument("--drop-invalid", action="store_true",
                        help="drop rows with NaN/inf instead of refusing the data")
-    solve.add_argument("--quiet", action="store_true", help="print nothing on success")
+    solve.add_argument("--method", choices=["auto", "linear", "ipopt"],
+                       help="solve every stage with this method (default: each stage's own, "
+                            "auto = closed form when linear)")
+    solve.add_argument("--weighting", choices=["equal", "estimated"],
+                       help="weights of the constraints in the cost (default: the problem's; "
+                            "estimated = by their residual covariance)")
+    solve.add_argument("--max-iter", type=int, default=200, metavar="N",
+                       help="iteration limit of IPOPT stages (default 200)")
+    solve.add_argument("--quiet", action="store_true",
+                       help="no progress on stderr and no report on success")
     solve.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                        help=argparse.SUPPRESS)
 
@@ -59,6 +68,10 @@ def _parser() -> argparse.ArgumentParser:
     sim.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                      help=argparse.SUPPRESS)
     return parser
+
+
+def _progress(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 def _inputs_of(args: argparse.Namespace) -> set[Path]:
@@ -78,7 +91,11 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     for name, _ in args.data:
         if list(data).count(name) > 1:
             raise SymcalError(f"--data {name}=... given twice")
-    result = solve(problem, data, drop_invalid=args.drop_invalid)
+    if args.max_iter < 1:
+        raise SymcalError(f"--max-iter {args.max_iter}: must be at least 1")
+    progress = None if args.quiet else _progress
+    result = solve(problem, data, drop_invalid=args.drop_invalid, method=args.method,
+                   progress=progress, max_iter=args.max_iter, weighting=args.weighting)
     text, doc = result.report(), json_report(result)
     if args.out:
         out = Path(args.out)
@@ -87,7 +104,7 @@ def _cmd_solve(args: argparse.Namespace) -> int:
             if target.resolve() in inputs:
                 raise SymcalError(f"--out {args.out}: refusing to overwrite input file {target}")
             atomic_write_text(target, doc if target.suffix == ".json" else text)
-    if not args.quiet:
+    if not args.quiet or not result.success:
         sys.stdout.write(doc if args.json else text)
         if args.out and not args.json:
             sys.stdout.write(f"\nwrote {Path(args.out) / 'result.json'} and "

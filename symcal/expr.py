@@ -26,7 +26,7 @@ import math
 import operator
 import re
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import casadi
@@ -341,6 +341,28 @@ def names(node: Node) -> list[Name]:
     if isinstance(node, Call):
         return [n for arg in node.args for n in names(arg)]
     return []
+
+
+def rename(node: Node, new_name: Callable[[str], str]) -> Node:
+    """Return ``node`` with every Name ``n`` replaced by ``new_name(n)``.
+
+    Parameters
+    ----------
+    node
+        The AST (not modified).
+    new_name
+        Maps an old symbol name to the new one.
+    """
+    if isinstance(node, Name):
+        return replace(node, name=new_name(node.name))
+    if isinstance(node, Unary):
+        return replace(node, operand=rename(node.operand, new_name))
+    if isinstance(node, Binary):
+        return replace(node, left=rename(node.left, new_name),
+                       right=rename(node.right, new_name))
+    if isinstance(node, Call):
+        return replace(node, args=tuple(rename(a, new_name) for a in node.args))
+    return node
 
 
 # ----------------------------------------------------------------------------- backends

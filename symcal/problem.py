@@ -8,6 +8,7 @@ constants, parameters, expressions, data columns and dotted instance signals (``
 
 from __future__ import annotations
 
+import fnmatch
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,6 +62,17 @@ class Comparison:
     doc: str
 
 
+@dataclass(frozen=True)
+class Stage:
+    """One step of a calibration: constraints used and parameters freed (by name)."""
+
+    name: str
+    constraints: tuple[str, ...]
+    free: tuple[str, ...]
+    method: str = "auto"
+    doc: str = ""
+
+
 @dataclass(frozen=True, eq=False)
 class Problem:
     """A calibration problem in symbolic form.
@@ -85,6 +97,12 @@ class Problem:
         Estimates to compare with a reference sensor.
     datasets
         Where each named dataset comes from.
+    stages
+        The ordered steps of the calibration (one stage over everything by default).
+    weighting
+        ``"equal"``: the cost is Σ (g/σ)² as written; ``"estimated"``: each stage with
+        several constraints is solved again, weighted by the inverse of their covariance
+        estimated from the residuals (feasible generalised least squares).
     """
 
     name: str
@@ -99,6 +117,8 @@ class Problem:
     signals: tuple[Quantity, ...]
     comparisons: tuple[Comparison, ...]
     datasets: dict[str, DatasetSpec]
+    stages: tuple[Stage, ...]
+    weighting: str
     index: dict[str, int] = field(repr=False)
 
     @property
@@ -110,6 +130,10 @@ class Problem:
     def free(self) -> tuple[bool, ...]:
         """Which parameters are free (not fixed)."""
         return tuple(not p.fixed for p in self.parameters)
+
+    def constraint(self, name: str) -> Quantity:
+        """The constraint called ``name``."""
+        return next(c for c in self.constraints if c.name == name)
 
     def columns_of(self, sx: ca.SX) -> list[str]:
         """Data columns an expression depends on, in ``u`` order."""
@@ -178,6 +202,9 @@ def _model_scope(
     defs.update({k: o.expr for k, o in model.outputs.items()})
 
     def fallback(name: str, where: Where, _stack: list[str]) -> None:
+        if name.startswith("base."):
+            raise SpecError(where, f"'{name}': model '{model.name}' does not redefine "
+                                   f"'{name[5:]}' of a model it extends")
         if "." in name:
             raise SpecError(where, f"'{name}': a model refers only to its own symbols; dotted "
                                    "names (instance.output) belong in problem files")
@@ -213,8 +240,9 @@ class _Builder:
         self.scope = _Scope("", values, defs, self._fallback, self._known, self.stack)
 
     def _add_parameter(self, name: str, p: ParameterSpec) -> None:
+        scale = p.scale if p.scale is not None else (abs(p.value) or 1.0)
         self.parameters.append(Parameter(name, p.value, p.unit, p.lower, p.upper, p.fixed,
-                                         p.scale, p.doc, p.where))
+                                         scale, p.doc, p.where))
         self.symbols[name] = ca.SX.sym(name)
 
     def _known(self) -> list[str]:
@@ -306,8 +334,29 @@ class _Builder:
         return Problem(
             spec.name, spec.doc, spec.path, tuple(self.parameters), theta, columns, u,
             constraints, expressions, signals, comparisons, dict(spec.datasets),
-            {p.name: i for i, p in enumerate(self.parameters)},
+            self._stages(), spec.weighting, {p.name: i for i, p in enumerate(self.parameters)},
         )
+
+    def _stages(self) -> tuple[Stage, ...]:
+        names = [p.name for p in self.parameters]
+        fixed = {p.name for p in self.parameters if p.fixed}
+        if not self.spec.stages:
+            free = tuple(n for n in names if n not in fixed)
+            return (Stage("calibration", tuple(self.spec.constraints), free),)
+        stages = []
+        for st in self.spec.stages:
+            chosen: list[str] = []
+            for pattern, where in st.free:
+                matched = [n for n in names if fnmatch.fnmatchcase(n, pattern)]
+                if not matched:
+                    raise SpecError(where, f"'{pattern}' matches no parameter"
+                                           f"{did_you_mean(pattern, names)}")
+                chosen += [n for n in matched if n not in chosen]
+            free = tuple(n for n in names if n in chosen and n not in fixed)
+            if not free:
+                raise SpecError(st.where, f"stage '{st.name}' frees only fixed parameters")
+            stages.append(Stage(st.name, st.constraints, free, st.method, st.doc))
+        return tuple(stages)
 
 
 def build_problem(spec: ProblemSpec) -> Problem:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
+
 from symcal.result import Result
 
 
@@ -40,6 +42,40 @@ def _fit_lines(result: Result) -> list[str]:
     return _table(rows, "llrrrrl")
 
 
+def _names(names: tuple[str, ...], limit: int = 8) -> str:
+    shown = ", ".join(names[:limit])
+    return shown + (f", ... ({len(names)} in all)" if len(names) > limit else "")
+
+
+def _stage_lines(result: Result) -> list[str]:
+    lines: list[str] = []
+    for k, st in enumerate(result.stages, start=1):
+        state = "" if st.success else "  *** FAILED ***"
+        lines.append(f"  {k}. {st.name}: {st.method}{state}" + (f" ({st.doc})" if st.doc else ""))
+        lines.append(f"     {st.message}; status {st.status}; {len(st.free)} free "
+                     f"parameters; {st.iterations} iterations; {st.seconds:.3g} s")
+        lines.append(f"     cost Σ(g/σ)²: {st.cost_before:.6g} → {st.cost_after:.6g}")
+        for c in st.costs:
+            lines.append(f"       {c.name}: RMS {c.rms_before:.4g} → {c.rms_after:.4g} "
+                         f"{c.unit or '(internal)'}")
+        before, after = st.conditioning_before, st.conditioning_after
+        lines.append(f"     condition number of the cost's Hessian (identifiable part, "
+                     f"parameters in their scales): {before.condition_number:.3g} at the "
+                     f"start, {after.condition_number:.3g} at the end")
+        for combo, rel in after.near_null:
+            lines.append(f"       nearly flat: {combo.text}  (singular value {rel:.2g} of "
+                         "the largest)")
+        if st.identifiability.deficiency:
+            lines.append(f"     {st.identifiability.deficiency} direction(s) not "
+                         "identifiable (listed below for the last stage)")
+        if st.unmoved:
+            lines.append(f"     did not move: {_names(st.unmoved)}")
+        if st.at_bound:
+            lines.append(f"     at a bound: {_names(st.at_bound)}")
+        lines += [f"     note: {n}" for n in st.notes]
+    return lines
+
+
 def _identifiability_lines(result: Result) -> list[str]:
     ident = result.identifiability
     lines = [f"  rank {ident.rank} of {ident.n_free} free parameters; condition number of "
@@ -56,6 +92,21 @@ def _identifiability_lines(result: Result) -> list[str]:
             unit = {units[n] for n in c.coefficients}
             shown = f" {unit.pop()}" if len(unit) == 1 else ""
             lines.append(f"    {c.text} = {_num(c.value)} ± {_num(c.se, '.2g')}{shown}")
+    return lines
+
+
+def _correlation_lines(result: Result, limit: float = 0.99, most: int = 8) -> list[str]:
+    unc = result.uncertainty
+    corr, names = unc.correlation, unc.names
+    pairs = [(abs(corr[i, j]), names[i], names[j], corr[i, j])
+             for i in range(len(names)) for j in range(i + 1, len(names))
+             if np.isfinite(corr[i, j]) and abs(corr[i, j]) > limit]
+    if not pairs:
+        return [f"  no pair of estimates is correlated beyond |ρ| = {limit}"]
+    pairs.sort(reverse=True)
+    lines = [f"  {a} ~ {b}: ρ = {rho:+.4f}" for _, a, b, rho in pairs[:most]]
+    if len(pairs) > most:
+        lines.append(f"  ... {len(pairs) - most} more pairs beyond |ρ| = {limit}")
     return lines
 
 
@@ -79,18 +130,18 @@ def text_report(result: Result) -> str:
     lines += _table([[d.name, f"{d.n} observations", d.source
                       + (f" ({d.dropped} invalid rows dropped)" if d.dropped else "")]
                      for d in result.datasets], "lrl")
-    n_free = result.identifiability.n_free
-    lines += ["", "Solver",
-              f"  {result.method}: {result.message}",
-              f"  status: {result.status}; {n_free} free parameters; "
-              f"{result.iterations} iterations; {result.seconds:.3g} s",
-              "", "Identifiability"]
+    lines += ["", "Stages (each starts from the previous estimate)"]
+    lines += _stage_lines(result)
+    lines += ["", f"Identifiability (last stage, '{result.stages[-1].name}')"]
     lines += _identifiability_lines(result)
     lines += ["", "Fit: standard deviation and mean of each residual with the initial "
               "parameters (before) and the estimate (after)"]
     lines += _fit_lines(result)
-    lines += ["", "Parameters"]
+    lines += ["", "Parameters (standard errors from the Jacobian at the estimate, scaled by "
+              "the residual variance)"]
     lines += _parameter_lines(result)
+    lines += ["", "Strongly correlated estimates"]
+    lines += _correlation_lines(result)
     if result.notes:
         lines += ["", "Notes"] + [f"  - {n}" for n in result.notes]
     return "\n".join(lines) + "\n"

@@ -8,7 +8,7 @@ from types import MappingProxyType
 from typing import Any
 
 from symcal.analysis.fit import SeriesStats
-from symcal.analysis.identifiability import Identifiability, Uncertainty
+from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
 
 
 @dataclass(frozen=True)
@@ -56,28 +56,99 @@ class DatasetInfo:
     dropped: int
 
 
-@dataclass(frozen=True, eq=False)
-class Result:
-    """A calibration result.
+@dataclass(frozen=True)
+class ConstraintCost:
+    """One constraint's share of a stage's cost before and after the stage.
 
-    Use ``.params`` for the estimated values by name, ``.report()`` for the table a person
-    reads and ``.to_dict()`` for the machine-readable document (``symcal solve --json``).
+    ``cost_*`` is Σ (g/σ)²; ``rms_*`` is the RMS of g in the constraint's display unit.
     """
 
-    problem: str
-    problem_path: str
+    name: str
+    unit: str
+    cost_before: float
+    cost_after: float
+    rms_before: float
+    rms_after: float
+
+
+@dataclass(frozen=True, eq=False)
+class StageResult:
+    """The outcome of one stage of a calibration."""
+
+    name: str
+    doc: str
     method: str
     success: bool
     status: str
     message: str
     iterations: int
     seconds: float
+    free: tuple[str, ...]
+    costs: tuple[ConstraintCost, ...]
+    unmoved: tuple[str, ...]
+    at_bound: tuple[str, ...]
+    conditioning_before: Conditioning
+    conditioning_after: Conditioning
+    identifiability: Identifiability
+    uncertainty: Uncertainty
+    notes: tuple[str, ...] = ()
+
+    @property
+    def cost_before(self) -> float:
+        """Total cost Σ (g/σ)² at the stage's start."""
+        return sum(c.cost_before for c in self.costs)
+
+    @property
+    def cost_after(self) -> float:
+        """Total cost Σ (g/σ)² at the stage's end."""
+        return sum(c.cost_after for c in self.costs)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form."""
+        return {
+            "name": self.name, "doc": self.doc, "method": self.method,
+            "success": self.success, "status": self.status, "message": self.message,
+            "iterations": self.iterations, "seconds": self.seconds, "free": list(self.free),
+            "costs": [c.__dict__ for c in self.costs],
+            "cost_before": self.cost_before, "cost_after": self.cost_after,
+            "unmoved": list(self.unmoved), "at_bound": list(self.at_bound),
+            "hessian_conditioning": {"before": self.conditioning_before.to_dict(),
+                                     "after": self.conditioning_after.to_dict()},
+            "identifiability": self.identifiability.to_dict(),
+            "notes": list(self.notes),
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class Result:
+    """A calibration result.
+
+    Use ``.params`` for the estimated values by name, ``.report()`` for the table a person
+    reads and ``.to_dict()`` for the machine-readable document (``symcal solve --json``).
+    ``identifiability`` and ``uncertainty`` are those of the last stage; each stage's own
+    are in ``stages``.  ``success`` is False when a stage failed: the estimate is then the
+    failed stage's last iterate and later stages did not run.
+    """
+
+    problem: str
+    problem_path: str
+    stages: tuple[StageResult, ...]
     parameters: tuple[ParameterResult, ...]
     identifiability: Identifiability
     uncertainty: Uncertainty
     statistics: tuple[SeriesStats, ...]
     datasets: tuple[DatasetInfo, ...]
     notes: tuple[str, ...]
+
+    @property
+    def success(self) -> bool:
+        """Whether every stage succeeded."""
+        return all(st.success for st in self.stages)
+
+    @property
+    def method(self) -> str:
+        """The methods of the stages, e.g. ``"linear"`` or ``"linear+linear+ipopt"``."""
+        return "+".join(st.method for st in self.stages)
 
     @property
     def params(self) -> MappingProxyType:
@@ -96,9 +167,9 @@ class Result:
         return {
             "symcal_result": 1,
             "problem": self.problem, "problem_path": self.problem_path,
-            "solver": {"method": self.method, "success": self.success, "status": self.status,
-                       "message": self.message, "iterations": self.iterations,
-                       "seconds": self.seconds},
+            "solver": {"method": self.method, "success": self.success,
+                       "seconds": sum(st.seconds for st in self.stages)},
+            "stages": [st.to_dict() for st in self.stages],
             "datasets": [d.__dict__ for d in self.datasets],
             "parameters": [p.to_dict() for p in self.parameters],
             "identifiability": self.identifiability.to_dict(),

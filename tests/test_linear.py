@@ -12,6 +12,7 @@ from conftest import ROOT, basis, courier_data
 import symcal
 from symcal.data import make_dataset
 from symcal.errors import SolveError
+from symcal.solve.objective import Objective
 
 PROBLEM = ROOT / "problems" / "platen_self_calibration.yaml"
 NOISE = 0.5e-3
@@ -45,7 +46,7 @@ def solved() -> tuple[symcal.Result, dict, np.ndarray]:
 def test_method_is_closed_form(solved) -> None:
     result, _, _ = solved
     assert result.method == "linear"
-    assert result.iterations == 0
+    assert [st.iterations for st in result.stages] == [0]
     assert result.success
 
 
@@ -137,14 +138,17 @@ def _variant(tmp_path: Path, extra: str, constraint: str) -> Path:
 BASE_G = "(s1.p_hat - s3.p_hat) - (s2.p_hat - s4.p_hat)"
 
 
-def test_nonlinear_constraint_is_refused_by_name(tmp_path: Path, true_k) -> None:
+def test_nonlinear_constraint_goes_to_ipopt(tmp_path: Path, true_k) -> None:
     path = _variant(tmp_path, "", BASE_G + " + s1.k1*s2.k1")
     problem = symcal.load_problem(path)
+    free = np.ones(len(problem.parameters), dtype=bool)
+    assert Objective(problem, ("g",), free).nonlinear() == ["g"]
+    result = symcal.solve(problem, _data(true_k, 300, flyby=False))
+    assert result.method == "ipopt" and result.success
     with pytest.raises(SolveError) as err:
-        symcal.solve(problem, _data(true_k, 300, flyby=False))
-    assert str(err.value) == (
-        "constraint(s) g are not linear in the free parameters; this version of symcal "
-        "solves only problems that are linear in their parameters")
+        symcal.solve(problem, _data(true_k, 300, flyby=False), method="linear")
+    assert str(err.value) == ("stage 'calibration': method 'linear' was asked for, but "
+                              "constraint(s) g are not linear in its free parameters")
 
 
 def test_linear_in_free_parameters_when_partner_fixed(tmp_path: Path, true_k) -> None:

@@ -172,6 +172,7 @@ def analyse(
     names: tuple[str, ...],
     scales: np.ndarray,
     values: np.ndarray,
+    meat: np.ndarray | None = None,
 ) -> tuple[Identifiability, Uncertainty]:
     """Identifiability and uncertainty from the R factor of the weighted Jacobian.
 
@@ -185,6 +186,11 @@ def analyse(
         Weighted residual sum of squares at the estimate.
     names, scales, values
         Free parameters' names, nominal scales and estimated values.
+    meat
+        For several constraints: ``M`` with ``MᵀM = Σ_i J_iᵀ S J_i``, S the estimated
+        covariance between the constraints of one observation.  The covariance is then
+        the sandwich ``(JᵀJ)⁺ MᵀM (JᵀJ)⁺``, right when the constraints have different
+        noise levels or are correlated; without it, ``s² (JᵀJ)⁺`` with one pooled s².
     """
     n = len(names)
     d = np.asarray(scales, dtype=float)
@@ -200,7 +206,12 @@ def analyse(
     dof = rows - rank
     variance = rss / dof if dof > 0 else float("nan")
     vr = v[:, :rank] / s[:rank][None, :]
-    cov = variance * (d[:, None] * vr) @ (d[:, None] * vr).T
+    pinv = (d[:, None] * vr) @ (d[:, None] * vr).T  # (JᵀJ)⁺ in parameter units
+    if meat is None:
+        cov = variance * pinv
+    else:
+        half = meat @ pinv
+        cov = half.T @ half
     in_null = np.any(null_rows != 0, axis=0) if rank < n else np.zeros(n, dtype=bool)
     se: dict[str, float | None] = {}
     reason: dict[str, str] = {}
@@ -216,10 +227,9 @@ def analyse(
             se[name] = float(np.sqrt(max(cov[i, i], 0.0)))
     combos: list[Combination] = []
     for group in _groups(null_rows):
-        sub = null_rows[:, group]
-        _, sg, vtg = np.linalg.svd(sub)
+        _, sg, vtg = np.linalg.svd(null_rows[:, group])
         k = int(np.sum(sg > 1e-9 * max(1.0, sg[0] if sg.size else 1.0)))
-        for c in vtg[k:]:
+        for c in _rref_rows(vtg[k:]):
             full = np.zeros(n)
             full[group] = c
             coeffs = _named(full, names)
@@ -236,3 +246,65 @@ def analyse(
     ident = Identifiability(n, rank, tuple(float(x) for x in s), cond, null_space, tuple(combos))
     unc = Uncertainty(variance, dof, names, se, reason, cov, corr)
     return ident, unc
+
+
+@dataclass(frozen=True)
+class Conditioning:
+    """How well-conditioned the cost's (Gauss-Newton) Hessian 2·JᵀJ is at one point.
+
+    ``condition_number`` is over the identifiable subspace, with parameters measured in
+    units of their nominal scale (exact null directions are reported by
+    :class:`Identifiability`).  ``near_null`` names the flattest directions that make it
+    large, in the parameters' own units (moving each parameter by its coefficient), each
+    with its singular value relative to the largest.
+    """
+
+    condition_number: float
+    deficiency: int
+    near_null: tuple[tuple[Combination, float], ...]
+
+    def to_dict(self) -> dict:
+        """Plain-data form."""
+        return {"condition_number": self.condition_number, "null_directions": self.deficiency,
+                "near_null": [{"direction": c.text, "coefficients": c.coefficients,
+                               "relative_singular_value": s} for c, s in self.near_null]}
+
+
+def conditioning(
+    r_factor: np.ndarray, rows: int, names: tuple[str, ...], scales: np.ndarray,
+    count: int = 3, threshold: float = 1e-3, terms: int = 6,
+) -> Conditioning:
+    """Condition number of the Hessian from R (``JᵀJ = RᵀR``) and its near-null directions.
+
+    Parameters
+    ----------
+    count
+        At most this many near-null directions are named.
+    threshold
+        A direction is near-null when its singular value is below ``threshold`` times the
+        largest (its Hessian eigenvalue below ``threshold²``).
+    terms
+        At most this many parameters are named per direction (the largest coefficients;
+        ``+ ...`` marks the rest).
+    """
+    if not names:
+        return Conditioning(float("nan"), 0, ())
+    _, s, vt = np.linalg.svd(r_factor * np.asarray(scales)[None, :])
+    rank = int(np.sum(s > rank_tolerance(s, rows)))
+    if rank == 0:
+        return Conditioning(float("inf"), len(names), ())
+    cond = float((s[0] / s[rank - 1]) ** 2)
+    near = []
+    for k in range(rank - 1, max(rank - 1 - count, -1), -1):
+        rel = float(s[k] / s[0])
+        if rel >= threshold:
+            break
+        v = np.asarray(scales) * vt[k]
+        v = v / np.max(np.abs(v))
+        order = [i for i in np.argsort(-np.abs(v)) if abs(v[i]) >= 0.1][:terms]
+        coeffs = {names[i]: float(round(v[i], 2)) for i in order}
+        text = format_combination(coeffs)
+        if np.sum(np.abs(v) >= 0.1) > terms or np.any((np.abs(v) > 0.01) & (np.abs(v) < 0.1)):
+            text += " + ..."
+        near.append((Combination(coeffs, text), rel))
+    return Conditioning(cond, len(names) - rank, tuple(near))

@@ -87,7 +87,11 @@ class ConstantSpec:
 
 @dataclass(frozen=True)
 class ParameterSpec:
-    """A named parameter: initial value, unit, bounds, fixed flag, nominal scale."""
+    """A named parameter: initial value, unit, bounds, fixed flag, nominal scale.
+
+    ``scale`` is the parameter's nominal magnitude (None: not stated); it makes parameters
+    of different units commensurate for the solver and the identifiability analysis.
+    """
 
     name: str
     value: float
@@ -95,7 +99,7 @@ class ParameterSpec:
     lower: float
     upper: float
     fixed: bool
-    scale: float
+    scale: float | None
     doc: str
     where: Where
 
@@ -130,10 +134,10 @@ def parse_parameter(name: str, value: Any, where: Where) -> ParameterSpec:
     expect_name(name, where, "a parameter's name")
     if not isinstance(value, dict):
         number = expect_number(value, where)
-        return ParameterSpec(name, number, "", -math.inf, math.inf, False, 1.0, "", where)
+        return ParameterSpec(name, number, "", -math.inf, math.inf, False, None, "", where)
     entry = check_keys(value, where, optional=PARAMETER_KEYS)
     return apply_parameter_overrides(
-        ParameterSpec(name, 0.0, "", -math.inf, math.inf, False, 1.0, "", where), entry, where
+        ParameterSpec(name, 0.0, "", -math.inf, math.inf, False, None, "", where), entry, where
     )
 
 

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from symcal.errors import Where
+from symcal import expr
+from symcal.errors import SpecError, Where
 from symcal.spec.common import (
     ConstantSpec,
     ExprSpec,
@@ -18,9 +19,10 @@ from symcal.spec.common import (
     section,
 )
 from symcal.spec.fields import check_keys, child_where, expect_name, expect_str
-from symcal.spec.yamlio import load_yaml
+from symcal.spec.yamlio import display_path, load_yaml
 
-MODEL_KEYS = ["doc", "constants", "inputs", "parameters", "expressions", "outputs"]
+MODEL_KEYS = ["doc", "extends", "constants", "inputs", "parameters", "expressions", "outputs"]
+BASE = "base."  # prefix under which an extending model sees the definitions it overrides
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,7 @@ class ModelSpec:
     expressions: dict[str, ExprSpec]
     outputs: dict[str, OutputSpec]
     where: Where
+    extends: ModelSpec | None = None
 
 
 def _parse_input(name: str, value: Any, where: Where) -> InputSpec:
@@ -84,8 +87,68 @@ def _parse_output(name: str, value: Any, where: Where) -> OutputSpec:
     )
 
 
-def load_model(path: str | Path) -> ModelSpec:
+def _shift_base(spec: ExprSpec) -> ExprSpec:
+    """Push a parent's own ``base.X`` references one level down (``base.base.X``)."""
+    node = expr.rename(spec.node, lambda n: BASE + n if n.startswith(BASE) else n)
+    return replace(spec, node=node)
+
+
+def _merge_definitions(
+    parent: dict[str, ExprSpec], child: dict[str, ExprSpec]
+) -> dict[str, ExprSpec]:
+    """Parent definitions overridden by the child move to ``base.NAME``."""
+    merged: dict[str, ExprSpec] = {}
+    for name, spec in parent.items():
+        key = BASE + name if name.startswith(BASE) else name
+        merged[key] = _shift_base(spec)
+    for name in child:
+        if name in merged:
+            merged[BASE + name] = merged.pop(name)
+    merged.update(child)
+    return merged
+
+
+def _extend(parent: ModelSpec, child: ModelSpec) -> ModelSpec:
+    """The model ``child`` declares on top of ``parent`` (see :func:`load_model`)."""
+    for name, inp in child.inputs.items():
+        if name in parent.inputs:
+            raise SpecError(inp.where, f"input '{name}' is already declared by the extended "
+                                       f"model '{parent.name}'")
+    parent_exprs = dict(parent.expressions)
+    parent_exprs.update({k: o.expr for k, o in parent.outputs.items()})
+    child_exprs = dict(child.expressions)
+    child_exprs.update({k: o.expr for k, o in child.outputs.items()})
+    merged = _merge_definitions(parent_exprs, child_exprs)
+    outputs = {**parent.outputs, **child.outputs}
+    outputs = {k: replace(o, expr=merged[k]) for k, o in outputs.items()}
+    expressions = {k: v for k, v in merged.items() if k not in outputs}
+    model = ModelSpec(
+        child.name, child.doc or parent.doc, child.path,
+        {**parent.constants, **child.constants}, {**parent.inputs, **child.inputs},
+        {**parent.parameters, **child.parameters}, expressions, outputs, child.where, parent,
+    )
+    _check_sections(model)
+    return model
+
+
+def _check_sections(model: ModelSpec) -> None:
+    """A name may be defined in one section only."""
+    check_unique({
+        sect: [(k, v.where) for k, v in group.items() if not k.startswith(BASE)]
+        for sect, group in (("constants", model.constants), ("inputs", model.inputs),
+                            ("parameters", model.parameters),
+                            ("expressions", model.expressions), ("outputs", model.outputs))
+    })
+
+
+def load_model(path: str | Path, _chain: tuple[Path, ...] = ()) -> ModelSpec:
     """Load and validate one sensor model file.
+
+    A model may ``extends: other.yaml`` (relative to it): it inherits the other model's
+    constants, inputs, parameters, expressions and outputs, adds its own, and may
+    redefine constants, parameters, expressions and outputs.  A redefined expression can
+    refer to the definition it replaces as ``base.NAME``, e.g. ``e: base.e + k9*sin(f*q)``;
+    the inherited definitions that use ``NAME`` (such as ``p_hat: p + e``) see the new one.
 
     Parameters
     ----------
@@ -119,11 +182,21 @@ def load_model(path: str | Path) -> ModelSpec:
     for key in expressions:
         expect_name(key, expressions[key].where, "an expression's name")
     outputs = entries("outputs", _parse_output)
-    check_unique({
-        sect: [(k, v.where) for k, v in group.items()]
-        for sect, group in (("constants", constants), ("inputs", inputs),
-                            ("parameters", parameters), ("expressions", expressions),
-                            ("outputs", outputs))
-    })
-    return ModelSpec(name, text, path.resolve(), constants, inputs, parameters, expressions,
-                     outputs, where)
+    for key in expressions:
+        if key.startswith(BASE):
+            raise SpecError(expressions[key].where, f"'{key}' cannot be defined: 'base.' "
+                                                    "names refer to an extended model")
+    model = ModelSpec(name, text, path.resolve(), constants, inputs, parameters, expressions,
+                      outputs, where)
+    _check_sections(model)
+    if "extends" not in doc:
+        return model
+    at = child_where(doc, where, "extends")
+    parent_path = (path.parent / expect_str(doc["extends"], at)).resolve()
+    chain = (*_chain, path.resolve())
+    if parent_path in chain:
+        names = " -> ".join(display_path(p) for p in (*chain, parent_path))
+        raise SpecError(at, f"models extend each other in a cycle: {names}")
+    if not parent_path.exists():
+        raise SpecError(at, f"model file not found: {display_path(parent_path)}")
+    return _extend(load_model(parent_path, chain), model)

@@ -33,7 +33,10 @@ from symcal.spec.model import ModelSpec, load_model
 from symcal.spec.yamlio import YMap, display_path, load_yaml
 from symcal.suggest import did_you_mean
 
-PROBLEM_KEYS = ["doc", "constants", "parameters", "columns", "expressions", "comparisons"]
+PROBLEM_KEYS = ["doc", "constants", "parameters", "columns", "expressions", "comparisons",
+                "stages", "weighting"]
+METHODS = ("auto", "linear", "ipopt")
+WEIGHTINGS = ("equal", "estimated")
 
 #: The courier data contract (DESIGN.md): column → (unit, doc).
 COURIER_COLUMNS: dict[str, tuple[str, str]] = {
@@ -120,6 +123,18 @@ class DatasetSpec:
 
 
 @dataclass(frozen=True)
+class StageSpec:
+    """One step of a staged calibration: which constraints, which parameters free."""
+
+    name: str
+    constraints: tuple[str, ...]
+    free: tuple[tuple[str, Where], ...]
+    method: str
+    doc: str
+    where: Where
+
+
+@dataclass(frozen=True)
 class ProblemSpec:
     """A calibration problem as declared in YAML."""
 
@@ -134,6 +149,8 @@ class ProblemSpec:
     constraints: dict[str, QuantitySpec]
     datasets: dict[str, DatasetSpec]
     comparisons: dict[str, ComparisonSpec]
+    stages: tuple[StageSpec, ...]
+    weighting: str
     where: Where
 
 
@@ -259,6 +276,53 @@ def _parse_dataset(name: str, value: Any, where: Where, base: Path) -> DatasetSp
     return DatasetSpec(name, None, scenario, run, seed, n, _doc(entry, where), where)
 
 
+def _parse_stage(index: int, value: Any, where: Where, constraints: dict) -> StageSpec:
+    entry = check_keys(value, where, required=["name", "constraints", "free"],
+                       optional=["method", "doc"])
+    name = expect_name(entry["name"], child_where(entry, where, "name"), "a stage's name")
+    at = child_where(entry, where, "constraints")
+    items = expect_list(entry["constraints"], at)
+    if not items:
+        raise SpecError(at, "a stage needs at least one constraint")
+    names = []
+    for i, item in enumerate(items):
+        item_at = child_where(items, at, i)
+        if item not in constraints:
+            raise SpecError(item_at, f"unknown constraint '{item}'"
+                                     f"{did_you_mean(str(item), constraints)}; "
+                                     f"constraints: {', '.join(constraints)}")
+        names.append(item)
+    at = child_where(entry, where, "free")
+    items = expect_list(entry["free"], at)
+    if not items:
+        raise SpecError(at, "a stage needs at least one free parameter (a name or a pattern)")
+    free = tuple((expect_str(v, child_where(items, at, i)), child_where(items, at, i))
+                 for i, v in enumerate(items))
+    method = "auto"
+    if "method" in entry:
+        at = child_where(entry, where, "method")
+        method = expect_str(entry["method"], at)
+        if method not in METHODS:
+            raise SpecError(at, f"unknown method '{method}'{did_you_mean(method, METHODS)}; "
+                                f"methods: {', '.join(METHODS)}")
+    return StageSpec(name, tuple(names), free, method, _doc(entry, where), where)
+
+
+def _parse_stages(doc: YMap, where: Where, constraints: dict) -> tuple[StageSpec, ...]:
+    if "stages" not in doc:
+        return ()
+    at = child_where(doc, where, "stages")
+    items = expect_list(doc["stages"], at)
+    stages = tuple(_parse_stage(i, v, child_where(items, at, i), constraints)
+                   for i, v in enumerate(items))
+    seen: set[str] = set()
+    for stage in stages:
+        if stage.name in seen:
+            raise SpecError(stage.where, f"stage '{stage.name}' is defined twice")
+        seen.add(stage.name)
+    return stages
+
+
 def _parse_column(name: str, value: Any, where: Where) -> ColumnSpec:
     expect_name(name, where, "a column's name")
     entry = check_keys(value, where, optional=["unit", "doc"])
@@ -322,5 +386,15 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
                             ("parameters", parameters), ("instances", instances),
                             ("expressions", expressions), ("constraints", constraints))
     })
+    stages = _parse_stages(doc, where, constraints)
+    weighting = "equal"
+    if "weighting" in doc:
+        at = child_where(doc, where, "weighting")
+        weighting = expect_str(doc["weighting"], at)
+        if weighting not in WEIGHTINGS:
+            raise SpecError(at, f"unknown weighting '{weighting}'"
+                                f"{did_you_mean(weighting, WEIGHTINGS)}; "
+                                f"choose from: {', '.join(WEIGHTINGS)}")
     return ProblemSpec(name, _doc(doc, where), path, constants, parameters, columns, instances,
-                       expressions, constraints, datasets, comparisons, where)
+                       expressions, constraints, datasets, comparisons, stages, weighting,
+                       where)

@@ -1,0 +1,295 @@
+"""Nonlinear path: minimise Σ (g/σ)² with IPOPT through ``casadi.nlpsol``.
+
+* Derivatives are exact: the Jacobian of the one-observation residual comes from CasADi's
+  AD, evaluated over all observations with a serial ``map``, chunk by chunk.
+* IPOPT receives the Gauss-Newton Hessian 2·JᵀJ, what a least-squares problem needs to
+  converge in few iterations.  Jᵀg and JᵀJ are accumulated with BLAS per chunk, so no
+  N × n Jacobian is stored and the expression graph never grows with N.
+* Cost, gradient and Hessian reach IPOPT through CasADi callbacks that share one
+  evaluation per iterate; line-search trials evaluate residuals only.
+* IPOPT works on x = θ_free / scale (each parameter's nominal magnitude), with bounds.
+* A failed solve returns its last iterate, marked failed; it is never a silent success.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+import casadi as ca
+import numpy as np
+
+from symcal.data import Dataset
+from symcal.solve.base import SolverOutput
+from symcal.solve.objective import Objective
+
+#: IPOPT's return statuses in words; the boolean says whether the estimate can be used.
+PRINT_LEVEL = 0
+#: Converged when a Gauss-Newton step would lower the cost by less than this fraction.
+GN_DECREMENT = 1e-14
+STATUS_WORDS: dict[str, tuple[bool, str]] = {
+    "Gauss_Newton_Converged": (True, "converged: a Gauss-Newton step would lower the cost "
+                                     f"by less than {GN_DECREMENT:g} of itself"),
+    "Solve_Succeeded": (True, "converged to the requested tolerance"),
+    "Solved_To_Acceptable_Level": (True, "converged to the acceptable (looser) tolerance"),
+    "Search_Direction_Becomes_Too_Small": (
+        True, "stopped: the steps became too small to change the estimate"),
+    "Maximum_Iterations_Exceeded": (False, "stopped: iteration limit reached before "
+                                           "convergence"),
+    "Maximum_CpuTime_Exceeded": (False, "stopped: time limit reached before convergence"),
+    "Maximum_WallTime_Exceeded": (False, "stopped: time limit reached before convergence"),
+    "Diverging_Iterates": (False, "failed: the iterates diverged"),
+    "Invalid_Number_Detected": (False, "failed: a residual or derivative became NaN or inf"),
+    "Restoration_Failed": (False, "failed: no acceptable step could be found"),
+    "Error_In_Step_Computation": (False, "failed: the step could not be computed"),
+    "Infeasible_Problem_Detected": (False, "failed: the bounds cannot be satisfied"),
+    "User_Requested_Stop": (False, "stopped by the user"),
+    "NonIpopt_Exception_Thrown": (False, "failed: an evaluation raised an error"),
+}
+
+
+class _Oracle:
+    """Cost, gradient and Gauss-Newton Hessian of the scaled problem, cached per iterate."""
+
+    def __init__(self, objective: Objective, dataset: Dataset, theta0: np.ndarray) -> None:
+        self.objective = objective
+        self.dataset = dataset
+        self.base = np.array(theta0, dtype=float)
+        self.index = objective.index
+        self.scales = objective.scales
+        self.key: bytes | None = None
+        self.terms: tuple[float, np.ndarray, np.ndarray] | None = None
+        self.costs: dict[bytes, float] = {}
+        self.cost_scale = 1.0
+        self.evaluations = 0
+
+    def theta(self, x: np.ndarray) -> np.ndarray:
+        theta = self.base.copy()
+        theta[self.index] = self.scales * x
+        return theta
+
+    def cost(self, x: np.ndarray) -> float:
+        key = x.tobytes()
+        if key == self.key and self.terms is not None:
+            return self.terms[0] / self.cost_scale
+        if key not in self.costs:
+            if len(self.costs) > 64:
+                self.costs.clear()
+            self.costs[key] = self.objective.cost(self.dataset, self.theta(x))
+        return self.costs[key] / self.cost_scale
+
+    def _terms(self, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        key = x.tobytes()
+        if key != self.key:
+            self.evaluations += 1
+            cost, jtg, jtj = self.objective.normal_equations(self.dataset, self.theta(x))
+            self.key, self.terms = key, (cost, jtg, jtj)
+        assert self.terms is not None
+        return self.terms
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        _, jtg, _ = self._terms(x)
+        return 2 * self.scales * jtg / self.cost_scale
+
+    def hessian(self, x: np.ndarray) -> np.ndarray:
+        _, _, jtj = self._terms(x)
+        return 2 * self.scales[:, None] * jtj * self.scales[None, :] / self.cost_scale
+
+    def decrement(self, x: np.ndarray) -> float:
+        """Fraction of the cost a Gauss-Newton step from ``x`` would remove."""
+        cost, jtg, jtj = self._terms(x)
+        d = self.scales
+        step = np.linalg.lstsq(d[:, None] * jtj * d[None, :], d * jtg, rcond=1e-13)[0]
+        return float((d * jtg) @ step / cost) if cost > 0 else 0.0
+
+
+class _Call(ca.Callback):
+    """A CasADi function of x (n) evaluated by a Python method of the oracle."""
+
+    def __init__(self, name: str, n: int, shape: tuple[int, int],
+                 fn: Callable[[np.ndarray], float | np.ndarray],
+                 gradient: _Call | None = None) -> None:
+        ca.Callback.__init__(self)
+        self.n, self.shape, self.fn, self.gradient = n, shape, fn, gradient
+        self.construct(name, {"enable_fd": False})
+
+    def has_jacobian(self) -> bool:
+        return self.gradient is not None
+
+    def get_jacobian(self, name: str, inames: list, onames: list, opts: dict) -> ca.Function:
+        x, out = ca.MX.sym("x", self.n), ca.MX.sym("out", *self.shape)
+        assert self.gradient is not None
+        return ca.Function(name, [x, out], [self.gradient(x).T], inames, onames, opts)
+
+    def get_n_in(self) -> int:
+        return 1
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self.n)
+
+    def get_sparsity_out(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(*self.shape)
+
+    def eval(self, arg: list) -> list:
+        return [ca.DM(np.reshape(self.fn(np.array(arg[0]).ravel()), self.shape))]
+
+
+class _Progress(ca.Callback):
+    """IPOPT iteration callback: reports progress and keeps the last iterate."""
+
+    def __init__(self, n: int, report: Callable[[str], None] | None, cost_scale: float,
+                 label: str, converged: Callable[[np.ndarray], bool]) -> None:
+        ca.Callback.__init__(self)
+        self.converged = converged
+        self.stopped = False
+        self.n = n
+        self.report = report
+        self.cost_scale = cost_scale
+        self.label = label
+        self.iteration = 0
+        self.last_x: np.ndarray | None = None
+        self.construct("progress", {})
+
+    def get_n_in(self) -> int:
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i: int) -> str:
+        return "ret"
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        name = ca.nlpsol_out(i)
+        if name == "f":
+            return ca.Sparsity.scalar()
+        if name in ("x", "lam_x"):
+            return ca.Sparsity.dense(self.n)
+        return ca.Sparsity(0, 0)
+
+    def eval(self, arg: list) -> list:
+        x = np.array(arg[0]).ravel()
+        step = float("nan") if self.last_x is None else float(np.linalg.norm(x - self.last_x))
+        if self.report is not None:
+            cost = float(arg[1]) * self.cost_scale
+            self.report(f"  {self.label}: iteration {self.iteration:3d}  cost {cost:.6e}  "
+                        f"step {step:.3e} (scaled)")
+        self.last_x = x
+        self.iteration += 1
+        self.stopped = self.converged(x)
+        return [1 if self.stopped else 0]
+
+
+def _ipopt_round(
+    oracle: _Oracle, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+    progress: Callable[[str], None] | None, max_iter: int, tol: float, label: str,
+) -> tuple[np.ndarray, dict, _Progress]:
+    """One IPOPT run on the cost normalised by its value at ``x0``."""
+    n = len(x0)
+    cost0 = oracle.cost(x0) * oracle.cost_scale
+    oracle.cost_scale = cost0 if cost0 > 0 and math.isfinite(cost0) else 1.0
+    gradient = _Call("ls_gradient", n, (n, 1), oracle.gradient)
+    calls = [_Call("ls_cost", n, (1, 1), oracle.cost, gradient), gradient,
+             _Call("ls_gauss_newton", n, (n, n), oracle.hessian)]
+    x = ca.MX.sym("x", n)
+    lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", 0, 1)
+    empty = ca.MX.sym("p", 0, 1)
+    callback = _Progress(n, progress, oracle.cost_scale, label,
+                         lambda z: oracle.decrement(z) < GN_DECREMENT)
+    opts = {
+        "grad_f": ca.Function("grad_f", [x, empty], [calls[0](x), calls[1](x)]),
+        "hess_lag": ca.Function("hess_lag", [x, empty, lam_f, lam_g],
+                                [ca.triu(lam_f * calls[2](x))]),
+        "iteration_callback": callback,
+        "error_on_fail": False,
+        "print_time": False,
+        "ipopt": {"print_level": PRINT_LEVEL, "sb": "yes", "max_iter": max_iter, "tol": tol,
+                  "acceptable_tol": 1e-6, "acceptable_iter": 5},
+    }
+    solver = ca.nlpsol("symcal", "ipopt", {"x": x, "p": empty, "f": calls[0](x)}, opts)
+    sol = solver(x0=x0, lbx=lower, ubx=upper)
+    x_opt = np.array(sol["x"]).ravel()
+    if not np.all(np.isfinite(x_opt)) and callback.last_x is not None:
+        x_opt = callback.last_x
+    return x_opt, solver.stats(), callback
+
+
+def solve_ipopt(
+    objective: Objective,
+    dataset: Dataset,
+    theta0: np.ndarray,
+    progress: Callable[[str], None] | None = None,
+    max_iter: int = 200,
+    tol: float = 1e-8,
+    label: str = "ipopt",
+    max_rounds: int = 4,
+) -> SolverOutput:
+    """Minimise the objective with IPOPT (Gauss-Newton Hessian), from ``theta0``.
+
+    Convergence is tested after every iteration as a least-squares solver should: stop
+    when a Gauss-Newton step would lower the cost by less than ``GN_DECREMENT`` of itself
+    (scale-free; IPOPT's own optimality tolerance cannot be met on costs that are flat to
+    machine precision along near-null directions).  If IPOPT stops on its own tolerance,
+    which is relative to the cost at the start of the run, after lowering the cost more
+    than twofold, it is run again from its result, renormalised (at most ``max_rounds``
+    runs; every iteration counts against ``max_iter``).
+
+    Parameters
+    ----------
+    objective
+        Constraints and free parameters.
+    dataset
+        Observations to solve on.
+    theta0
+        Initial values of all parameters (fixed ones stay).
+    progress
+        Called with one line per iteration (None: silent).
+    max_iter, tol
+        Iteration limit over all runs, and IPOPT's tolerance.
+    label
+        Name shown in progress lines.
+
+    Returns
+    -------
+    SolverOutput
+        ``method == "ipopt"``; ``success`` False with the last iterate when IPOPT failed.
+    """
+    start = time.perf_counter()
+    problem = objective.problem
+    idx, scales = objective.index, objective.scales
+    oracle = _Oracle(objective, dataset, theta0)
+    params = [problem.parameters[i] for i in idx]
+    lower = np.array([q.lower / s for q, s in zip(params, scales, strict=True)])
+    upper = np.array([q.upper / s for q, s in zip(params, scales, strict=True)])
+    x = np.asarray(theta0, dtype=float)[idx] / scales
+    iterations, rounds = 0, 0
+    while True:
+        before = oracle.cost(x) * oracle.cost_scale
+        x, stats, callback = _ipopt_round(oracle, x, lower, upper, progress,
+                                          max_iter - iterations, tol, label)
+        iterations += int(stats.get("iter_count", callback.iteration))
+        rounds += 1
+        status = str(stats.get("return_status", "unknown"))
+        if callback.stopped and status == "User_Requested_Stop":
+            status = "Gauss_Newton_Converged"
+        ok, words = STATUS_WORDS.get(status, (bool(stats.get("success")), status))
+        after = oracle.cost(x) * oracle.cost_scale
+        if (not ok or status == "Gauss_Newton_Converged" or rounds >= max_rounds
+                or iterations >= max_iter or not after < 0.5 * before):
+            break
+    theta = oracle.theta(x)
+    r, c, tail, rows = objective.accumulate_r(dataset, theta)
+    rss = float(np.sum(c**2) + tail)
+    if not math.isfinite(rss):
+        ok, words = False, "failed: the cost is not finite at the last iterate"
+    runs = f" ({rounds} runs)" if rounds > 1 else ""
+    return SolverOutput(theta, objective.free.copy(), "ipopt", ok, status,
+                        f"IPOPT with a Gauss-Newton Hessian{runs}: {words}", r, rows, rss,
+                        iterations, time.perf_counter() - start)

@@ -1,0 +1,221 @@
+"""Dual-sensor calibration (§3.2): IPOPT path, stages, uncertainty, failure handling."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+import symcal
+from symcal.cli import main
+from symcal.data import make_dataset
+from symcal.problem import build_problem
+from symcal.simulate import load_scenario, simulate_run, truth
+from symcal.spec.problem import load_problem_spec
+
+DUAL = ROOT / "problems" / "dual_sensor_calibration.yaml"
+PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"
+SCENARIO = ROOT / "problems" / "scenarios" / "courier_dual.yaml"
+MOUNT = ("cs.h", "l_x", "l_y")
+UM = 1e-3
+
+
+def _paper_scenario(n: int = 1000):
+    """The paper's synthetic test: model-consistent data, 1 µm noise on every reading."""
+    sc = load_scenario(SCENARIO)
+    platen = dataclasses.replace(sc.platen, distortion_at="reading", geometry="small_angle",
+                                 noise=1e-3, quantization=0.0)
+    coord = dataclasses.replace(sc.coordination, noise=1e-3 / sc.coordination.h)
+    return dataclasses.replace(sc, platen=platen, coordination=coord)
+
+
+def _data(scenario, seed: int, n: int | None = None) -> dict[str, symcal.Dataset]:
+    return {name: make_dataset(name, "simulated", simulate_run(scenario, name, seed, n), [])
+            for name in ("calibration", "flyby")}
+
+
+def _true_values(scenario) -> dict[str, float]:
+    values = dict(truth(scenario)["parameters"])
+    values["cs.h"] = values.pop("h")
+    return values
+
+
+def _single_stage():
+    return build_problem(dataclasses.replace(load_problem_spec(DUAL), stages=()))
+
+
+def _paper_start(true: dict[str, float], seed: int) -> dict[str, float]:
+    """5 % error on the coordination parameters, 3 µm random error on the platen's."""
+    rng = np.random.default_rng(seed)
+    start = {}
+    for name, value in true.items():
+        if name.startswith("s"):
+            start[name] = value + rng.normal(0, 3 * UM)
+        else:
+            start[name] = value * (1 + 0.05 * rng.choice([-1, 1]))
+    return start
+
+
+REPEATS = 16
+
+
+@pytest.fixture(scope="module")
+def repeated() -> tuple[list[symcal.Result], dict[str, float]]:
+    """The paper's synthetic experiment, repeated with 16 noise seeds and starts."""
+    scenario = _paper_scenario()
+    true = _true_values(scenario)
+    problem = _single_stage()
+    results = [symcal.solve(problem, _data(scenario, seed=200 + k),
+                            initial=_paper_start(true, seed=300 + k), weighting="estimated")
+               for k in range(REPEATS)]
+    return results, true
+
+
+@pytest.fixture(scope="module")
+def paper_result(repeated) -> tuple[symcal.Result, dict[str, float]]:
+    results, true = repeated
+    return results[0], true
+
+
+def _rms_error(results: list[symcal.Result], true: dict[str, float], name: str) -> float:
+    return float(np.sqrt(np.mean([(r.params[name] - true[name]) ** 2 for r in results])))
+
+
+def test_paper_claim_mounting_within_20_um(repeated) -> None:
+    """The paper: h, l_x, l_y within 20 µm.  Over 16 repetitions the RMS error of h and
+    l_y is well below 20 µm (measured 3.4 and 7.3 µm; with the paper's equal weights
+    16.6 and 24.1 µm).  l_x cannot be promised within 20 µm on this design: the platen's
+    angle noise (0.1 mrad) acts through the 90 mm lever, so its standard error is about
+    20 µm whatever the weighting (measured RMS 21.9 µm); the test bounds it at 25 µm."""
+    results, true = repeated
+    assert all(r.success and r.method == "ipopt" for r in results)
+    assert _rms_error(results, true, "cs.h") < 10 * UM
+    assert _rms_error(results, true, "l_y") < 15 * UM
+    assert _rms_error(results, true, "l_x") < 25 * UM
+
+
+def test_paper_claim_rest_within_1_um(repeated) -> None:
+    """k1..k10 of every segment within 1 µm in every repetition."""
+    results, true = repeated
+    for result in results:
+        rest = [p for p in result.parameters if p.se is not None and p.name.startswith("s")]
+        assert len(rest) == 40
+        worst = max(abs(p.value - true[p.name]) for p in rest)
+        assert worst < 1 * UM, worst
+
+
+def test_paper_experiment_within_four_standard_errors(paper_result) -> None:
+    result, true = paper_result
+    for p in result.parameters:
+        if p.se is not None:
+            assert abs(p.value - true[p.name]) < 4 * p.se, (p.name, p.value, true[p.name])
+    for combo in result.identifiability.identifiable_combinations:
+        value = sum(c * true[name] for name, c in combo.coefficients.items())
+        assert abs(combo.value - value) < 4 * combo.se, combo.text
+
+
+def test_standard_errors_match_monte_carlo_spread(repeated) -> None:
+    """Predicted standard errors against the spread of the 16 repeated calibrations.
+
+    With 16 repetitions the sample standard deviation itself scatters by about 18 %;
+    the ratio must lie within [0.5, 1.7] (beyond 3 of those standard deviations).
+    """
+    results, true = repeated
+    for name in ("cs.h", "l_x", "l_y", "s1.k1", "s2.k9", "s3.k10"):
+        spread = _rms_error(results, true, name)
+        predicted = float(np.sqrt(np.mean([r.uncertainty.se[name] ** 2 for r in results])))
+        assert 0.5 < spread / predicted < 1.7, (name, spread, predicted)
+
+
+def test_null_space_of_the_dual_problem(paper_result) -> None:
+    result, _ = paper_result
+    assert [c.text for c in result.identifiability.null_space] == [
+        "s1.k0 + s3.k0 + o_x", "s2.k0 + s4.k0 + o_y"]
+    assert [c.text for c in result.identifiability.identifiable_combinations] == [
+        "s1.k0 - o_x", "s3.k0 - o_x", "s2.k0 - o_y", "s4.k0 - o_y"]
+
+
+def test_staged_solve_reports_every_stage() -> None:
+    scenario = _paper_scenario()
+    result = symcal.solve(symcal.load_problem(DUAL), _data(scenario, seed=7))
+    assert [(st.name, st.method) for st in result.stages] == [
+        ("platen", "linear"), ("coordination", "linear"), ("full", "ipopt")]
+    assert all(st.success for st in result.stages)
+    platen, coordination, full = result.stages
+    assert [c.name for c in platen.costs] == ["g_p"]
+    assert [c.name for c in coordination.costs] == ["g_x", "g_y"]
+    assert coordination.cost_after < coordination.cost_before
+    assert full.cost_after <= full.cost_before
+    assert len(full.free) == 49
+    # the stage fixing the platen must leave it untouched; the first stage the mounting
+    assert set(coordination.unmoved) == set()
+    assert result.stages[0].free == tuple(f"s{i}.k{j}" for i in range(1, 5) for j in range(9))
+    assert full.conditioning_before.condition_number > 1e6
+    true = _true_values(scenario)
+    for name in MOUNT:
+        assert abs(result.params[name] - true[name]) < 4 * result.uncertainty.se[name]
+
+
+def test_linear_problem_same_estimate_through_both_paths() -> None:
+    problem = symcal.load_problem(PLATEN)
+    linear = symcal.solve(problem, method="linear")
+    ipopt = symcal.solve(problem, method="ipopt")
+    assert (linear.method, ipopt.method) == ("linear", "ipopt")
+    a = np.array(list(linear.params.values()))
+    b = np.array(list(ipopt.params.values()))
+    np.testing.assert_allclose(b, a, rtol=0, atol=1e-9)
+    assert ipopt.stages[0].cost_after == pytest.approx(linear.stages[0].cost_after, rel=1e-9)
+
+
+def test_failed_solve_is_marked_with_last_iterate(capsys) -> None:
+    scenario = _paper_scenario()
+    data = _data(scenario, seed=8)
+    result = symcal.solve(symcal.load_problem(DUAL), data, max_iter=1)
+    full = result.stages[-1]
+    assert not result.success and not full.success
+    assert full.status == "Maximum_Iterations_Exceeded"
+    assert full.message == ("IPOPT with a Gauss-Newton Hessian: stopped: iteration limit "
+                            "reached before convergence")
+    assert full.iterations == 1
+    assert full.cost_after < full.cost_before  # the last iterate, not the start
+    assert "*** FAILED ***" in result.report()
+
+
+def test_cli_failed_solve_exits_1_and_prints_report(capsys) -> None:
+    code = main(["solve", str(DUAL), "--max-iter", "1", "--quiet"])
+    out = capsys.readouterr()
+    assert code == 1
+    assert "3. full: ipopt  *** FAILED ***" in out.out
+    assert out.err == ""
+
+
+def test_cli_progress_on_stderr_and_json_on_stdout(capsys) -> None:
+    assert main(["solve", str(DUAL), "--json"]) == 0
+    out = capsys.readouterr()
+    assert "  full: iteration   0  cost " in out.err
+    doc = json.loads(out.out)
+    assert [s["name"] for s in doc["stages"]] == ["platen", "coordination", "full"]
+    full = doc["stages"][2]
+    assert full["method"] == "ipopt" and full["status"] == "Gauss_Newton_Converged"
+    assert {c["name"] for c in full["costs"]} == {"g_x", "g_y", "g_p"}
+    assert full["hessian_conditioning"]["before"]["condition_number"] > 1e6
+    assert set(doc["uncertainty"]["correlation"]["names"]) >= {"cs.h", "l_x"}
+
+
+def test_parameter_at_bound_is_reported(tmp_path) -> None:
+    text = DUAL.read_text().replace("parameters: {h: {value: 52.5}}",
+                                    "parameters: {h: {value: 48, upper: 49.5}}")
+    text = text.replace("../models/", f"{ROOT.as_posix()}/models/").replace(
+        "scenarios/", f"{ROOT.as_posix()}/problems/scenarios/")
+    path = tmp_path / "bounded.yaml"
+    path.write_text(text)
+    result = symcal.solve(symcal.load_problem(path), _data(_paper_scenario(), seed=9))
+    coordination = result.stages[1]
+    assert coordination.method == "ipopt"
+    assert coordination.notes[0] == ("the closed-form estimate put cs.h outside its bounds; "
+                                     "solved again with IPOPT, which respects them")
+    assert "cs.h" in coordination.at_bound
+    assert result.params["cs.h"] == pytest.approx(49.5, abs=1e-6)
