@@ -301,10 +301,10 @@ def conditioning(
             break
         v = np.asarray(scales) * vt[k]
         v = v / np.max(np.abs(v))
-        order = [i for i in np.argsort(-np.abs(v)) if abs(v[i]) >= 0.1][:terms]
-        coeffs = {names[i]: float(round(v[i], 2)) for i in order}
+        order = [i for i in np.argsort(-np.abs(v)) if abs(v[i]) >= 0.01][:terms]
+        coeffs = {names[i]: float(f"{v[i]:.2g}") for i in order}
         text = format_combination(coeffs)
-        if np.sum(np.abs(v) >= 0.1) > terms or np.any((np.abs(v) > 0.01) & (np.abs(v) < 0.1)):
+        if np.sum(np.abs(v) >= 0.01) > terms:
             text += " + ..."
         near.append((Combination(coeffs, text), rel))
     return Conditioning(cond, len(names) - rank, tuple(near))
