@@ -9,6 +9,7 @@ import numpy as np
 
 from symcal.analysis.fit import series_statistics
 from symcal.analysis.identifiability import analyse, conditioning
+from symcal.analysis.implicit import implicit_checks
 from symcal.data import Dataset, load_dataset
 from symcal.errors import DataError, SolveError
 from symcal.problem import Problem, Stage, load_problem
@@ -84,6 +85,12 @@ def _solve_stage(
         raise SolveError(f"stage '{label}': method 'linear' was asked for, but constraint(s) "
                          f"{', '.join(nonlinear)} are not linear in its free parameters")
     if method == "ipopt" or nonlinear:
+        twin = objective.problem.explicit
+        if nonlinear and method == "auto" and twin is not None:
+            explicit = Objective(twin, objective.constraints, objective.free)
+            if not explicit.nonlinear():
+                theta = solve_linear(explicit, data, theta).theta
+                notes.append("IPOPT started from the explicit model's closed-form estimate")
         return solve_ipopt(objective, data, theta, progress, max_iter, label=label), notes
     out = solve_linear(objective, data, theta)
     outside = _out_of_bounds(objective.problem, out.theta, objective.free)
@@ -286,9 +293,15 @@ def _result(problem: Problem, datasets: dict[str, Dataset], theta0: np.ndarray,
         for i, p in enumerate(problem.parameters)
     )
     stats, notes = series_statistics(problem, datasets, theta0, theta)
+    checks = implicit_checks(problem, datasets, theta)
+    notes = list(notes) + [
+        f"'{c.name}' is not a contraction on dataset '{c.dataset}': max |dF/dx| = "
+        f"{c.contraction:.3g} >= 1, so its fixed-point steps do not converge and the result "
+        "is not to be trusted (the errors are too large for this form of the model)"
+        for c in checks if not c.contracts]
     infos = tuple(DatasetInfo(d.name, d.source, d.n, d.dropped) for d in datasets.values())
     return Result(problem.name, display_path(problem.path), stages, params,
-                  last.identifiability, last.uncertainty, stats, infos, tuple(notes))
+                  last.identifiability, last.uncertainty, stats, infos, tuple(notes), checks)
 
 
 def _no_se_reason(name: str, fixed: bool, last: StageResult) -> str | None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import fnmatch
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import casadi as ca
@@ -18,6 +18,7 @@ import casadi as ca
 from symcal import expr
 from symcal.errors import SpecError, Where
 from symcal.spec.common import ExprSpec, ParameterSpec, apply_parameter_overrides
+from symcal.spec.model import ImplicitSpec
 from symcal.spec.problem import DatasetSpec, InstanceSpec, ProblemSpec, load_problem_spec
 from symcal.suggest import did_you_mean
 
@@ -62,6 +63,20 @@ class Comparison:
     doc: str
 
 
+@dataclass(frozen=True, eq=False)
+class ImplicitOutput:
+    """A definition solved by fixed-point steps ``x = F(x)``, with what checks it.
+
+    ``derivative`` is ∂F/∂x at the final iterate (the map contracts where |·| < 1);
+    ``last_step`` is the change made by the last step (how far from converged).
+    """
+
+    name: str
+    steps: int
+    derivative: ca.SX
+    last_step: ca.SX
+
+
 @dataclass(frozen=True)
 class Stage:
     """One step of a calibration: constraints used and parameters freed (by name)."""
@@ -103,6 +118,12 @@ class Problem:
         ``"equal"``: the cost is Σ (g/σ)² as written; ``"estimated"``: each stage with
         several constraints is solved again, weighted by the inverse of their covariance
         estimated from the residuals (feasible generalised least squares).
+    implicit
+        Definitions solved by fixed-point steps, with their convergence checks.
+    explicit
+        When there are implicit definitions: the same problem with zero steps each (each
+        one equal to its start: the explicit model), used to start the solver from a
+        closed-form estimate.
     """
 
     name: str
@@ -120,6 +141,8 @@ class Problem:
     stages: tuple[Stage, ...]
     weighting: str
     index: dict[str, int] = field(repr=False)
+    implicit: tuple[ImplicitOutput, ...] = ()
+    explicit: Problem | None = field(default=None, repr=False)
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -156,6 +179,8 @@ class _Scope:
         fallback: Callable[[str, Where, list[str]], ca.SX | None],
         known: Callable[[], list[str]],
         stack: list[str],
+        implicit: dict[str, ImplicitSpec] | None = None,
+        explicit: bool = False,
     ) -> None:
         self.label = label
         self.values = dict(values)
@@ -163,6 +188,10 @@ class _Scope:
         self.fallback = fallback
         self.known = known
         self.stack = stack
+        self.implicit = implicit or {}
+        self.explicit = explicit
+        self.unknowns: dict[str, ca.SX] = {}
+        self.solved: list[ImplicitOutput] = []
 
     def build(self, spec: ExprSpec) -> ca.SX:
         """Build one expression, reporting errors at its provenance."""
@@ -171,6 +200,10 @@ class _Scope:
     def lookup(self, name: str, where: Where) -> ca.SX:
         if name in self.values:
             return self.values[name]
+        if name in self.unknowns:
+            return self.unknowns[name]
+        if name in self.implicit and name in self.defs:
+            return self._solve_implicit(name, where)
         if name in self.defs:
             key = f"{self.label}{name}"
             if key in self.stack:
@@ -190,8 +223,45 @@ class _Scope:
         raise SpecError(where, f"unknown symbol '{name}'{did_you_mean(name, pool)}")
 
 
+    def _solve_implicit(self, name: str, where: Where) -> ca.SX:
+        """Unroll ``x = F(x)`` from its start; memoised intermediates get the final x."""
+        spec = self.implicit[name]
+        key = f"{self.label}{name}"
+        if key in self.stack:
+            cycle = self.stack[self.stack.index(key):] + [key]
+            raise SpecError(where, f"cyclic definition: {' -> '.join(cycle)}")
+        start = self.build(spec.start)
+        unknown = ca.SX.sym(key)
+        if ca.depends_on(start, unknown):  # pragma: no cover - a fresh symbol
+            raise SpecError(spec.where, f"the start of '{name}' refers to '{name}' itself")
+        known_before = set(self.values)
+        self.unknowns[name] = unknown
+        outer, self.stack = self.stack, [key]  # definitions in progress outside are rebuilt
+        try:                                   # here in terms of the unknown
+            fmap = self.build(self.defs[name])
+        finally:
+            self.stack = outer
+            del self.unknowns[name]
+        if not ca.depends_on(fmap, unknown):
+            raise SpecError(spec.where, f"'{name}' is declared implicit but its definition "
+                                        "does not refer to itself")
+        steps = 0 if self.explicit else spec.steps
+        iterates = [start]
+        for _ in range(steps):
+            iterates.append(ca.substitute(fmap, unknown, iterates[-1]))
+        final = iterates[-1]
+        last_step = final - iterates[-2] if steps else ca.SX(0)
+        for other in set(self.values) - known_before:
+            self.values[other] = ca.substitute(self.values[other], unknown, final)
+        self.values[name] = final
+        self.solved.append(ImplicitOutput(
+            key, steps, ca.substitute(ca.jacobian(fmap, unknown), unknown, final), last_step))
+        return final
+
+
 def _model_scope(
-    inst: InstanceSpec, inputs: dict[str, ca.SX], params: dict[str, ca.SX], stack: list[str]
+    inst: InstanceSpec, inputs: dict[str, ca.SX], params: dict[str, ca.SX], stack: list[str],
+    explicit: bool = False,
 ) -> _Scope:
     model = inst.model
     values: dict[str, ca.SX] = {k: ca.SX(c.value) for k, c in model.constants.items()}
@@ -211,14 +281,16 @@ def _model_scope(
         return None
 
     return _Scope(f"{inst.name}.", values, defs, fallback,
-                  lambda: [*values, *defs], stack)
+                  lambda: [*values, *defs], stack, model.implicit, explicit)
 
 
 class _Builder:
     """Builds a :class:`Problem` from a :class:`ProblemSpec`."""
 
-    def __init__(self, spec: ProblemSpec) -> None:
+    def __init__(self, spec: ProblemSpec, explicit: bool = False) -> None:
         self.spec = spec
+        self.explicit = explicit
+        self.implicit: list[ImplicitOutput] = []
         self.stack: list[str] = []
         self.parameters: list[Parameter] = []
         self.symbols: dict[str, ca.SX] = {}
@@ -288,12 +360,15 @@ class _Builder:
         finally:
             self.stack.pop()
         params = {k: self.symbols[f"{inst.name}.{k}"] for k in inst.model.parameters}
-        scope = _model_scope(inst, inputs, params, self.stack)
+        scope = _model_scope(inst, inputs, params, self.stack, self.explicit)
         model = inst.model
         for name, out in model.outputs.items():
             sx = scope.lookup(name, out.where)
             self.signals[f"{inst.name}.{name}"] = Quantity(f"{inst.name}.{name}", sx, out.unit,
                                                            doc=out.doc)
+        for name in model.implicit:
+            scope.lookup(name, model.implicit[name].where)
+        self.implicit += scope.solved
         for name, inp in model.inputs.items():
             period = None
             if inp.period is not None:
@@ -335,6 +410,7 @@ class _Builder:
             spec.name, spec.doc, spec.path, tuple(self.parameters), theta, columns, u,
             constraints, expressions, signals, comparisons, dict(spec.datasets),
             self._stages(), spec.weighting, {p.name: i for i, p in enumerate(self.parameters)},
+            tuple(self.implicit),
         )
 
     def _stages(self) -> tuple[Stage, ...]:
@@ -360,8 +436,15 @@ class _Builder:
 
 
 def build_problem(spec: ProblemSpec) -> Problem:
-    """Turn a validated spec into a symbolic :class:`Problem`."""
-    return _Builder(spec).build()
+    """Turn a validated spec into a symbolic :class:`Problem`.
+
+    With implicit definitions, the problem carries an explicit twin (one fixed-point step
+    each) in ``explicit``.
+    """
+    problem = _Builder(spec).build()
+    if not problem.implicit:
+        return problem
+    return replace(problem, explicit=_Builder(spec, explicit=True).build())
 
 
 def load_problem(path: str | Path) -> Problem:

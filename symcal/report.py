@@ -123,6 +123,16 @@ def _parameter_lines(result: Result) -> list[str]:
     return _table(rows, "lrrrll")
 
 
+def _implicit_lines(result: Result) -> list[str]:
+    rows = [["definition", "dataset", "steps", "max |dF/dx|", "last step", "error bound",
+             "converged"]]
+    for c in result.implicit:
+        rows.append([c.name, c.dataset, str(c.steps), f"{c.contraction:.3g}",
+                     f"{c.last_step:.2g}", _num(c.remaining, ".2g"),
+                     "yes" if c.contracts else "NO: not a contraction"])
+    return _table(rows, "llrrrrl")
+
+
 def text_report(result: Result) -> str:
     """The report a person reads: data, solver, identifiability, fit, parameters."""
     state = "" if result.success else "  *** FAILED ***"
@@ -142,6 +152,9 @@ def text_report(result: Result) -> str:
     lines += _parameter_lines(result)
     lines += ["", "Strongly correlated estimates"]
     lines += _correlation_lines(result)
+    if result.implicit:
+        lines += ["", "Implicit definitions (fixed-point steps, checked at the estimate)"]
+        lines += _implicit_lines(result)
     if result.notes:
         lines += ["", "Notes"] + [f"  - {n}" for n in result.notes]
     return "\n".join(lines) + "\n"

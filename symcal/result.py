@@ -9,6 +9,7 @@ from typing import Any
 
 from symcal.analysis.fit import SeriesStats
 from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
+from symcal.analysis.implicit import ImplicitCheck
 
 
 @dataclass(frozen=True)
@@ -126,8 +127,9 @@ class Result:
     Use ``.params`` for the estimated values by name, ``.report()`` for the table a person
     reads and ``.to_dict()`` for the machine-readable document (``symcal solve --json``).
     ``identifiability`` and ``uncertainty`` are those of the last stage; each stage's own
-    are in ``stages``.  ``success`` is False when a stage failed: the estimate is then the
-    failed stage's last iterate and later stages did not run.
+    are in ``stages``.  ``success`` is False when a stage failed (the estimate is then the
+    failed stage's last iterate and later stages did not run) or when an implicit
+    definition's fixed-point map does not contract on the data (``implicit``).
     """
 
     problem: str
@@ -139,11 +141,12 @@ class Result:
     statistics: tuple[SeriesStats, ...]
     datasets: tuple[DatasetInfo, ...]
     notes: tuple[str, ...]
+    implicit: tuple[ImplicitCheck, ...] = ()
 
     @property
     def success(self) -> bool:
-        """Whether every stage succeeded."""
-        return all(st.success for st in self.stages)
+        """Whether every stage succeeded and every implicit definition converged."""
+        return all(st.success for st in self.stages) and all(c.contracts for c in self.implicit)
 
     @property
     def method(self) -> str:
@@ -175,6 +178,7 @@ class Result:
             "identifiability": self.identifiability.to_dict(),
             "uncertainty": self.uncertainty.to_dict(),
             "statistics": [s.to_dict() for s in self.statistics],
+            "implicit": [c.to_dict() for c in self.implicit],
             "notes": list(self.notes),
         }
 

@@ -166,7 +166,8 @@ def test_distortion_at_true_position(tmp_path):
     data = simulate_run(sc, "calibration", seed=4)
     p_true, _ = pinwheel(*true_pose(data))
     for i, s in enumerate(SEG):
-        expected = p_true[:, i] - eq3(K[s], p_true[:, i])
+        # the periodic error is evaluated in the segment's counter frame, p* - k0
+        expected = p_true[:, i] - eq3(K[s], p_true[:, i] - K[s][0])
         np.testing.assert_allclose(data[f"p{i + 1}"], expected, rtol=0, atol=1e-13)
     assert np.max(np.abs(readings(data) - p_true)) > 0.02
 
@@ -257,7 +258,7 @@ def test_angle_effect_formula(tmp_path):
     f = 2 * np.pi / RHO
     for i, s in enumerate(SEG):
         a, b, c = (angle.get(s, {}).get(key, 0.0) for key in ("a", "b", "c"))
-        u = p_true[:, i]
+        u = p_true[:, i] - K[s][0]  # tooth phase in the segment's counter frame
         expected = -(a * th + b * th * np.sin(f * u) + c * th * np.cos(f * u))
         np.testing.assert_allclose(delta[:, i], expected, rtol=0, atol=1e-13)
     assert np.max(np.abs(delta[:, 0])) > 0.003
@@ -272,7 +273,7 @@ def test_harmonics_effect_formula(tmp_path):
     for i, s in enumerate(SEG):
         expected = np.zeros(len(p_true))
         for h in harmonics.get(s, []):
-            u = p_true[:, i]
+            u = p_true[:, i] - K[s][0]  # tooth phase in the segment's counter frame
             expected -= h.get("sin", 0.0) * np.sin(h["n"] * f * u)
             expected -= h.get("cos", 0.0) * np.cos(h["n"] * f * u)
         np.testing.assert_allclose(delta[:, i], expected, rtol=0, atol=1e-13)
@@ -303,7 +304,8 @@ def test_pitch_variation_formula(tmp_path):
 
     for i, s in enumerate(SEG):
         u = p_true[:, i] + w("x" if i % 2 == 0 else "y", p_true[:, i])
-        np.testing.assert_allclose(data[f"p{i + 1}"], u - eq3(K[s], u), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(data[f"p{i + 1}"], u - eq3(K[s], u - K[s][0]), rtol=0,
+                                   atol=1e-12)
     # it shows as a position error against the interferometer of about the wave size
     y_err = (data["p2"] + data["p4"]) / 2 - data["y_ref"]
     plain = simulate_run(load(tmp_path, base_doc(errors=True), "plain.yaml"), "flyby", seed=7)

@@ -66,7 +66,8 @@ def test_valid_files_load(tmp_path: Path, monkeypatch) -> None:
 @pytest.mark.parametrize(("model", "problem", "message"), [
     (MODEL.replace("parameters:", "paramters:"), PROBLEM,
      "seg.yaml:6: paramters: unknown key 'paramters' (did you mean 'parameters'?); allowed "
-     "keys: model, doc, extends, constants, inputs, parameters, expressions, outputs"),
+     "keys: model, doc, extends, constants, inputs, parameters, expressions, outputs, "
+     "implicit"),
     (MODEL.replace("k0: {value: 0", "k0: {valu: 0"), PROBLEM,
      "seg.yaml:7: parameters.k0.valu: unknown key 'valu' (did you mean 'value'?); allowed keys: "
      "value, unit, lower, upper, fixed, scale, doc"),

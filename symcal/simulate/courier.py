@@ -34,7 +34,10 @@ switchable extras, each off unless the scenario lists it:
   s2, s4 (without it ``u = p*``); the reading counts teeth.
 
 Readings.  ``distortion_at: true_position`` (physics, default):
-``p_bar = u - E(u, q, theta, t)`` with ``E`` = eq. (3) + extras.
+``p_bar = u - E(u - k0, q, theta, t)`` with ``E`` = eq. (3) + extras: the tooth error is
+periodic in the segment's own counter frame, whose zero is offset by ``k0``, and is
+evaluated at the true position in that frame.  (The models' Fourier coefficients use the
+same frame, so they equal the scenario's; see models/platen_segment_implicit.yaml.)
 ``distortion_at: reading`` (the calibration model's assumption ``p_hat = p_bar + e(p_bar)``):
 ``p_bar`` solves ``p_bar + E(p_bar, q_bar, theta_bar, t) = u`` to 1e-13 mm, where the
 extras see what a model sees: ``theta_bar = ((p1-p3) + (p2-p4)) / (2 l_s)``, the eq. (9)
@@ -308,7 +311,10 @@ def noiseless_readings(platen: Platen, poses: Poses) -> np.ndarray:
         return _solve_readings(platen, u, poses.t)
     p_bar = np.empty_like(u)
     for i in range(4):
-        p_bar[:, i] = u[:, i] - segment_error(platen, i, u[:, i], q[:, i], poses.theta, poses.t)
+        # the tooth error is periodic in the segment's own (counter) frame, whose zero is
+        # offset by k0: evaluate it at the true position in that frame, u - k0
+        v = u[:, i] - platen.segments[i][0]
+        p_bar[:, i] = u[:, i] - segment_error(platen, i, v, q[:, i], poses.theta, poses.t)
     return p_bar
 
 
@@ -562,7 +568,8 @@ def _effects_truth(scenario: Scenario) -> dict:
     out: dict[str, dict] = {
         "distortion_at": {
             "value": platen.distortion_at,
-            "doc": "eq. (3) evaluated at the true tooth coordinate (physics)"
+            "doc": "eq. (3) evaluated at the true tooth coordinate in the segment's "
+                   "counter frame, u - k0 (physics)"
             if platen.distortion_at == "true_position"
             else "readings solve p_bar + e(p_bar) = p* (the calibration model is exact)",
         },

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -18,10 +18,13 @@ from symcal.spec.common import (
     parse_parameter,
     section,
 )
-from symcal.spec.fields import check_keys, child_where, expect_name, expect_str
+from symcal.spec.fields import check_keys, child_where, expect_int, expect_name, expect_str
 from symcal.spec.yamlio import display_path, load_yaml
+from symcal.suggest import did_you_mean
 
-MODEL_KEYS = ["doc", "extends", "constants", "inputs", "parameters", "expressions", "outputs"]
+MODEL_KEYS = ["doc", "extends", "constants", "inputs", "parameters", "expressions", "outputs",
+              "implicit"]
+MAX_STEPS = 50
 BASE = "base."  # prefix under which an extending model sees the definitions it overrides
 
 
@@ -48,6 +51,21 @@ class OutputSpec:
 
 
 @dataclass(frozen=True)
+class ImplicitSpec:
+    """An output or expression defined in terms of itself, solved by fixed-point steps.
+
+    ``x = F(x)`` is unrolled ``steps`` times from ``x₀ = start``: with ``start`` the raw
+    value, zero steps is the explicit model and each step applies the correction at the
+    corrected value again.
+    """
+
+    name: str
+    start: ExprSpec
+    steps: int
+    where: Where
+
+
+@dataclass(frozen=True)
 class ModelSpec:
     """A sensor model as declared in YAML: symbols, expressions and outputs."""
 
@@ -61,6 +79,7 @@ class ModelSpec:
     outputs: dict[str, OutputSpec]
     where: Where
     extends: ModelSpec | None = None
+    implicit: dict[str, ImplicitSpec] = field(default_factory=dict)
 
 
 def _parse_input(name: str, value: Any, where: Where) -> InputSpec:
@@ -85,6 +104,30 @@ def _parse_output(name: str, value: Any, where: Where) -> OutputSpec:
         name, parse_expr(entry["expr"], child_where(entry, where, "expr")),
         str(entry.get("unit", "")), doc, where,
     )
+
+
+DEFAULT_STEPS = 4
+
+
+def _parse_implicit(name: str, value: Any, where: Where) -> ImplicitSpec:
+    expect_name(name, where, "an implicit definition's name")
+    entry = check_keys(value, where, required=["start"], optional=["steps", "doc"])
+    steps = DEFAULT_STEPS
+    if "steps" in entry:
+        at = child_where(entry, where, "steps")
+        steps = expect_int(entry["steps"], at, 1)
+        if steps > MAX_STEPS:
+            raise SpecError(at, f"at most {MAX_STEPS} fixed-point steps, found {steps}")
+    return ImplicitSpec(name, parse_expr(entry["start"], child_where(entry, where, "start")),
+                        steps, where)
+
+
+def _check_implicit(model: ModelSpec) -> None:
+    for name, spec in model.implicit.items():
+        if name not in model.outputs and name not in model.expressions:
+            defined = [*model.outputs, *model.expressions]
+            raise SpecError(spec.where, f"'{name}' is not an output or expression of model "
+                                        f"'{model.name}'{did_you_mean(name, defined)}")
 
 
 def _shift_base(spec: ExprSpec) -> ExprSpec:
@@ -126,8 +169,10 @@ def _extend(parent: ModelSpec, child: ModelSpec) -> ModelSpec:
         child.name, child.doc or parent.doc, child.path,
         {**parent.constants, **child.constants}, {**parent.inputs, **child.inputs},
         {**parent.parameters, **child.parameters}, expressions, outputs, child.where, parent,
+        {**parent.implicit, **child.implicit},
     )
     _check_sections(model)
+    _check_implicit(model)
     return model
 
 
@@ -149,6 +194,10 @@ def load_model(path: str | Path, _chain: tuple[Path, ...] = ()) -> ModelSpec:
     redefine constants, parameters, expressions and outputs.  A redefined expression can
     refer to the definition it replaces as ``base.NAME``, e.g. ``e: base.e + k9*sin(f*q)``;
     the inherited definitions that use ``NAME`` (such as ``p_hat: p + e``) see the new one.
+
+    A definition may refer to itself, directly or through others, when it is listed under
+    ``implicit: {NAME: {start: EXPR, steps: N}}``: it is then solved by N fixed-point
+    steps from ``start`` (default N = 4).
 
     Parameters
     ----------
@@ -187,9 +236,10 @@ def load_model(path: str | Path, _chain: tuple[Path, ...] = ()) -> ModelSpec:
             raise SpecError(expressions[key].where, f"'{key}' cannot be defined: 'base.' "
                                                     "names refer to an extended model")
     model = ModelSpec(name, text, path.resolve(), constants, inputs, parameters, expressions,
-                      outputs, where)
+                      outputs, where, None, entries("implicit", _parse_implicit))
     _check_sections(model)
     if "extends" not in doc:
+        _check_implicit(model)
         return model
     at = child_where(doc, where, "extends")
     parent_path = (path.parent / expect_str(doc["extends"], at)).resolve()
