@@ -287,27 +287,33 @@ def _model_scope(
 class _Builder:
     """Builds a :class:`Problem` from a :class:`ProblemSpec`."""
 
-    def __init__(self, spec: ProblemSpec, explicit: bool = False) -> None:
+    def __init__(self, spec: ProblemSpec, explicit: bool = False,
+                 shared: _Builder | None = None, presets: dict[str, ca.SX] | None = None
+                 ) -> None:
         self.spec = spec
         self.explicit = explicit
         self.implicit: list[ImplicitOutput] = []
         self.stack: list[str] = []
-        self.parameters: list[Parameter] = []
-        self.symbols: dict[str, ca.SX] = {}
-        self.column_symbols: dict[str, ca.SX] = {}
         self.signals: dict[str, Quantity] = {}
         self.built: set[str] = set()
-        for inst in spec.instances.values():
-            for pname, pspec in inst.model.parameters.items():
-                if pname in inst.overrides:
-                    entry, at = inst.overrides[pname]
-                    pspec = apply_parameter_overrides(pspec, entry, at)
-                self._add_parameter(f"{inst.name}.{pname}", pspec)
-        for pspec in spec.parameters.values():
-            self._add_parameter(pspec.name, pspec)
+        self.nested = shared is not None
+        if shared is not None:  # a sub-build sharing θ and the data columns
+            self.parameters, self.symbols = shared.parameters, shared.symbols
+            self.column_symbols = shared.column_symbols
+        else:
+            self.parameters, self.symbols, self.column_symbols = [], {}, {}
+            for inst in spec.instances.values():
+                for pname, pspec in inst.model.parameters.items():
+                    if pname in inst.overrides:
+                        entry, at = inst.overrides[pname]
+                        pspec = apply_parameter_overrides(pspec, entry, at)
+                    self._add_parameter(f"{inst.name}.{pname}", pspec)
+            for pspec in spec.parameters.values():
+                self._add_parameter(pspec.name, pspec)
         values = {k: ca.SX(c.value) for k, c in spec.constants.items()}
         values.update({p.name: self.symbols[p.name] for p in spec.parameters.values()})
         values["pi"] = ca.SX(ca.pi)
+        values.update(presets or {})
         defs = {k: q.expr for k, q in spec.expressions.items()}
         self.scope = _Scope("", values, defs, self._fallback, self._known, self.stack)
 
@@ -380,8 +386,42 @@ class _Builder:
                 f"{inst.name}.{name}", inputs[name], inp.unit, doc=inp.doc, period=period)
         self.built.add(inst.name)
 
+    def _solve_problem_implicit(self) -> None:
+        """Solve the problem's implicit expressions jointly by unrolled fixed-point steps.
+
+        The map is built by a sub-build in which the implicit names are placeholders, so
+        that every instance that depends on them is evaluated afresh; the final iterates
+        are then preset for the real build.
+        """
+        items = self.spec.implicit
+        names = list(items)
+        start = ca.vertcat(*(self.scope.build(items[n].start) for n in names))
+        unknowns = {n: ca.SX.sym(n) for n in names}
+        x = ca.vertcat(*unknowns.values())
+        if ca.depends_on(start, x):  # pragma: no cover - fresh symbols
+            raise SpecError(self.spec.where, "an implicit start refers to an implicit name")
+        sub = _Builder(self.spec, self.explicit, shared=self, presets=unknowns)
+        fmap = ca.vertcat(*(sub.scope.build(self.spec.expressions[n].expr) for n in names))
+        for n in names if not self.explicit else ():
+            if not ca.depends_on(fmap, unknowns[n]):
+                raise SpecError(items[n].where, f"'{n}' is declared implicit but no implicit "
+                                                "definition depends on it")
+        steps = 0 if self.explicit else max(item.steps for item in items.values())
+        iterates = [start]
+        for _ in range(steps):
+            iterates.append(ca.substitute(fmap, x, iterates[-1]))
+        final = iterates[-1]
+        for k, n in enumerate(names):
+            self.scope.values[n] = final[k]
+        norm = ca.mmax(ca.sum2(ca.fabs(ca.jacobian(fmap, x))))  # ‖∂F/∂x‖∞
+        last = ca.mmax(ca.fabs(final - iterates[-2])) if steps else ca.SX(0)
+        self.implicit.append(ImplicitOutput(", ".join(names), steps,
+                                            ca.substitute(norm, x, final), last))
+
     def build(self) -> Problem:
         spec = self.spec
+        if spec.implicit and not self.nested:
+            self._solve_problem_implicit()
         for inst in spec.instances.values():
             self._instance(inst, inst.where)
         expressions = tuple(
@@ -397,7 +437,7 @@ class _Builder:
                        c.unit, c.datasets, c.remove_mean, c.doc)
             for k, c in spec.comparisons.items()
         )
-        for q in constraints:
+        for q in constraints if not self.explicit else ():
             if not any(ca.depends_on(q.sx, self.symbols[p.name]) for p in self.parameters):
                 raise SpecError(spec.constraints[q.name].where,
                                 f"constraint '{q.name}' does not depend on any parameter")

@@ -68,7 +68,8 @@ def test_spec_error_exit_2_no_traceback(tmp_path, monkeypatch, capsys) -> None:
     assert capsys.readouterr().err == (
         "symcal: error: bad.yaml:3: constraint: unknown key 'constraint' (did you mean "
         "'constraints'?); allowed keys: problem, instances, constraints, datasets, doc, "
-        "constants, parameters, columns, expressions, comparisons, stages, weighting\n")
+        "constants, parameters, columns, expressions, comparisons, stages, weighting, "
+        "implicit\n")
 
 
 def test_unknown_dataset_override(csvs, capsys) -> None:

@@ -109,7 +109,7 @@ def _parse_output(name: str, value: Any, where: Where) -> OutputSpec:
 DEFAULT_STEPS = 4
 
 
-def _parse_implicit(name: str, value: Any, where: Where) -> ImplicitSpec:
+def parse_implicit(name: str, value: Any, where: Where) -> ImplicitSpec:
     expect_name(name, where, "an implicit definition's name")
     entry = check_keys(value, where, required=["start"], optional=["steps", "doc"])
     steps = DEFAULT_STEPS
@@ -236,7 +236,7 @@ def load_model(path: str | Path, _chain: tuple[Path, ...] = ()) -> ModelSpec:
             raise SpecError(expressions[key].where, f"'{key}' cannot be defined: 'base.' "
                                                     "names refer to an extended model")
     model = ModelSpec(name, text, path.resolve(), constants, inputs, parameters, expressions,
-                      outputs, where, None, entries("implicit", _parse_implicit))
+                      outputs, where, None, entries("implicit", parse_implicit))
     _check_sections(model)
     if "extends" not in doc:
         _check_implicit(model)

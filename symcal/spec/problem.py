@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -29,12 +29,12 @@ from symcal.spec.fields import (
     expect_number,
     expect_str,
 )
-from symcal.spec.model import ModelSpec, load_model
+from symcal.spec.model import ImplicitSpec, ModelSpec, load_model, parse_implicit
 from symcal.spec.yamlio import YMap, display_path, load_yaml
 from symcal.suggest import did_you_mean
 
 PROBLEM_KEYS = ["doc", "constants", "parameters", "columns", "expressions", "comparisons",
-                "stages", "weighting"]
+                "stages", "weighting", "implicit"]
 METHODS = ("auto", "linear", "ipopt")
 WEIGHTINGS = ("equal", "estimated")
 
@@ -152,6 +152,7 @@ class ProblemSpec:
     stages: tuple[StageSpec, ...]
     weighting: str
     where: Where
+    implicit: dict[str, ImplicitSpec] = field(default_factory=dict)
 
 
 def _doc(entry: YMap, where: Where) -> str:
@@ -395,6 +396,12 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
             raise SpecError(at, f"unknown weighting '{weighting}'"
                                 f"{did_you_mean(weighting, WEIGHTINGS)}; "
                                 f"choose from: {', '.join(WEIGHTINGS)}")
+    implicit = entries("implicit", parse_implicit)
+    for key, item in implicit.items():
+        if key not in expressions:
+            raise SpecError(item.where, f"'{key}' is not an expression of the problem"
+                                        f"{did_you_mean(key, expressions)}; only problem "
+                                        "expressions can be declared implicit here")
     return ProblemSpec(name, _doc(doc, where), path, constants, parameters, columns, instances,
                        expressions, constraints, datasets, comparisons, stages, weighting,
-                       where)
+                       where, implicit)
