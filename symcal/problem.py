@@ -164,6 +164,14 @@ class Problem:
         return [c for c in self.columns if c in used]
 
 
+def _enter(stack: list[str], key: str, where: Where) -> None:
+    """Push ``key`` on the resolution stack, or report the cycle it would close."""
+    if key in stack:
+        cycle = stack[stack.index(key):] + [key]
+        raise SpecError(where, f"cyclic definition: {' -> '.join(cycle)}")
+    stack.append(key)
+
+
 class _Scope:
     """Lazy, memoised resolution of names to SX with cycle detection.
 
@@ -205,11 +213,7 @@ class _Scope:
         if name in self.implicit and name in self.defs:
             return self._solve_implicit(name, where)
         if name in self.defs:
-            key = f"{self.label}{name}"
-            if key in self.stack:
-                cycle = self.stack[self.stack.index(key):] + [key]
-                raise SpecError(where, f"cyclic definition: {' -> '.join(cycle)}")
-            self.stack.append(key)
+            _enter(self.stack, f"{self.label}{name}", where)
             try:
                 value = self.build(self.defs[name])
             finally:
@@ -227,10 +231,11 @@ class _Scope:
         """Unroll ``x = F(x)`` from its start; memoised intermediates get the final x."""
         spec = self.implicit[name]
         key = f"{self.label}{name}"
-        if key in self.stack:
-            cycle = self.stack[self.stack.index(key):] + [key]
-            raise SpecError(where, f"cyclic definition: {' -> '.join(cycle)}")
-        start = self.build(spec.start)
+        _enter(self.stack, key, where)  # a start that needs the name itself is a cycle
+        try:
+            start = self.build(spec.start)
+        finally:
+            self.stack.pop()
         unknown = ca.SX.sym(key)
         if ca.depends_on(start, unknown):  # pragma: no cover - a fresh symbol
             raise SpecError(spec.where, f"the start of '{name}' refers to '{name}' itself")
@@ -356,11 +361,7 @@ class _Builder:
     def _instance(self, inst: InstanceSpec, where: Where) -> None:
         if inst.name in self.built:
             return
-        key = f"{inst.name} (inputs)"
-        if key in self.stack:
-            cycle = self.stack[self.stack.index(key):] + [key]
-            raise SpecError(where, f"cyclic definition: {' -> '.join(cycle)}")
-        self.stack.append(key)
+        _enter(self.stack, f"{inst.name} (inputs)", where)
         try:
             inputs = {k: self.scope.build(b) for k, b in inst.bindings.items()}
         finally:

@@ -126,3 +126,12 @@ def expect_name(value: Any, where: Where, what: str = "name") -> str:
             where, f"{what} must be a plain name (letters, digits, underscore), found {value!r}"
         )
     return value
+
+
+def expect_choice(value: Any, where: Where, choices: tuple[str, ...], what: str) -> str:
+    """Return ``value`` if it is one of ``choices``, else raise with a did-you-mean."""
+    text = expect_str(value, where)
+    if text not in choices:
+        raise SpecError(where, f"unknown {what} '{text}'{did_you_mean(text, choices)}; "
+                               f"choose from: {', '.join(choices)}")
+    return text

@@ -22,6 +22,7 @@ from symcal.spec.fields import (
     check_keys,
     child_where,
     expect_bool,
+    expect_choice,
     expect_int,
     expect_list,
     expect_map,
@@ -301,11 +302,8 @@ def _parse_stage(index: int, value: Any, where: Where, constraints: dict) -> Sta
                  for i, v in enumerate(items))
     method = "auto"
     if "method" in entry:
-        at = child_where(entry, where, "method")
-        method = expect_str(entry["method"], at)
-        if method not in METHODS:
-            raise SpecError(at, f"unknown method '{method}'{did_you_mean(method, METHODS)}; "
-                                f"methods: {', '.join(METHODS)}")
+        method = expect_choice(entry["method"], child_where(entry, where, "method"), METHODS,
+                               "method")
     return StageSpec(name, tuple(names), free, method, _doc(entry, where), where)
 
 
@@ -390,12 +388,8 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
     stages = _parse_stages(doc, where, constraints)
     weighting = "equal"
     if "weighting" in doc:
-        at = child_where(doc, where, "weighting")
-        weighting = expect_str(doc["weighting"], at)
-        if weighting not in WEIGHTINGS:
-            raise SpecError(at, f"unknown weighting '{weighting}'"
-                                f"{did_you_mean(weighting, WEIGHTINGS)}; "
-                                f"choose from: {', '.join(WEIGHTINGS)}")
+        weighting = expect_choice(doc["weighting"], child_where(doc, where, "weighting"),
+                                  WEIGHTINGS, "weighting")
     implicit = entries("implicit", parse_implicit)
     for key, item in implicit.items():
         if key not in expressions:
