@@ -58,6 +58,36 @@ def _parser() -> argparse.ArgumentParser:
     solve.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                        help=argparse.SUPPRESS)
 
+    diag = sub.add_parser("diagnose", help="solve, then show where the model fails and "
+                                           "which effect is missing")
+    diag.add_argument("problem", help="problem YAML file")
+    diag.add_argument("--data", action="append", type=_data_option, default=[],
+                      metavar="NAME=PATH", help="replace dataset NAME with a CSV/NPZ file")
+    diag.add_argument("--plots", metavar="DIR", help="write the figures to DIR")
+    diag.add_argument("--format", default="png", metavar="FMT[,FMT]",
+                      help="figure formats for --plots: png, svg, pdf (default png)")
+    diag.add_argument("--report", metavar="FILE.html", help="write one self-contained HTML "
+                                                            "page")
+    diag.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
+    diag.add_argument("--alpha", type=float, default=0.01,
+                      help="family-wise significance level (default 0.01)")
+    diag.add_argument("--drop-invalid", action="store_true",
+                      help="drop rows with NaN/inf instead of refusing the data")
+    diag.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    diag.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                      help=argparse.SUPPRESS)
+
+    comp = sub.add_parser("compare", help="model revisions on the same data: the ladder")
+    comp.add_argument("problems", nargs="+", help="problem YAML files, simplest first")
+    comp.add_argument("--data", action="append", type=_data_option, default=[],
+                      metavar="NAME=PATH", help="replace dataset NAME with a CSV/NPZ file")
+    comp.add_argument("--plots", metavar="DIR", help="write the ladder figure to DIR")
+    comp.add_argument("--json", action="store_true", help="print the ladder as JSON")
+    comp.add_argument("--drop-invalid", action="store_true",
+                      help="drop rows with NaN/inf instead of refusing the data")
+    comp.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                      help=argparse.SUPPRESS)
+
     sim = sub.add_parser("simulate", help="simulate a courier scenario to CSV")
     sim.add_argument("scenario", help="scenario YAML file")
     sim.add_argument("-o", "--output", required=True, metavar="OUT.csv",
@@ -146,10 +176,60 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_diagnose(args: argparse.Namespace) -> int:
+    from symcal.diagnose import diagnose
+    from symcal.report import plain_json
+
+    if not 0 < args.alpha < 1:
+        raise SymcalError(f"--alpha {args.alpha}: must lie between 0 and 1")
+    formats = [f.strip() for f in args.format.split(",") if f.strip()]
+    from symcal.plots import FORMATS
+
+    for fmt in formats:
+        if fmt.lower() not in FORMATS:
+            raise SymcalError(f"--format {fmt}: unknown plot format; choose from: "
+                              f"{', '.join(FORMATS)}")
+    diag = diagnose(args.problem, dict(args.data), alpha=args.alpha,
+                    progress=None if args.quiet else _progress,
+                    drop_invalid=args.drop_invalid)
+    text = diag.report()
+    if args.plots or args.report:
+        doc = diag.to_dict(series=True)
+        if args.plots:
+            from symcal.plots import save_figures
+
+            written = save_figures(doc, args.plots, formats)
+            print(f"wrote {sum(len(v) for v in written.values())} figure files to "
+                  f"{args.plots}", file=sys.stderr)
+        if args.report:
+            from symcal.htmlreport import write_html
+
+            path = write_html(doc, diag.result.report() + "\n" + text, args.report)
+            print(f"wrote {path}", file=sys.stderr)
+    sys.stdout.write(plain_json(diag.to_dict(series=False)) if args.json else text)
+    return 0 if diag.result.success else 1
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from symcal.ladder import compare, ladder_report, save_ladder_plot
+    from symcal.report import plain_json
+
+    rungs = compare(args.problems, dict(args.data), drop_invalid=args.drop_invalid)
+    if args.plots:
+        for path in save_ladder_plot(rungs, args.plots):
+            print(f"wrote {path}", file=sys.stderr)
+    if args.json:
+        sys.stdout.write(plain_json([r.to_dict() for r in rungs]))
+    else:
+        sys.stdout.write(ladder_report(rungs))
+    return 0 if all(r.success for r in rungs) else 1
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the exit code."""
     args = _parser().parse_args(argv)
-    command = {"solve": _cmd_solve, "simulate": _cmd_simulate}[args.command]
+    command = {"solve": _cmd_solve, "simulate": _cmd_simulate, "diagnose": _cmd_diagnose,
+               "compare": _cmd_compare}[args.command]
     try:
         return command(args)
     except SymcalError as exc:

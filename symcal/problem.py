@@ -124,6 +124,13 @@ class Problem:
         When there are implicit definitions: the same problem with zero steps each (each
         one equal to its start: the explicit model), used to start the solver from a
         closed-form estimate.
+    spec
+        The validated spec the problem was built from.
+    hooks
+        Only in a diagnostic build (``build_problem(spec, hooks=True)``): for each instance
+        output, a symbol added to it (zero in use), so that the derivative of any residual
+        with respect to any sensor output is exact.  Evaluate with the hooks as extra rows
+        of u set to zero.
     """
 
     name: str
@@ -143,6 +150,8 @@ class Problem:
     index: dict[str, int] = field(repr=False)
     implicit: tuple[ImplicitOutput, ...] = ()
     explicit: Problem | None = field(default=None, repr=False)
+    spec: ProblemSpec | None = field(default=None, repr=False)
+    hooks: dict[str, ca.SX] = field(default_factory=dict, repr=False)
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -293,10 +302,12 @@ class _Builder:
     """Builds a :class:`Problem` from a :class:`ProblemSpec`."""
 
     def __init__(self, spec: ProblemSpec, explicit: bool = False,
-                 shared: _Builder | None = None, presets: dict[str, ca.SX] | None = None
-                 ) -> None:
+                 shared: _Builder | None = None, presets: dict[str, ca.SX] | None = None,
+                 hooks: bool = False) -> None:
         self.spec = spec
         self.explicit = explicit
+        self.with_hooks = hooks
+        self.hooks: dict[str, ca.SX] = {}
         self.implicit: list[ImplicitOutput] = []
         self.stack: list[str] = []
         self.signals: dict[str, Quantity] = {}
@@ -371,8 +382,11 @@ class _Builder:
         model = inst.model
         for name, out in model.outputs.items():
             sx = scope.lookup(name, out.where)
-            self.signals[f"{inst.name}.{name}"] = Quantity(f"{inst.name}.{name}", sx, out.unit,
-                                                           doc=out.doc)
+            full = f"{inst.name}.{name}"
+            if self.with_hooks:
+                self.hooks[full] = ca.SX.sym(f"hook:{full}")
+                sx = sx + self.hooks[full]
+            self.signals[full] = Quantity(full, sx, out.unit, doc=out.doc)
         for name in model.implicit:
             scope.lookup(name, model.implicit[name].where)
         self.implicit += scope.solved
@@ -451,7 +465,7 @@ class _Builder:
             spec.name, spec.doc, spec.path, tuple(self.parameters), theta, columns, u,
             constraints, expressions, signals, comparisons, dict(spec.datasets),
             self._stages(), spec.weighting, {p.name: i for i, p in enumerate(self.parameters)},
-            tuple(self.implicit),
+            tuple(self.implicit), None, spec, dict(self.hooks),
         )
 
     def _stages(self) -> tuple[Stage, ...]:
@@ -476,14 +490,15 @@ class _Builder:
         return tuple(stages)
 
 
-def build_problem(spec: ProblemSpec) -> Problem:
+def build_problem(spec: ProblemSpec, hooks: bool = False) -> Problem:
     """Turn a validated spec into a symbolic :class:`Problem`.
 
-    With implicit definitions, the problem carries an explicit twin (one fixed-point step
-    each) in ``explicit``.
+    With implicit definitions, the problem carries an explicit twin (zero fixed-point
+    steps each) in ``explicit``.  ``hooks=True`` makes a diagnostic build (see
+    :attr:`Problem.hooks`), without a twin.
     """
-    problem = _Builder(spec).build()
-    if not problem.implicit:
+    problem = _Builder(spec, hooks=hooks).build()
+    if not problem.implicit or hooks:
         return problem
     return replace(problem, explicit=_Builder(spec, explicit=True).build())
 

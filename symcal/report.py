@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import json
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from symcal.result import Result
+
+if TYPE_CHECKING:
+    from symcal.diagnose import Diagnosis
 
 
 def _num(x: float | None, fmt: str = ".6g") -> str:
@@ -160,8 +164,8 @@ def text_report(result: Result) -> str:
     return "\n".join(lines) + "\n"
 
 
-def json_report(result: Result) -> str:
-    """The machine-readable document (``--json``)."""
+def plain_json(doc: object) -> str:
+    """JSON text of plain data; non-finite numbers become null."""
     def clean(x: object) -> object:
         if isinstance(x, float) and not math.isfinite(x):
             return None
@@ -171,4 +175,49 @@ def json_report(result: Result) -> str:
             return [clean(v) for v in x]
         return x
 
-    return json.dumps(clean(result.to_dict()), indent=2) + "\n"
+    return json.dumps(clean(doc), indent=2) + "\n"
+
+
+def json_report(result: Result) -> str:
+    """The machine-readable document (``--json``)."""
+    return plain_json(result.to_dict())
+
+
+def diagnosis_report(diag: Diagnosis) -> str:
+    """What `symcal diagnose` prints: where the model fails, which effect is missing."""
+    lines = [f"symcal diagnose: {diag.result.problem} ({diag.result.problem_path})", "",
+             "Where the model fails (after calibration; std of each residual, the variables "
+             "along which it varies most, and its dominant period)"]
+    for v in diag.residuals:
+        what = v.name if v.kind == "constraint" else f"{v.name} vs reference"
+        std = float(np.std(v.after)) / v.scale
+        lines.append(f"  {v.dataset} {what}: std {std:.4g} {v.unit or '(internal)'}")
+        for b in v.binned[:2]:
+            lines.append(f"      varies with {b.variable}: η² = {b.eta2:.2f}")
+        if v.periodogram is not None and float(np.max(v.periodogram.power)) > 0.1:
+            lines.append(f"      dominant frequency: {v.periodogram.peak_text} "
+                         f"(power {float(np.max(v.periodogram.power)):.2f})")
+    ranked = list(diag.leads)
+    lines += ["", f"Which effect is missing ({diag.tested} candidate terms tested; family-wise "
+              f"level {diag.alpha:g}, Bonferroni; indistinguishable candidates grouped)"]
+    if not diag.significant:
+        lines.append("  no candidate effect is significant: the residuals look like noise to "
+                     "this library of effects")
+    rows = [["rank", "candidate", "removes", "F", "p", "significant"]]
+    for i, c in enumerate(ranked[:10], start=1):
+        group = f" (+{len(c.indistinguishable)} alike)" if c.indistinguishable else ""
+        rows.append([str(i), c.label + group, f"{c.share:.1%}", f"{c.f_stat:.3g}",
+                     f"{c.p_value:.2g}", "yes" if c.significant else "no"])
+    if len(rows) > 1:
+        lines += _table(rows, "rlrrrl")
+    for i, c in enumerate(diag.significant[:3], start=1):
+        lines += ["", f"  {i}. {c.label}", "     " + diag.candidate_text(c)]
+        if diag.yaml.get(c.label):
+            lines += ["     To add it:"] + [f"       {ln}" if ln else ""
+                                            for ln in diag.yaml[c.label].splitlines()]
+    absorbed = [c for c in diag.candidates if c.absorbed and c.biases][:5]
+    if absorbed:
+        lines += ["", "Absorbed by the current parameters (invisible in these residuals; if "
+                  "present, such an effect biases the parameters named):"]
+        lines += [f"  {c.label}: would bias {', '.join(c.biases)}" for c in absorbed]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,157 @@
+"""Which physical effect is missing: ranking candidate terms against the residuals.
+
+A candidate says "sensor output y lacks a term c·φ(v)".  Its regressor is (∂ρ/∂y)·φ(v)
+for every residual ρ (constraints, and comparisons with a reference), with ∂ρ/∂y taken
+symbolically.  Residuals and regressors are whitened per observation (constraints and
+comparisons of one observation are correlated and have different noise), then the
+nuisance — what the current parameters and the comparisons' arbitrary offsets can
+already absorb — is projected out.  A candidate is ranked by the residual sum of squares
+it removes, tested with an F-test at a Bonferroni-corrected level, and grouped with the
+candidates whose projected regressors it cannot be told apart from.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+import scipy.stats
+
+ABSORBED = 1e-3         # projected norm below this share of the raw norm: absorbed
+INDISTINGUISHABLE = 0.98  # canonical correlation above which candidates are one group
+
+
+@dataclass(frozen=True)
+class Basis:
+    """φ(v): the shape of a candidate term, with what it takes to write it in YAML."""
+
+    kind: str                  # harmonic | linear | quadratic | angle_harmonic | drift
+    variable: str              # the variable's name in the problem (column, signal, expr)
+    description: str           # e.g. "harmonic 3 of s2.p (period 1.016 mm)"
+    columns: tuple[str, ...]   # coefficient names, e.g. ("h3_sin", "h3_cos")
+    terms: tuple[str, ...]     # YAML expressions of each column in the model's symbols,
+                               # with {v} (and {a} for an angle) placeholders
+    angle: str | None = None   # the angle variable of an angle product
+
+
+@dataclass
+class Candidate:
+    """One candidate effect and what testing it found."""
+
+    output: str
+    basis: Basis
+    delta_rss: float = 0.0
+    share: float = 0.0
+    f_stat: float = 0.0
+    p_value: float = 1.0
+    significant: bool = False
+    absorbed: bool = False
+    biases: tuple[str, ...] = ()
+    reduction: dict[str, tuple[float, float]] = field(default_factory=dict)
+    indistinguishable: list[str] = field(default_factory=list)
+    q: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def label(self) -> str:
+        """E.g. ``"s1.p_hat += harmonic 1 of s2.p"``."""
+        return f"{self.output} += {self.basis.description}"
+
+
+@dataclass(frozen=True)
+class Design:
+    """Whitened residual rows, nuisance columns, and the row blocks they come from."""
+
+    r: np.ndarray                       # (M,)
+    nuisance: np.ndarray                # (M, k)
+    nuisance_names: tuple[str, ...]
+    blocks: tuple[tuple[str, slice, np.ndarray, tuple[str, ...], tuple[float, ...]], ...]
+    # (dataset, rows, unwhitening matrix (n_q × rank), quantity names, display scales)
+
+
+def test_candidates(
+    design: Design, candidates: list[Candidate], regressors: list[np.ndarray], alpha: float,
+    local: Callable[[Candidate], bool] | None = None,
+) -> list[Candidate]:
+    """Test every candidate (regressor ``(M, m)``) and rank them, best first.
+
+    Returns the candidates (all of them, absorbed ones last), with significance at
+    ``alpha / len(candidates)`` and groups of indistinguishable candidates filled in.
+    Within a group the data cannot choose; ``local`` marks the candidates to lead their
+    group then (e.g. a term in the sensor's own input).
+    """
+    qn, rn = np.linalg.qr(design.nuisance)
+    keep = np.abs(np.diag(rn)) > 1e-10 * max(1.0, float(np.max(np.abs(np.diag(rn)))))
+    qn = qn[:, keep]
+    r = design.r - qn @ (qn.T @ design.r)
+    rss0 = float(r @ r)
+    dof = len(r) - qn.shape[1]
+    level = alpha / max(len(candidates), 1)
+    for cand, x in zip(candidates, regressors, strict=True):
+        raw = float(np.linalg.norm(x))
+        xp = x - qn @ (qn.T @ x)
+        if raw == 0.0:
+            cand.absorbed = True
+            continue
+        if np.linalg.norm(xp) < ABSORBED * raw:
+            cand.absorbed = True
+            coef = np.linalg.lstsq(design.nuisance, x, rcond=None)[0]
+            weight = np.linalg.norm(coef, axis=1) if coef.ndim == 2 else np.abs(coef)
+            weight = weight * np.linalg.norm(design.nuisance, axis=0)
+            order = np.argsort(-weight)
+            cand.biases = tuple(design.nuisance_names[i] for i in order[:4]
+                                if weight[i] > 0.05 * weight[order[0]])
+            continue
+        q, s, _ = np.linalg.svd(xp, full_matrices=False)
+        q = q[:, s > 1e-8 * s[0]]
+        m = q.shape[1]
+        proj = q.T @ r
+        delta = float(proj @ proj)
+        cand.q = q
+        cand.delta_rss = delta
+        cand.share = delta / rss0 if rss0 > 0 else 0.0
+        denom = (rss0 - delta) / max(dof - m, 1)
+        cand.f_stat = (delta / m) / denom if denom > 0 else float("inf")
+        cand.p_value = float(scipy.stats.f.sf(cand.f_stat, m, max(dof - m, 1)))
+        cand.significant = cand.p_value < level
+        cand.reduction = _reduction(design, r, r - q @ proj)
+    ranked = sorted([c for c in candidates if not c.absorbed], key=lambda c: -c.delta_rss)
+    _group(ranked, local)
+    return ranked + [c for c in candidates if c.absorbed]
+
+
+def _reduction(design: Design, before: np.ndarray, after: np.ndarray
+               ) -> dict[str, tuple[float, float]]:
+    """Standard deviation of every residual, before and after adding a candidate."""
+    out = {}
+    for dataset, rows, unwhiten, names, scales in design.blocks:
+        rank = unwhiten.shape[1]
+        b = before[rows].reshape(-1, rank) @ unwhiten.T
+        a = after[rows].reshape(-1, rank) @ unwhiten.T
+        for k, name in enumerate(names):
+            out[f"{dataset}/{name}"] = (float(np.std(b[:, k]) / scales[k]),
+                                        float(np.std(a[:, k]) / scales[k]))
+    return out
+
+
+def _same(a: Candidate, b: Candidate) -> bool:
+    if a.q is None or b.q is None:
+        return False
+    return float(scipy.linalg.svdvals(a.q.T @ b.q)[0]) > INDISTINGUISHABLE
+
+
+def _group(ranked: list[Candidate], local: Callable[[Candidate], bool] | None,
+           top: int = 8) -> None:
+    """Fill ``indistinguishable`` for the leading candidates (canonical correlation);
+    a ``local`` member of a group moves up to lead it."""
+    for i in range(min(top, len(ranked))):
+        lead = ranked[i]
+        members = [j for j in range(i + 1, len(ranked)) if _same(lead, ranked[j])]
+        if local is not None and not local(lead):
+            better = next((j for j in members if local(ranked[j])), None)
+            if better is not None:
+                ranked[i], ranked[better] = ranked[better], ranked[i]
+                lead = ranked[i]
+                members = [j for j in range(i + 1, len(ranked)) if _same(lead, ranked[j])]
+        lead.indistinguishable = [ranked[j].label for j in members]

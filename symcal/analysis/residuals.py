@@ -1,0 +1,138 @@
+"""Where the model fails: structure of a residual along candidate variables.
+
+For a residual series r and a variable v (a data column, a sensor input or output, a
+named expression, or the phase of a periodic quantity modulo its period), the binned
+means of r over v show where r departs from zero, and the correlation ratio
+η² = (variance of the bin means, weighted) / (variance of r) says how much of r the
+variable explains.  For periodic quantities a Lomb–Scargle periodogram (the sampling is
+uneven) names the dominant frequency in cycles per period.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.signal
+
+
+@dataclass(frozen=True)
+class Variable:
+    """A candidate variable evaluated on one dataset.
+
+    ``period`` is set for periodic quantities (e.g. a platen reading, period one tooth
+    pitch); ``label`` is what reports call it.
+    """
+
+    name: str
+    values: np.ndarray
+    unit: str = ""
+    period: float | None = None
+    kind: str = "column"
+
+
+@dataclass(frozen=True)
+class Binned:
+    """Binned means of a residual along one variable."""
+
+    variable: str
+    centers: np.ndarray
+    mean: np.ndarray
+    sem: np.ndarray
+    eta2: float
+
+    def to_dict(self, scale: float = 1.0) -> dict:
+        """Plain-data form; residual values divided by ``scale`` (display unit)."""
+        return {"variable": self.variable, "centers": self.centers.tolist(),
+                "mean": (self.mean / scale).tolist(), "sem": (self.sem / scale).tolist(),
+                "eta2": self.eta2}
+
+
+@dataclass(frozen=True)
+class Periodogram:
+    """Lomb–Scargle power of a residual against a periodic variable."""
+
+    variable: str
+    period: float
+    frequency: np.ndarray
+    power: np.ndarray
+    peak_frequency: float
+    unit_text: str
+
+    @property
+    def peak_text(self) -> str:
+        """E.g. ``"3 cycles per tooth pitch of s2.p"``."""
+        f = self.peak_frequency
+        shown = f"{f:.0f}" if abs(f - round(f)) < 0.05 else f"{f:.2f}"
+        return f"{shown} {'cycle' if shown == '1' else 'cycles'} {self.unit_text}"
+
+    def to_dict(self) -> dict:
+        """Plain-data form."""
+        return {"variable": self.variable, "period": self.period, "unit_text": self.unit_text,
+                "frequency": self.frequency.tolist(), "power": self.power.tolist(),
+                "peak": {"frequency": self.peak_frequency, "text": self.peak_text}}
+
+
+def binned(r: np.ndarray, v: np.ndarray, name: str, bins: int = 20) -> Binned | None:
+    """Binned means of ``r`` along ``v`` (equal-count bins); None if ``v`` is constant."""
+    if np.ptp(v) <= 1e-12 * max(1.0, float(np.max(np.abs(v)))) or len(v) < 2 * bins:
+        return None
+    edges = np.quantile(v, np.linspace(0, 1, bins + 1))
+    edges = np.unique(edges)
+    if len(edges) < 4:
+        return None
+    index = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, len(edges) - 2)
+    count = np.bincount(index, minlength=len(edges) - 1).astype(float)
+    keep = count > 1
+    total = np.bincount(index, weights=r, minlength=len(edges) - 1)
+    squares = np.bincount(index, weights=r * r, minlength=len(edges) - 1)
+    mean = np.where(keep, total / np.maximum(count, 1), np.nan)
+    var = np.where(keep, squares / np.maximum(count, 1) - mean**2, np.nan)
+    sem = np.sqrt(np.clip(var, 0, None) / np.maximum(count - 1, 1))
+    centers = np.bincount(index, weights=v, minlength=len(edges) - 1) / np.maximum(count, 1)
+    spread = float(np.var(r))
+    explained = float(np.nansum(count * (mean - r.mean()) ** 2) / len(r))
+    eta2 = explained / spread if spread > 0 else 0.0
+    return Binned(name, centers[keep], mean[keep], sem[keep], eta2)
+
+
+def phase_variable(var: Variable) -> Variable:
+    """The phase ``v mod period`` of a periodic variable."""
+    assert var.period is not None
+    return Variable(f"phase of {var.name} (mod {var.period:g} {var.unit})".replace(" )", ")"),
+                    np.mod(var.values, var.period), var.unit, None, "phase")
+
+
+def structure(r: np.ndarray, variables: list[Variable], top: int = 3) -> list[Binned]:
+    """The variables along which ``r`` shows most structure, by η², best first.
+
+    η² of a variable with B bins is about (B - 1)/N by chance alone; variables are ranked
+    by η² above that level.
+    """
+    found = []
+    for var in variables:
+        candidates = [var] + ([phase_variable(var)] if var.period else [])
+        for cand in candidates:
+            b = binned(r, cand.values, cand.name)
+            if b is not None:
+                found.append(b)
+    found.sort(key=lambda b: -b.eta2)
+    return found[:top]
+
+
+def periodogram(r: np.ndarray, var: Variable, max_cycles: float = 12.0,
+                unit_text: str | None = None) -> Periodogram | None:
+    """Lomb–Scargle periodogram of ``r`` against periodic ``var``, in cycles per period."""
+    if var.period is None or np.ptp(var.values) < 2 * var.period:
+        return None
+    steps = np.diff(np.unique(var.values))
+    if steps.size and np.std(steps) < 0.1 * np.mean(steps):  # evenly spaced: alias beyond
+        max_cycles = min(max_cycles, 0.9 * var.period / (2 * float(np.mean(steps))))
+    if max_cycles <= 0.5:
+        return None
+    cycles = np.linspace(0.25, max_cycles, int(max_cycles * 40))
+    angular = 2 * np.pi * cycles / var.period
+    power = scipy.signal.lombscargle(var.values, r - r.mean(), angular, normalize=True)
+    peak = float(cycles[int(np.argmax(power))])
+    text = unit_text or f"per period ({var.period:g} {var.unit}) of {var.name}"
+    return Periodogram(var.name, var.period, cycles, power, peak, text)

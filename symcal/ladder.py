@@ -1,0 +1,156 @@
+"""The model ladder: model revisions solved on the same data, side by side.
+
+Each rung reports the spread of every residual on every dataset (the calibration set and
+held-out validation sets), the reference errors, the number of identifiable parameters,
+and AIC and BIC of the calibration fit, so the user sees the error fall with each added
+effect and sees when an addition only overfits (its held-out error does not fall and the
+information criteria rise).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from symcal.calibrate import load_datasets, solve
+from symcal.data import Dataset
+from symcal.problem import load_problem
+from symcal.result import Result
+from symcal.spec.yamlio import display_path
+
+
+@dataclass(frozen=True)
+class Rung:
+    """One model revision's fit."""
+
+    name: str
+    path: str
+    success: bool
+    identifiable: int
+    free: int
+    rows: int
+    rss: float
+    spreads: dict[tuple[str, str], tuple[float, str]]   # (dataset, quantity) -> (std, unit)
+
+    @property
+    def aic(self) -> float:
+        """Akaike information criterion of the calibration fit (Gaussian residuals)."""
+        return self.rows * float(np.log(self.rss / self.rows)) + 2 * self.identifiable
+
+    @property
+    def bic(self) -> float:
+        """Bayesian information criterion of the calibration fit."""
+        return (self.rows * float(np.log(self.rss / self.rows))
+                + self.identifiable * float(np.log(self.rows)))
+
+    def to_dict(self) -> dict:
+        """Plain-data form."""
+        return {"name": self.name, "path": self.path, "success": self.success,
+                "identifiable_parameters": self.identifiable, "free_parameters": self.free,
+                "rows": self.rows, "rss": self.rss, "aic": self.aic, "bic": self.bic,
+                "spreads": [{"dataset": d, "quantity": q, "std": s, "unit": u}
+                            for (d, q), (s, u) in self.spreads.items()]}
+
+
+def compare(
+    problems: Sequence[str | Path],
+    data: Mapping[str, str | Path] | None = None,
+    drop_invalid: bool = False,
+) -> tuple[Rung, ...]:
+    """Solve every problem on the same data (the first problem's datasets, with ``data``
+    replacing some of them) and summarise each fit as a :class:`Rung`."""
+    first = load_problem(problems[0])
+    datasets: dict[str, Dataset] = load_datasets(first, data, drop_invalid)
+    rungs = []
+    for path in problems:
+        problem = first if path == problems[0] else load_problem(path)
+        mine = {k: v for k, v in datasets.items() if k in problem.datasets}
+        result = solve(problem, mine)
+        last = result.stages[-1]
+        spreads = {(s.dataset, s.name): (s.shown("after").std, s.unit or "(internal)")
+                   for s in result.statistics}
+        rungs.append(Rung(problem.name, display_path(Path(path)), result.success,
+                          last.identifiability.rank, len(last.free), _rows(result),
+                          _rss(result), spreads))
+    return tuple(rungs)
+
+
+def _rows(result: Result) -> int:
+    """Residual rows of the last stage's fit."""
+    return int(result.uncertainty.dof + result.identifiability.rank)
+
+
+def _rss(result: Result) -> float:
+    """The last stage's cost Σ (g/σ)²."""
+    return float(result.stages[-1].cost_after)
+
+
+def ladder_report(rungs: Sequence[Rung]) -> str:
+    """The ladder as a table: one column per model revision."""
+    keys: list[tuple[str, str]] = []
+    for r in rungs:
+        keys += [k for k in r.spreads if k not in keys]
+    header = ["", *[r.name for r in rungs]]
+    rows = [header,
+            ["identifiable / free parameters", *[f"{r.identifiable} / {r.free}" for r in rungs]],
+            ["AIC (calibration)", *[f"{r.aic:.1f}" for r in rungs]],
+            ["BIC (calibration)", *[f"{r.bic:.1f}" for r in rungs]]]
+    for dataset, quantity in keys:
+        unit = next(r.spreads[(dataset, quantity)][1] for r in rungs
+                    if (dataset, quantity) in r.spreads)
+        label = f"{dataset} {quantity} std ({unit})"
+        rows.append([label, *[f"{r.spreads[(dataset, quantity)][0]:.4g}"
+                              if (dataset, quantity) in r.spreads else "—" for r in rungs]])
+    widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
+    lines = ["symcal compare: model revisions on the same data (lower is better; a lower "
+             "AIC/BIC says the added parameters pay for themselves)", ""]
+    for row in rows:
+        lines.append("  " + "  ".join(c.ljust(w) if i == 0 else c.rjust(w)
+                                      for i, (c, w) in enumerate(zip(row, widths,
+                                                                     strict=True))))
+    failed = [r.name for r in rungs if not r.success]
+    if failed:
+        lines += ["", f"  failed: {', '.join(failed)} (see symcal solve for the reason)"]
+    return "\n".join(lines) + "\n"
+
+
+def save_ladder_plot(rungs: Sequence[Rung], outdir: str | Path,
+                     formats: Sequence[str] = ("png",)) -> list[Path]:
+    """One figure: every residual's std across the revisions (log scale)."""
+    import io
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from symcal.plots import atomic_write_bytes
+
+    keys: list[tuple[str, str]] = []
+    for r in rungs:
+        keys += [k for k in r.spreads if k not in keys]
+    fig = Figure(figsize=(7, 4.5), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    x = np.arange(len(rungs))
+    for key in keys:
+        values = [r.spreads[key][0] if key in r.spreads else np.nan for r in rungs]
+        unit = next(r.spreads[key][1] for r in rungs if key in r.spreads)
+        ax.plot(x, values, marker="o", label=f"{key[0]} {key[1]} ({unit})")
+    ax.set_xticks(x, [r.name for r in rungs], rotation=15, ha="right")
+    ax.set_yscale("log")
+    ax.set_ylabel("std after calibration")
+    ax.set_title("model ladder")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    out = Path(outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for fmt in formats:
+        buf = io.BytesIO()
+        fig.savefig(buf, format=fmt)
+        path = out / f"ladder.{fmt}"
+        atomic_write_bytes(path, buf.getvalue())
+        written.append(path)
+    return written
