@@ -214,11 +214,12 @@ def _evaluate(problem: Problem, hp: Problem, ds: Dataset, theta0: np.ndarray,
 
 
 def _variable_specs(hp: Problem) -> list[tuple[str, ca.SX, str, float | None, str]]:
-    """(name, SX, unit, period, kind) of every candidate variable: columns (but the
-    references), sensor inputs, and named expressions that depend on data only.
+    """(name, SX, unit, period, kind) of every variable: columns (but the references),
+    sensor inputs and outputs, and named expressions.
 
-    Variables computed from sensor outputs are left out: a term in one of them would make
-    a sensor's input depend on sensor outputs (a cycle in the model).
+    Variables computed from sensor outputs have kind ``"derived"``: the residuals are
+    examined along them, but no candidate term uses them (a sensor input would then
+    depend on sensor outputs, a cycle in the model).
     """
     references = {col for comp in hp.comparisons for col in hp.columns_of(comp.reference)}
     hooks = ca.vertcat(*hp.hooks.values())
@@ -229,12 +230,12 @@ def _variable_specs(hp: Problem) -> list[tuple[str, ca.SX, str, float | None, st
             unit = spec_columns[col].unit if col in spec_columns else ""
             out.append((col, hp.u[k], unit, None, "drift" if col == "t" else "column"))
     for sig in hp.signals:
-        if not ca.depends_on(sig.sx, hooks):
-            out.append((sig.name, sig.sx, sig.unit, sig.period, "signal"))
+        derived = ca.depends_on(sig.sx, hooks)
+        out.append((sig.name, sig.sx, sig.unit, sig.period, "derived" if derived else "signal"))
     for q in hp.expressions:
-        if not ca.depends_on(q.sx, hooks):
-            out.append((q.name, q.sx, q.unit, None,
-                        "angle" if q.unit in ANGLE_UNITS else "expression"))
+        kind = "angle" if q.unit in ANGLE_UNITS else "expression"
+        out.append((q.name, q.sx, q.unit, None,
+                    "derived" if ca.depends_on(q.sx, hooks) else kind))
     return out
 
 
@@ -366,7 +367,7 @@ def diagnose(
     # comparisons' residuals also carry the estimate's own error, which the refit removes
     design, whiteners = _design(blocks, problem, free, _projected(design))
     variables_by_block = [b.variables for b in blocks]
-    keep = {v.name for v in _distinct(calibration.variables)}
+    keep = {v.name for v in _distinct(calibration.variables) if v.kind != "derived"}
     shapes = _library([v for v in calibration.variables if v.name in keep])
     names = list(hp.hooks)
     candidates, regressors = [], []
