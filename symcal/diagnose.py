@@ -175,8 +175,8 @@ class _Block:
     variables: list[Variable]
 
 
-def _evaluate(problem: Problem, hp: Problem, ds: Dataset, theta0: np.ndarray,
-              theta: np.ndarray, free: np.ndarray) -> _Block:
+def _evaluate(hp: Problem, ds: Dataset, theta0: np.ndarray, theta: np.ndarray,
+              free: np.ndarray) -> _Block:
     names, kinds, units, offsets, exprs = [], [], [], [], []
     for c in hp.constraints:
         names.append(c.name)
@@ -221,7 +221,7 @@ def _variable_specs(hp: Problem) -> list[tuple[str, ca.SX, str, float | None, st
     examined along them, but no candidate term uses them (a sensor input would then
     depend on sensor outputs, a cycle in the model).
     """
-    references = {col for comp in hp.comparisons for col in hp.columns_of(comp.reference)}
+    references = _references(hp)
     hooks = ca.vertcat(*hp.hooks.values())
     out = []
     spec_columns = hp.spec.columns if hp.spec else {}
@@ -239,10 +239,15 @@ def _variable_specs(hp: Problem) -> list[tuple[str, ca.SX, str, float | None, st
     return out
 
 
+def _references(hp: Problem) -> set[str]:
+    """Columns of reference sensors: never a variable a model may use."""
+    return {col for comp in hp.comparisons for col in hp.columns_of(comp.reference)}
+
+
 def _unused_columns(hp: Problem, ds: Dataset) -> list[Variable]:
     """Data columns the problem does not use yet (but the references): an effect may
     depend on them, e.g. a drift in time."""
-    references = {col for comp in hp.comparisons for col in hp.columns_of(comp.reference)}
+    references = _references(hp)
     assert hp.spec is not None
     out = []
     for col, spec in hp.spec.columns.items():
@@ -287,11 +292,11 @@ def _library(variables: list[Variable]) -> list[tuple[Basis, Callable]]:
     for v in variables:
         if v.kind == "drift":
             lib.append((Basis("drift", v.name, f"a slow drift in time ({v.name})", ("drift",),
-                              ("{v}",)), _power(index[v.name], 1, 0.0)))
+                              ("{v}",)), _linear(index[v.name], 0.0)))
             continue
         mean = float(np.mean(v.values))
         lib.append((Basis("linear", v.name, f"a term linear in {v.name}", ("lin",),
-                          (f"({{v}} - {mean:.6g})",)), _power(index[v.name], 1, mean)))
+                          (f"({{v}} - {mean:.6g})",)), _linear(index[v.name], mean)))
         lib.append((Basis("quadratic", v.name, f"a quadratic dependence on {v.name}",
                           ("lin", "quad"), (f"({{v}} - {mean:.6g})", f"({{v}} - {mean:.6g})**2")),
                     _quadratic(index[v.name], mean)))
@@ -311,8 +316,8 @@ def _harmonic(i: int, w: float) -> Callable:
     return lambda vs: np.column_stack([np.sin(w * vs[i].values), np.cos(w * vs[i].values)])
 
 
-def _power(i: int, degree: int, centre: float) -> Callable:
-    return lambda vs: ((vs[i].values - centre) ** degree)[:, None]
+def _linear(i: int, centre: float) -> Callable:
+    return lambda vs: (vs[i].values - centre)[:, None]
 
 
 def _quadratic(i: int, centre: float) -> Callable:
@@ -360,7 +365,7 @@ def diagnose(
     theta = np.array([result.params[n] for n in problem.parameter_names])
     theta0 = np.array([p.initial for p in result.parameters])
     free = np.array([n in result.stages[-1].free for n in problem.parameter_names])
-    blocks = [_evaluate(problem, hp, ds, theta0, theta, free) for ds in datasets.values()]
+    blocks = [_evaluate(hp, ds, theta0, theta, free) for ds in datasets.values()]
     calibration = blocks[0]
     design, whiteners = _design(blocks, problem, free)
     # the covariance of what the nuisance cannot explain, not of the raw residuals: the
