@@ -11,7 +11,7 @@ from symcal.analysis.fit import series_statistics
 from symcal.analysis.identifiability import analyse, conditioning
 from symcal.analysis.implicit import implicit_checks
 from symcal.data import Dataset, load_dataset
-from symcal.errors import DataError, SolveError
+from symcal.errors import DataError, SolveError, SymcalError
 from symcal.problem import Problem, Stage, load_problem
 from symcal.result import ConstraintCost, DatasetInfo, ParameterResult, Result, StageResult
 from symcal.solve.base import SolverOutput
@@ -154,6 +154,33 @@ def _reweighted(
     return whitened, merged, note
 
 
+def _check_finite(objective: Objective, data: Dataset, theta: np.ndarray) -> None:
+    """Refuse constraints that are inf or NaN at the start, naming where."""
+    g = objective.residuals(data, theta)
+    bad = ~np.isfinite(g)
+    if bad.any():
+        row, k = (int(i) for i in np.argwhere(bad)[0])
+        raise SymcalError(
+            f"constraint '{objective.constraints[k]}' is {g[row, k]} at the initial "
+            f"parameters on observation {row + 1} of '{data.name}' ({data.source}), and on "
+            f"{int(bad.any(axis=1).sum())} observation(s) in all; check its expression and "
+            "the data there")
+
+
+def _check_information(stage: Stage, data: Dataset, rows: int, rank: int,
+                       unidentifiable: int, n_free: int) -> None:
+    """Refuse data that determine no parameter, or leave no degree of freedom."""
+    if rows <= rank:
+        raise DataError(f"stage '{stage.name}': {data.n} observations of '{data.name}' give "
+                        f"{rows} residual values for {rank} identifiable parameters; at "
+                        f"least {rank + 1} are needed (more for a useful fit)")
+    if unidentifiable == n_free:
+        raise DataError(f"stage '{stage.name}': the {data.n} observations of '{data.name}' "
+                        f"determine none of the {n_free} free parameters on its own (only "
+                        f"{rank} combination(s) of them): the data do not excite the model; "
+                        "check that the inputs vary over the calibration")
+
+
 def run_stage(
     problem: Problem, stage: Stage, data: Dataset, theta: np.ndarray,
     method: str | None = None, progress: Callable[[str], None] | None = None,
@@ -168,6 +195,7 @@ def run_stage(
     """
     free = np.array([p.name in stage.free for p in problem.parameters])
     plain = Objective(problem, stage.constraints, free)
+    _check_finite(plain, data, theta)
     method = method or stage.method
     out, notes = _solve_stage(plain, data, theta, method, progress, stage.name, max_iter)
     objective = plain
@@ -184,6 +212,8 @@ def run_stage(
         meat = objective.accumulate_r(data, out.theta, _sqrt_psd(cov_g).T)[0]
     ident, unc = analyse(out.r_factor, out.rows, out.rss, names, scales, out.theta[idx],
                          meat)
+    _check_information(stage, data, out.rows, ident.rank,
+                       sum(unc.se[n] is None for n in names), len(names))
     r_start = (out.r_factor if out.method == "linear"
                else objective.accumulate_r(data, theta)[0])
     moved = np.abs(out.theta[idx] - theta[idx]) > 1e-12 * scales

@@ -125,10 +125,14 @@ class Objective:
         rows = g.size
         return (g.T @ g) / dataset.n * rows / max(rows - rank, 1)
 
+    def residuals(self, dataset: Dataset, theta: np.ndarray) -> np.ndarray:
+        """Weighted residuals at ``theta``, ``N × n_g``."""
+        fn = self._mapped("residual", [self.g])
+        return fn(theta, dataset.matrix(self.problem.columns))[0]
+
     def cost_terms(self, dataset: Dataset, theta: np.ndarray) -> dict[str, float]:
         """Σ (g_k/σ_k)² of each constraint of the cost at ``theta``."""
-        fn = self._mapped("residual", [self.g])
-        g = fn(theta, dataset.matrix(self.problem.columns))[0]
+        g = self.residuals(dataset, theta)
         return {name: float(np.sum(g[:, k] ** 2)) for k, name in enumerate(self.constraints)}
 
     def normal_equations(
