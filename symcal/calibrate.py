@@ -176,7 +176,7 @@ def _check_information(stage: Stage, data: Dataset, rows: int, rank: int,
                         f"least {rank + 1} are needed (more for a useful fit)")
     if unidentifiable == n_free:
         raise DataError(f"stage '{stage.name}': the {data.n} observations of '{data.name}' "
-                        f"determine none of the {n_free} free parameters on its own (only "
+                        f"determine none of the {n_free} free parameters individually (only "
                         f"{rank} combination(s) of them): the data do not excite the model; "
                         "check that the inputs vary over the calibration")
 

@@ -168,8 +168,9 @@ def make_dataset(
         if not drop_invalid:
             rows = np.flatnonzero(bad)
             shown = ", ".join(str(r + 2) for r in rows[:5]) + (", ..." if len(rows) > 5 else "")
+            which = f"line {shown}" if len(rows) == 1 else f"lines {shown}"
             raise DataError(f"{source}: {len(rows)} row(s) with NaN or inf in a needed column "
-                            f"(lines {shown}); fix them or pass --drop-invalid to drop them")
+                            f"({which}); fix them or pass --drop-invalid to drop them")
         columns = {k: np.asarray(v)[~bad] for k, v in columns.items()}
         dropped = int(bad.sum())
         if dropped == n:
