@@ -13,6 +13,7 @@ from pathlib import Path
 
 import yaml
 
+from symcal import cli_codegen
 from symcal.errors import EXIT_BAD_INPUT, SymcalError
 
 
@@ -87,6 +88,8 @@ def _parser() -> argparse.ArgumentParser:
                       help="drop rows with NaN/inf instead of refusing the data")
     comp.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                       help=argparse.SUPPRESS)
+
+    cli_codegen.add_parser(sub)
 
     sim = sub.add_parser("simulate", help="simulate a courier scenario to CSV")
     sim.add_argument("scenario", help="scenario YAML file")
@@ -229,7 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the exit code."""
     args = _parser().parse_args(argv)
     command = {"solve": _cmd_solve, "simulate": _cmd_simulate, "diagnose": _cmd_diagnose,
-               "compare": _cmd_compare}[args.command]
+               "compare": _cmd_compare, "codegen": cli_codegen.run}[args.command]
     try:
         return command(args)
     except SymcalError as exc:

@@ -39,6 +39,9 @@ from symcal.errors import SymcalError
 from symcal.problem import Problem
 from symcal.spec.model import ModelSpec
 
+__all__ = ["CName", "InstancePlan", "Plan", "c_identifier", "casadi_functions", "generate",
+           "plan"]
+
 #: Version of the generated layout; part of the hash.
 FORMAT = 1
 #: Characters of the sha256 hex digest embedded in the code.
@@ -331,6 +334,10 @@ def plan(problem: Problem, result: str | Path | Mapping[str, Any] | None = None)
         C.  The message names the part and why.
     """
     values, source = (None, None) if result is None else _load_result(result, problem)
+    for par in problem.parameters if values is None else ():
+        if not math.isfinite(par.value):
+            raise SymcalError(f"cannot export parameter '{par.name}': its initial value "
+                              f"{par.value} is not finite (give a result file)")
     prefix = f"symcal_{c_identifier(problem.name)}"
     symbols = [problem.theta, problem.u]
     for q in problem.constraints:
@@ -347,6 +354,10 @@ def plan(problem: Problem, result: str | Path | Mapping[str, Any] | None = None)
     for _, items in per_instance:
         for _, q in items:
             used.update(problem.columns_of(q.sx))
+    if not used:
+        raise SymcalError(f"cannot export problem '{problem.name}': its constraints and "
+                          "outputs read no data column, so there is nothing to evaluate per "
+                          "observation")
     fields = _Namespace()
     inputs = tuple(
         CName(c, fields.claim(c), spec_columns[c].unit if c in spec_columns else "",
@@ -625,8 +636,9 @@ class _Render:
         jac[-1] += " */"
         lines += _struct(f"{p.prefix}_residuals",
                          "The residuals g(theta, u) of one observation (zero for consistent "
-                         f"measurements), in this order: {_names_list(p.residuals)}; and "
-                         "their Jacobian with respect to theta.",
+                         f"measurements), in this order: {_names_list(p.residuals)}, as "
+                         "written in the YAML (not divided by their sigma); and their "
+                         "Jacobian with respect to theta.",
                          _field_lines(p.residuals, yaml=True) + jac)
         for inst in p.instances:
             lines += _struct(f"{p.prefix}_outputs_{inst.c}",
