@@ -23,6 +23,7 @@ import math
 import os
 import platform
 import resource
+import signal
 import statistics
 import subprocess
 import sys
@@ -84,7 +85,18 @@ def _rss_now_mib() -> float:
 
 
 def _peak_rss_mib() -> float:
-    """Peak resident set size of this process so far (MiB); ru_maxrss is KiB on Linux."""
+    """Peak resident set size of this process so far (MiB).
+
+    VmHWM of /proc/self/status: the high-water mark of this address space.  (On Linux
+    ``ru_maxrss`` survives ``execve``, so a child would inherit the parent's peak.)
+    """
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:  # pragma: no cover - not Linux
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
@@ -249,59 +261,62 @@ def child_profile(job: dict[str, Any]) -> dict[str, Any]:
     residual+Jacobian, versus symcal's conversion of the result to numpy
     (``symcal.numeric.Mapped.chunk``), versus the same evaluation through
     ``casadi.Function.buffer`` into preallocated numpy arrays."""
+    return {problem: _profile_problem(problem, job["data"][problem], job["start"][problem])
+            for problem in ("linear", "dual")}
+
+
+def _profile_problem(problem: str, data_path: str, start_path: str) -> dict[str, Any]:
     import casadi as ca
 
     from symcal.calibrate import needed_columns
     from symcal.data import make_dataset
     from symcal.solve.objective import Objective
 
-    out: dict[str, Any] = {}
-    for problem in ("linear", "dual"):
-        prob = _single_stage_problem(problem)
-        cols = _load_columns(job["data"][problem])
-        n = len(next(iter(cols.values())))
-        data = make_dataset("calibration", "benchmark", cols, needed_columns(prob))
-        theta = np.load(job["start"][problem])
-        stage = prob.stages[0]
-        objective = Objective(prob, stage.constraints,
-                              np.array([p.name in stage.free for p in prob.parameters]))
-        u = data.matrix(prob.columns)
-        fn = objective._mapped("linearised", [objective.g, objective.jac.T])
-        fn.chunk(theta, u)  # build the map once
-        before = _peak_rss_mib()
-        rec: dict[str, Any] = {"n": n}
-        rec["chunk"] = _best(lambda: fn.chunk(theta, u))
-        rec["chunk_peak_mib"] = _peak_rss_mib() - before
-        mapped = fn._map(n)
-        rec["casadi_call"] = _best(lambda: mapped(theta, u))
-        outs = mapped(theta, u)
-        rec["to_numpy"] = _best(lambda: [np.asarray(o) for o in outs])
-        dense = ca.Function("dense", [prob.theta, prob.u],
-                            [objective.g, ca.vec(ca.densify(objective.jac.T))])
-        shared = dense.map("shared", "serial", n, [0], [])
-        g = np.empty((n, objective.g.shape[0]))
-        jt = np.empty((n, objective.jac.numel()))
-        ut = np.ascontiguousarray(u.T)
+    prob = _single_stage_problem(problem)
+    cols = _load_columns(data_path)
+    n = len(next(iter(cols.values())))
+    data = make_dataset("calibration", "benchmark", cols, needed_columns(prob))
+    theta = np.load(start_path)
+    stage = prob.stages[0]
+    objective = Objective(prob, stage.constraints,
+                          np.array([p.name in stage.free for p in prob.parameters]))
+    u = data.matrix(prob.columns)
+    fn = objective._mapped("linearised", [objective.g, objective.jac.T])
+    fn.chunk(theta, u)  # build the map once
+    before = _peak_rss_mib()
+    rec: dict[str, Any] = {"n": n}
+    rec["chunk"] = _best(lambda: fn.chunk(theta, u))
+    rec["chunk_peak_mib"] = _peak_rss_mib() - before
+    mapped = fn._map(n)
+    rec["casadi_call"] = _best(lambda: mapped(theta, u))
+    outs = mapped(theta, u)
+    rec["to_numpy"] = _best(lambda: [np.asarray(o) for o in outs])
+    dense = ca.Function("dense", [prob.theta, prob.u],
+                        [objective.g, ca.vec(ca.densify(objective.jac.T))])
+    shared = dense.map("shared", "serial", n, [0], [])
+    g = np.empty((n, objective.g.shape[0]))
+    jt = np.empty((n, objective.jac.numel()))
+    ut = np.ascontiguousarray(u.T)
+    th = np.ascontiguousarray(theta)
 
-        def by_buffer() -> None:
-            buf, evaluate = shared.buffer()
-            buf.set_arg(0, memoryview(np.ascontiguousarray(theta)))
-            buf.set_arg(1, memoryview(ut))
-            buf.set_res(0, memoryview(g))
-            buf.set_res(1, memoryview(jt))
-            evaluate()
+    def by_buffer() -> None:
+        buf, evaluate = shared.buffer()
+        buf.set_arg(0, memoryview(th))
+        buf.set_arg(1, memoryview(ut))
+        buf.set_res(0, memoryview(g))
+        buf.set_res(1, memoryview(jt))
+        evaluate()
 
-        rec["buffer"] = _best(by_buffer)
-        ref = fn.chunk(theta, u)
-        rec["buffer_agrees"] = float(max(np.abs(ref[0] - g).max(), np.abs(ref[1] - jt).max()))
-        res = objective._mapped("residual", [objective.g])
-        res.chunk(theta, u)
-        rec["residual_chunk"] = _best(lambda: res.chunk(theta, u))
-        rec["normal_equations"] = _best(lambda: objective.normal_equations(data, theta))
-        rec["accumulate_r"] = _best(lambda: objective.accumulate_r(data, theta))
-        rec["cost"] = _best(lambda: objective.cost(data, theta))
-        out[problem] = rec
-    return out
+    rec["buffer"] = _best(by_buffer)
+    ref = fn.chunk(theta, u)
+    rec["buffer_agrees"] = float(max(np.abs(ref[0] - g).max(), np.abs(ref[1] - jt).max()))
+    res = objective._mapped("residual", [objective.g])
+    res.chunk(theta, u)
+    rec["residual_chunk"] = _best(lambda: res.chunk(theta, u))
+    rec["normal_equations"] = _best(lambda: objective.normal_equations(data, theta))
+    rec["accumulate_r"] = _best(lambda: objective.accumulate_r(data, theta))
+    rec["cost"] = _best(lambda: objective.cost(data, theta))
+    return rec
 
 
 def _best(fn, repeats: int = 3) -> float:
@@ -695,6 +710,10 @@ def targets(report: dict, settings: Settings) -> list[dict[str, str]]:
 # --------------------------------------------------------------------------- report
 
 
+def _show(a: float | None) -> str:
+    return "—" if a is None else f"{a:.2f}"
+
+
 def fmt_time(t: float) -> str:
     return f"{t * 1e3:.1f} ms" if t < 1 else f"{t:.2f} s"
 
@@ -733,14 +752,15 @@ def render(report: dict, settings: Settings) -> str:
         f"{settings.repeats} runs (1 at N = 1e6; fewer when a run takes long: repeats stop "
         f"once they would pass {settings.repeat_budget:.0f} s); each (method, N) in a fresh "
         "process",
-        "- peak memory: `ru_maxrss` of that process (Python, libraries and the data "
-        "included); Δ is the peak minus the resident size just before the first timed run",
+        "- peak memory: peak resident set size (VmHWM) of that process, Python, libraries "
+        "and the data included; Δ is the peak minus the resident size just before the first "
+        "timed run",
         f"- cap: a peer is skipped at the sizes where its time, extrapolated from the "
         f"smaller ones (at least linearly), passes {settings.cap:.0f} s; BFGS also stops at "
         f"{settings.cap:.0f} s",
         "- final cost J = Σ g² (mm², equal weights) evaluated with the numpy residual of "
         "peers.py for every method; 'rel.' is (J − J_best)/J_best at that N",
-        f"- peer residuals vs symcal's at a test point: max |difference| "
+        "- peer residuals vs symcal's at a test point: max |difference| "
         + ", ".join(f"{p} {v:.1e} mm" for p, v in report["residual_check"].items()),
         "",
     ]
@@ -795,8 +815,7 @@ def render(report: dict, settings: Settings) -> str:
         lines += ["| method | a, all sizes measured | a, N ≥ 1e4 |", "|---|---|---|"]
         for method in info["methods"]:
             a_all, a_big = exps[(problem, method)]
-            show = (lambda a: "—" if a is None else f"{a:.2f}")
-            lines.append(f"| {LABELS[method]} | {show(a_all)} | {show(a_big)} |")
+            lines.append(f"| {LABELS[method]} | {_show(a_all)} | {_show(a_big)} |")
         if problem == "dual":
             lines += ["", "The common start (symcal's stages 1–2, closed form) took: " + ", ".join(
                 f"N = {fmt_n(n)}: {fmt_time(s['seconds'])}"
@@ -929,7 +948,8 @@ def extras_section(report: dict, settings: Settings) -> list[str]:
         lines += ["", f"## BLAS threads (N = {fmt_n(blas['n'])})", "",
                   "The same job with OPENBLAS/OMP/MKL_NUM_THREADS=1 and with the library "
                   "default (OpenBLAS: one thread per core).", "",
-                  "| problem | method | 1 thread | library default | ratio |", "|---|---|---|---|---|"]
+                  "| problem | method | 1 thread | library default | ratio |",
+                  "|---|---|---|---|---|"]
         pairs: dict[tuple[str, str], dict[str, Any]] = {}
         for (label, problem, method), r in blas["runs"].items():
             pairs.setdefault((problem, method), {})[label] = r
@@ -995,6 +1015,7 @@ def main(argv: list[str] | None = None) -> int:
                         args.repeat_budget,
                         None if args.blas_threads == "default" else args.blas_threads,
                         Path(args.out), args.quick)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # clean up the data on kill
     started = time.perf_counter()
     given = argv if argv is not None else sys.argv[1:]
     command = ("make bench" if not given else
@@ -1019,8 +1040,7 @@ def main(argv: list[str] | None = None) -> int:
     report["elapsed"] = time.perf_counter() - started
     say("\n== fitted exponent of time vs N (all sizes; N >= 1e4):")
     for (problem, method), (a_all, a_big) in exponents(report["rows"]).items():
-        show = (lambda a: "   —" if a is None else f"{a:4.2f}")
-        say(f"  {problem:6s} {LABELS[method]:44s} {show(a_all)}  {show(a_big)}")
+        say(f"  {problem:6s} {LABELS[method]:44s} {_show(a_all):>5}  {_show(a_big):>5}")
     say("\n== targets:")
     for t in targets(report, settings):
         say(f"  {t['target']}: {t['measured']} -> {t['verdict']}")

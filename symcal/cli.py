@@ -32,6 +32,16 @@ def _data_option(text: str) -> tuple[str, str]:
     return name, path
 
 
+def _data_options(parser: argparse.ArgumentParser) -> None:
+    """The options every command that reads a problem's data shares."""
+    parser.add_argument("--data", action="append", type=_data_option, default=[],
+                        metavar="NAME=PATH", help="replace dataset NAME with a CSV/NPZ file")
+    parser.add_argument("--drop-invalid", action="store_true",
+                        help="drop rows with NaN/inf instead of refusing the data")
+    parser.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                        help=argparse.SUPPRESS)
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="symcal", description="Autonomous calibration through sensor "
                                                 "redundancy.")
@@ -40,12 +50,9 @@ def _parser() -> argparse.ArgumentParser:
 
     solve = sub.add_parser("solve", help="calibrate a problem and print the report")
     solve.add_argument("problem", help="problem YAML file")
-    solve.add_argument("--data", action="append", type=_data_option, default=[],
-                       metavar="NAME=PATH", help="replace dataset NAME with a CSV/NPZ file")
+    _data_options(solve)
     solve.add_argument("--json", action="store_true", help="print the result as JSON")
     solve.add_argument("--out", metavar="DIR", help="write result.json and report.txt to DIR")
-    solve.add_argument("--drop-invalid", action="store_true",
-                       help="drop rows with NaN/inf instead of refusing the data")
     solve.add_argument("--method", choices=["auto", "linear", "ipopt"],
                        help="solve every stage with this method (default: each stage's own, "
                             "auto = closed form when linear)")
@@ -56,14 +63,11 @@ def _parser() -> argparse.ArgumentParser:
                        help="iteration limit of IPOPT stages (default 200)")
     solve.add_argument("--quiet", action="store_true",
                        help="no progress on stderr and no report on success")
-    solve.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
-                       help=argparse.SUPPRESS)
 
     diag = sub.add_parser("diagnose", help="solve, then show where the model fails and "
                                            "which effect is missing")
     diag.add_argument("problem", help="problem YAML file")
-    diag.add_argument("--data", action="append", type=_data_option, default=[],
-                      metavar="NAME=PATH", help="replace dataset NAME with a CSV/NPZ file")
+    _data_options(diag)
     diag.add_argument("--plots", metavar="DIR", help="write the figures to DIR")
     diag.add_argument("--format", default="png", metavar="FMT[,FMT]",
                       help="figure formats for --plots: png, svg, pdf (default png)")
@@ -72,22 +76,13 @@ def _parser() -> argparse.ArgumentParser:
     diag.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
     diag.add_argument("--alpha", type=float, default=0.01,
                       help="family-wise significance level (default 0.01)")
-    diag.add_argument("--drop-invalid", action="store_true",
-                      help="drop rows with NaN/inf instead of refusing the data")
     diag.add_argument("--quiet", action="store_true", help="no progress on stderr")
-    diag.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
-                      help=argparse.SUPPRESS)
 
     comp = sub.add_parser("compare", help="model revisions on the same data: the ladder")
     comp.add_argument("problems", nargs="+", help="problem YAML files, simplest first")
-    comp.add_argument("--data", action="append", type=_data_option, default=[],
-                      metavar="NAME=PATH", help="replace dataset NAME with a CSV/NPZ file")
+    _data_options(comp)
     comp.add_argument("--plots", metavar="DIR", help="write the ladder figure to DIR")
     comp.add_argument("--json", action="store_true", help="print the ladder as JSON")
-    comp.add_argument("--drop-invalid", action="store_true",
-                      help="drop rows with NaN/inf instead of refusing the data")
-    comp.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
-                      help=argparse.SUPPRESS)
 
     cli_codegen.add_parser(sub)
 
