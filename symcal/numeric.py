@@ -1,8 +1,11 @@
 """Evaluate per-observation CasADi functions over a whole dataset, in chunks.
 
 A function of ONE observation, ``f(theta, u)``, is mapped serially over a chunk of
-observations (the graph never grows with N) and the chunks are concatenated; θ is
-broadcast.  Outputs must be column vectors; each comes back as an ``N × k`` array.
+observations (the graph never grows with N), with θ shared by all of them, and the chunks
+are concatenated.  Evaluation goes through CasADi's buffer interface: inputs are read from
+and outputs written to numpy memory directly (column-major ``k × n`` is C-contiguous
+``n × k``), with no conversion to CasADi matrices.  Outputs are made dense column
+vectors; each comes back as an ``N × k`` array.
 """
 
 from __future__ import annotations
@@ -27,34 +30,44 @@ class Mapped:
     Parameters
     ----------
     fn
-        ``fn(theta, u) -> (out_1, ..., out_m)``, each output a column vector.
+        ``fn(theta, u) -> (out_1, ..., out_m)``, each output a dense column vector.
     """
 
     def __init__(self, fn: ca.Function) -> None:
         self.fn = fn
-        self._maps: dict[int, ca.Function] = {}
+        self._maps: dict[int, tuple[ca.Function, object, object]] = {}
 
-    def _map(self, n: int) -> ca.Function:
+    def _map(self, n: int) -> tuple[ca.Function, object, object]:
         if n not in self._maps:
-            self._maps[n] = self.fn.map(n, "serial")
+            mapped_fn = self.fn.map("chunk", "serial", n, [0], [])  # θ shared, not repeated
+            buf, trigger = mapped_fn.buffer()
+            self._maps[n] = (mapped_fn, buf, trigger)
         return self._maps[n]
 
     def chunk(self, theta: np.ndarray, u: np.ndarray) -> list[np.ndarray]:
         """Evaluate on one chunk: ``u`` is ``n_u × n``; returns ``n × k`` arrays."""
         n = u.shape[1]
-        outs = self._map(n)(theta, u)
-        if not isinstance(outs, (list, tuple)):
-            outs = [outs]
-        return [np.asarray(o).reshape(-1, n).T for o in outs]
+        _, buf, trigger = self._map(n)
+        th = np.ascontiguousarray(theta, dtype=float)
+        columns = np.ascontiguousarray(u.T, dtype=float)
+        outs = [np.empty((n, self.fn.nnz_out(i))) for i in range(self.fn.n_out())]
+        buf.set_arg(0, memoryview(th))
+        buf.set_arg(1, memoryview(columns))
+        for i, out in enumerate(outs):
+            buf.set_res(i, memoryview(out))
+        trigger()
+        return outs
 
     def __call__(self, theta: np.ndarray, u: np.ndarray, size: int = CHUNK) -> list[np.ndarray]:
         """Evaluate over all observations (``u`` is ``n_u × N``)."""
         n = u.shape[1]
         parts = [self.chunk(theta, u[:, s]) for s in chunks(n, size)]
+        if not parts:
+            return [np.empty((0, self.fn.nnz_out(i))) for i in range(self.fn.n_out())]
         return [np.concatenate([p[i] for p in parts], axis=0) for i in range(self.fn.n_out())]
 
 
 def mapped(theta: ca.SX, u: ca.SX, outputs: list[ca.SX], name: str = "f") -> Mapped:
     """Build a :class:`Mapped` function of ``(theta, u)`` returning ``outputs`` (columns)."""
-    fn = ca.Function(name, [theta, u], [ca.vec(o) for o in outputs])
+    fn = ca.Function(name, [theta, u], [ca.densify(ca.vec(o)) for o in outputs])
     return Mapped(fn)
