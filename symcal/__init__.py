@@ -8,11 +8,22 @@ The public API follows the one-way flow of DESIGN.md::
     print(result.report()); result.params["s1.k1"]; result.to_dict()
 """
 
-from symcal.calibrate import load_datasets, solve
-from symcal.data import Dataset, read_table
-from symcal.errors import DataError, SolveError, SpecError, SymcalError
-from symcal.problem import Problem, load_problem
-from symcal.result import Result
+import os as _os
+import sys as _sys
+
+# symcal's linear algebra is on tall, skinny matrices, where OpenBLAS's threads cost more
+# than they give (measured on 2 cores: up to 25x slower, benchmarks/RESULTS.md).  Unless
+# the user chose otherwise, use one BLAS thread; this only takes effect if numpy has not
+# been imported yet.
+if "numpy" not in _sys.modules:
+    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        _os.environ.setdefault(_var, "1")
+
+from symcal.calibrate import load_datasets, solve  # noqa: E402
+from symcal.data import Dataset, read_table  # noqa: E402
+from symcal.errors import DataError, SolveError, SpecError, SymcalError  # noqa: E402
+from symcal.problem import Problem, load_problem  # noqa: E402
+from symcal.result import Result  # noqa: E402
 
 __all__ = [
     "DataError", "Dataset", "Problem", "Result", "SolveError", "SpecError", "SymcalError",
