@@ -37,7 +37,7 @@ class PeerResult:
 
     theta: np.ndarray
     cost: float
-    iterations: int
+    iterations: int | None
     evaluations: int
     seconds: float
     message: str
@@ -138,18 +138,44 @@ class _Counted:
         return self.fn(x)
 
 
+class _CapReachedError(Exception):
+    """Raised inside the residual when a peer runs past its time cap."""
+
+
 def least_squares(residual: Callable[[np.ndarray, Mapping[str, np.ndarray]], np.ndarray],
-                  theta0: np.ndarray, cols: Mapping[str, np.ndarray]) -> PeerResult:
+                  theta0: np.ndarray, cols: Mapping[str, np.ndarray],
+                  max_seconds: float | None = None) -> PeerResult:
     """``scipy.optimize.least_squares`` (TRF, the default) with its default 2-point
-    finite-difference Jacobian, tolerances tightened so that it reaches the minimum."""
+    finite-difference Jacobian, tolerances tightened so that it reaches the minimum.
+
+    ``max_seconds`` stops it (marked in the message) if it runs past a time cap; it then
+    returns the best point it evaluated.
+    """
     start = time.perf_counter()
-    fun = _Counted(lambda x: residual(x, cols))
-    sol = scipy.optimize.least_squares(fun, theta0, method="trf", jac="2-point",
-                                       ftol=1e-15, xtol=1e-15, gtol=1e-15, max_nfev=2000)
+    best: list = [np.inf, np.asarray(theta0, dtype=float)]
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        if max_seconds is not None and time.perf_counter() - start > max_seconds:
+            raise _CapReachedError
+        r = residual(x, cols)
+        cost = float(r @ r)
+        if cost < best[0]:
+            best[:] = [cost, x.copy()]
+        return r
+
+    counted = _Counted(fun)
+    try:
+        sol = scipy.optimize.least_squares(counted, theta0, method="trf", jac="2-point",
+                                           ftol=1e-15, xtol=1e-15, gtol=1e-15, max_nfev=2000)
+        theta, iterations = sol.x, int(sol.nfev)
+        message = f"status {sol.status}: {sol.message}"
+    except _CapReachedError:
+        theta, iterations = best[1], None
+        message = (f"stopped at the {max_seconds:g} s cap before converging "
+                   "(best point evaluated)")
     seconds = time.perf_counter() - start
-    r = residual(sol.x, cols)
-    return PeerResult(sol.x, float(r @ r), int(sol.nfev), fun.calls, seconds,
-                      f"status {sol.status}: {sol.message}")
+    r = residual(theta, cols)
+    return PeerResult(theta, float(r @ r), iterations, counted.calls, seconds, message)
 
 
 def bfgs(residual: Callable[[np.ndarray, Mapping[str, np.ndarray]], np.ndarray],

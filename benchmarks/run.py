@@ -123,27 +123,65 @@ def _single_stage_problem(problem: str):
     return build_problem(dataclasses.replace(spec, stages=()))
 
 
+#: Passes over the data made by symcal, counted by wrapping Objective's evaluators, and
+#: the Gauss-Newton decrements its IPOPT path tested.
+PASSES: dict[str, Any] = {"n": 0, "decrements": [], "by": {}}
+
+
+def _count_passes() -> None:
+    """Count every pass of symcal's Objective over the data (cost, normal equations, R
+    factor, residual statistics): the analogue of a peer's residual evaluation.  The
+    wrappers only count; they are installed in the benchmark's child process only."""
+    from symcal.solve.objective import Objective
+
+    if getattr(Objective, "_bench_counted", False):
+        return
+    for name in ("cost", "normal_equations", "accumulate_r", "residual_covariance",
+                 "cost_terms"):
+        original = getattr(Objective, name)
+
+        def counted(self, *args, _original=original, _name=name, **kwargs):
+            PASSES["n"] += 1
+            PASSES["by"][_name] = PASSES["by"].get(_name, 0) + 1
+            return _original(self, *args, **kwargs)
+
+        setattr(Objective, name, counted)
+    Objective._bench_counted = True
+    from symcal.solve import nlp
+
+    tested = nlp._Oracle.decrement
+
+    def decrement(self, x, _tested=tested):
+        value = _tested(self, x)
+        PASSES["decrements"].append(float(value))
+        return value
+
+    nlp._Oracle.decrement = decrement
+
+
 def _symcal_solver(problem: str, cols: dict[str, np.ndarray]):
-    """A function theta0 -> (theta, iterations, message) running symcal's default path
-    for the single stage: Objective + closed form (linear) or IPOPT (nonlinear)."""
+    """A function theta0 -> (theta, iterations, message, passes) running symcal's
+    default path for the single stage: Objective + closed form (linear) or IPOPT."""
     from symcal.calibrate import needed_columns
     from symcal.data import make_dataset
     from symcal.solve.linear import solve_linear
     from symcal.solve.nlp import solve_ipopt
     from symcal.solve.objective import Objective
 
+    _count_passes()
     prob = _single_stage_problem(problem)
     stage = prob.stages[0]
     data = make_dataset("calibration", "benchmark", cols, needed_columns(prob))
     free = np.array([p.name in stage.free for p in prob.parameters])
 
-    def run(theta0: np.ndarray) -> tuple[np.ndarray, int, str]:
+    def run(theta0: np.ndarray) -> tuple[np.ndarray, int, str, int]:
+        PASSES.update(n=0, decrements=[], by={})
         objective = Objective(prob, stage.constraints, free)
         if objective.nonlinear():
             out = solve_ipopt(objective, data, theta0)
         else:
             out = solve_linear(objective, data, theta0)
-        return out.theta, out.iterations, f"{out.method}: {out.message}"
+        return out.theta, out.iterations, f"{out.method}: {out.message}", PASSES["n"]
 
     return run
 
@@ -153,12 +191,14 @@ def _symcal_analysis(problem: str, cols: dict[str, np.ndarray]):
     from symcal.calibrate import needed_columns, run_stage
     from symcal.data import make_dataset
 
+    _count_passes()
     prob = _single_stage_problem(problem)
     data = make_dataset("calibration", "benchmark", cols, needed_columns(prob))
 
-    def run(theta0: np.ndarray) -> tuple[np.ndarray, int, str]:
+    def run(theta0: np.ndarray) -> tuple[np.ndarray, int, str, int]:
+        PASSES.update(n=0, decrements=[], by={})
         theta, result = run_stage(prob, prob.stages[0], data, theta0, weighting="equal")
-        return theta, result.iterations, f"{result.method}: {result.message}"
+        return theta, result.iterations, f"{result.method}: {result.message}", PASSES["n"]
 
     return run
 
@@ -170,7 +210,7 @@ def _peer(problem: str, method: str, cols: dict[str, np.ndarray], cap: float):
         if method == "floor":
             res = peers.numpy_floor(theta0, cols)
         elif method == "least_squares":
-            res = peers.least_squares(residual, theta0, cols)
+            res = peers.least_squares(residual, theta0, cols, max_seconds=cap)
         else:
             res = peers.bfgs(residual, theta0, cols, max_seconds=cap)
         return res.theta, res.iterations, res.message, res.evaluations
@@ -199,11 +239,14 @@ def child_solve(job: dict[str, Any]) -> dict[str, Any]:
         if sum(times) + times[-1] > job["repeat_budget"]:
             break
     theta, iterations, message = out[:3]
+    stopped = "cap" in message
     return {
-        "times": times, "seconds": statistics.median(times), "iterations": int(iterations),
-        "evaluations": int(out[3]) if len(out) > 3 else None, "message": message,
+        "times": times, "seconds": statistics.median(times), "iterations": iterations,
+        "evaluations": out[3], "message": message,
         "cost": _cost(problem, theta, cols), "baseline_mib": baseline,
-        "peak_mib": _peak_rss_mib(), "theta": [float(v) for v in theta],
+        "peak_mib": _peak_rss_mib(), "theta": [float(v) for v in theta], "stopped": stopped,
+        "decrements": list(PASSES["decrements"]) if method == "symcal" else None,
+        "passes_by": dict(PASSES["by"]) if method.startswith("symcal") else None,
     }
 
 
@@ -232,7 +275,8 @@ def child_start(job: dict[str, Any]) -> dict[str, Any]:
 
 def child_assemble(job: dict[str, Any]) -> dict[str, Any]:
     """YAML to a ready solver: load and build the problem, make each stage's objective
-    and its mapped per-observation functions for the chunk lengths N needs."""
+    and its mapped per-observation functions, and evaluate each once on every chunk
+    length N needs (which builds whatever ``symcal.numeric`` builds on first use)."""
     start = time.perf_counter()
     import symcal
     from symcal.numeric import CHUNK, chunks
@@ -242,32 +286,46 @@ def child_assemble(job: dict[str, Any]) -> dict[str, Any]:
     prob = symcal.load_problem(ROOT / PROBLEMS[job["problem"]]["path"])
     loaded = time.perf_counter()
     lengths = sorted({s.stop - s.start for s in chunks(job["n"], CHUNK)})
+    dummy = np.zeros((len(prob.columns), max(lengths)))
     for stage in prob.stages:
         free = np.array([p.name in stage.free for p in prob.parameters])
         objective = Objective(prob, stage.constraints, free)
         objective.nonlinear()
+        theta = np.array([p.value for p in prob.parameters])
         for name, outputs in (("linearised", [objective.g, objective.jac.T]),
                               ("residual", [objective.g])):
-            fn = objective._mapped(name, outputs)  # what solve_* build on first use
-            for n in lengths:
-                fn._map(n)
+            fn = objective._mapped(name, outputs)  # what the solvers build on first use
+            for n in lengths:  # one evaluation per chunk length builds what it needs
+                fn.chunk(theta, dummy[:, :n])
     done = time.perf_counter()
     return {"import": imported - start, "load": loaded - imported, "assemble": done - loaded,
             "total": done - imported, "stages": len(prob.stages), "chunks": lengths}
 
 
 def child_profile(job: dict[str, Any]) -> dict[str, Any]:
-    """Where symcal's time per chunk goes: CasADi's evaluation of the mapped
-    residual+Jacobian, versus symcal's conversion of the result to numpy
-    (``symcal.numeric.Mapped.chunk``), versus the same evaluation through
-    ``casadi.Function.buffer`` into preallocated numpy arrays."""
-    return {problem: _profile_problem(problem, job["data"][problem], job["start"][problem])
-            for problem in ("linear", "dual")}
+    """Where symcal's time per pass goes, on one full chunk and on the smallest N.
+
+    Only symcal's public objects and ``Objective``'s evaluators are timed, so the profile
+    follows whatever ``symcal.numeric`` does; the cost of building a mapped function is
+    taken as the first call minus a repeated call."""
+    out: dict[str, Any] = {}
+    for problem in ("linear", "dual"):
+        for label in ("chunk", "small"):
+            try:
+                out[f"{problem}/{label}"] = _profile_problem(
+                    problem, job[label][problem], job["start"][problem])
+            except Exception as exc:  # noqa: BLE001 - a profile must not stop the run
+                out[f"{problem}/{label}"] = {"error": f"{type(exc).__name__}: {exc}"}
+    return out
+
+
+def _timed(fn) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
 
 
 def _profile_problem(problem: str, data_path: str, start_path: str) -> dict[str, Any]:
-    import casadi as ca
-
     from symcal.calibrate import needed_columns
     from symcal.data import make_dataset
     from symcal.solve.objective import Objective
@@ -278,48 +336,34 @@ def _profile_problem(problem: str, data_path: str, start_path: str) -> dict[str,
     data = make_dataset("calibration", "benchmark", cols, needed_columns(prob))
     theta = np.load(start_path)
     stage = prob.stages[0]
-    objective = Objective(prob, stage.constraints,
-                          np.array([p.name in stage.free for p in prob.parameters]))
+    free = np.array([p.name in stage.free for p in prob.parameters])
     u = data.matrix(prob.columns)
-    fn = objective._mapped("linearised", [objective.g, objective.jac.T])
-    fn.chunk(theta, u)  # build the map once
-    before = _peak_rss_mib()
+
+    def fresh() -> Any:
+        return Objective(prob, stage.constraints, free)
+
+    objective = fresh()
     rec: dict[str, Any] = {"n": n}
-    rec["chunk"] = _best(lambda: fn.chunk(theta, u))
-    rec["chunk_peak_mib"] = _peak_rss_mib() - before
-    mapped = fn._map(n)
-    rec["casadi_call"] = _best(lambda: mapped(theta, u))
-    outs = mapped(theta, u)
-    rec["to_numpy"] = _best(lambda: [np.asarray(o) for o in outs])
-    dense = ca.Function("dense", [prob.theta, prob.u],
-                        [objective.g, ca.vec(ca.densify(objective.jac.T))])
-    shared = dense.map("shared", "serial", n, [0], [])
-    g = np.empty((n, objective.g.shape[0]))
-    jt = np.empty((n, objective.jac.numel()))
-    ut = np.ascontiguousarray(u.T)
-    th = np.ascontiguousarray(theta)
-
-    def by_buffer() -> None:
-        buf, evaluate = shared.buffer()
-        buf.set_arg(0, memoryview(th))
-        buf.set_arg(1, memoryview(ut))
-        buf.set_res(0, memoryview(g))
-        buf.set_res(1, memoryview(jt))
-        evaluate()
-
-    rec["buffer"] = _best(by_buffer)
-    ref = fn.chunk(theta, u)
-    rec["buffer_agrees"] = float(max(np.abs(ref[0] - g).max(), np.abs(ref[1] - jt).max()))
-    res = objective._mapped("residual", [objective.g])
-    res.chunk(theta, u)
-    rec["residual_chunk"] = _best(lambda: res.chunk(theta, u))
-    rec["normal_equations"] = _best(lambda: objective.normal_equations(data, theta))
-    rec["accumulate_r"] = _best(lambda: objective.accumulate_r(data, theta))
-    rec["cost"] = _best(lambda: objective.cost(data, theta))
+    lin = objective._mapped("linearised", [objective.g, objective.jac.T])
+    before = _peak_rss_mib()
+    rec["chunk_first"] = _timed(lambda: lin.chunk(theta, u))
+    rec["chunk_first_peak_mib"] = _peak_rss_mib() - before
+    rec["chunk"] = _best(lambda: lin.chunk(theta, u))
+    try:  # the mapped function's work vector, if symcal keeps it where it does today
+        entry = lin._maps[max(lin._maps)]
+        fn = entry[0] if isinstance(entry, tuple) else entry
+        rec["work_mib"] = fn.sz_w() * 8 / 2**20
+    except Exception:  # noqa: BLE001 - informative only
+        rec["work_mib"] = None
+    for name in ("normal_equations", "accumulate_r", "cost"):
+        other = fresh()
+        first = _timed(lambda o=other, m=name: getattr(o, m)(data, theta))
+        rec[name] = _best(lambda o=other, m=name: getattr(o, m)(data, theta))
+        rec[f"{name}_first"] = first
     return rec
 
 
-def _best(fn, repeats: int = 3) -> float:
+def _best(fn, repeats: int = 2) -> float:
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
@@ -363,6 +407,7 @@ class Settings:
     repeats: int
     cap: float
     repeat_budget: float
+    budget: float
     blas_threads: str | None
     out: Path
     quick: bool
@@ -437,6 +482,27 @@ def machine() -> dict[str, str]:
     return info
 
 
+def code_state() -> dict[str, str]:
+    """Which symcal was measured: a hash of symcal/**/*.py, and the git commit (read only)."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    for path in sorted((ROOT / "symcal").rglob("*.py")):
+        digest.update(path.relative_to(ROOT).as_posix().encode())
+        digest.update(path.read_bytes())
+    state = {"hash": digest.hexdigest()[:12]}
+    try:
+        state["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
+                                         capture_output=True, text=True,
+                                         timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "symcal"], cwd=ROOT,
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+        state["dirty"] = ", ".join(line[3:] for line in dirty.splitlines())
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return state
+
+
 def load_average() -> str:
     try:
         return "{:.2f} {:.2f} {:.2f}".format(*os.getloadavg())
@@ -485,26 +551,31 @@ def check_residuals() -> dict[str, float]:
 
 
 def projected(history: list[tuple[int, float]], n: int) -> float | None:
-    """Time at ``n`` extrapolated from the measured (N, seconds), at least linearly."""
+    """Time at ``n`` extrapolated linearly from the largest N measured so far."""
     if not history:
         return None
     n1, t1 = history[-1]
-    slope = 1.0
-    if len(history) >= 2:
-        n0, t0 = history[-2]
-        if t0 > 0 and t1 > 0:
-            slope = max(1.0, math.log(t1 / t0) / math.log(n1 / n0))
-    return t1 * (n / n1) ** slope
+    return t1 * n / n1
 
 
-def run_benchmarks(settings: Settings, files: dict, report: dict) -> None:
-    rows: list[dict[str, Any]] = []
-    report["rows"] = rows
+class Clock:
+    """The run's wall-clock budget: capped rows are skipped or stopped to stay within it."""
+
+    def __init__(self, budget: float) -> None:
+        self.start = time.perf_counter()
+        self.budget = budget
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+    def left(self) -> float:
+        return self.budget - self.elapsed()
+
+
+def compute_starts(settings: Settings, files: dict, report: dict) -> None:
+    """The common start of every (problem, N), in a child (symcal's stages 1-2 for dual)."""
     report["starts"] = {}
-    for problem, info in PROBLEMS.items():
-        say(f"\n== {info['title']}")
-        history: dict[str, list[tuple[int, float]]] = {m: [] for m in info["methods"]}
-        dead: dict[str, str] = {}
+    for problem in PROBLEMS:
         for n in settings.sizes:
             job = {"kind": "start", "problem": problem, "data": files[(problem, n)]["data"],
                    "out": files[(problem, n)]["start"]}
@@ -513,42 +584,61 @@ def run_benchmarks(settings: Settings, files: dict, report: dict) -> None:
                 raise SystemExit(f"could not compute the start for {problem} N={n}: "
                                  f"{start['error']}")
             report["starts"][(problem, n)] = start
+    say("== common starts: " + ", ".join(f"{p} N={fmt_n(n)} {r['seconds']:.2f} s"
+                                         for (p, n), r in report["starts"].items()))
+
+
+def run_benchmarks(settings: Settings, files: dict, report: dict, clock: Clock) -> None:
+    """Every (problem, N, method), N ascending; symcal and the floor first at each N."""
+    rows: list[dict[str, Any]] = []
+    report["rows"] = rows
+    history: dict[tuple[str, str], list[tuple[int, float]]] = {}
+    dead: dict[tuple[str, str], str] = {}
+    for n in settings.sizes:
+        for problem, info in PROBLEMS.items():
             for method in info["methods"]:
+                key = (problem, method)
                 row = {"problem": problem, "n": n, "method": method}
-                guess = projected(history[method], n)
-                if method in dead:
-                    row["skipped"] = dead[method]
+                rows.append(row)
+                guess = projected(history.get(key, []), n)
+                if key in dead:
+                    row["skipped"] = dead[key]
                 elif method not in UNCAPPED and guess is not None and guess > settings.cap:
                     row["skipped"] = (f"projected {guess:.0f} s > the {settings.cap:.0f} s "
                                       "cap")
+                elif method not in UNCAPPED and guess is not None and guess > clock.left():
+                    row["skipped"] = (f"projected {guess:.0f} s would pass the run's "
+                                      f"{settings.budget / 60:.0f} min budget")
                 if "skipped" in row:
-                    say(f"  N={n:>8} {method:16s} skipped: {row['skipped']}")
-                    rows.append(row)
+                    say(f"  {problem:6s} N={n:>8} {method:16s} skipped: {row['skipped']}")
                     continue
+                stop = (settings.cap if method in UNCAPPED
+                        else max(1.0, min(settings.cap, clock.left())))
                 job = {"kind": "solve", "problem": problem, "method": method,
                        "data": files[(problem, n)]["data"], "start": files[(problem, n)]["start"],
                        "repeats": settings.repeats if n < 1_000_000 else 1,
-                       "repeat_budget": settings.repeat_budget, "cap": settings.cap}
-                limit = (max(3 * (guess or 0), 600) if method in UNCAPPED
-                         else 2 * settings.cap + 120)
+                       "repeat_budget": settings.repeat_budget, "cap": stop}
+                limit = (max(5 * (guess or 0), 900) if method in UNCAPPED
+                         else max(3 * (guess or 0), 3 * stop) + 120)
                 result = run_child(job, settings, timeout=limit)
                 row.update(result)
-                rows.append(row)
                 if "error" in result:
-                    dead[method] = f"failed at N = {n}: {result['error']}"
-                    say(f"  N={n:>8} {method:16s} ERROR {result['error']}")
+                    dead[key] = f"failed at N = {fmt_n(n)}: {result['error']}"
+                    say(f"  {problem:6s} N={n:>8} {method:16s} ERROR {result['error']}")
                     continue
-                history[method].append((n, result["seconds"]))
-                if method == "bfgs" and "cap" in result["message"]:
-                    dead[method] = f"hit the {settings.cap:.0f} s cap at N = {n}"
-                say(f"  N={n:>8} {method:16s} {result['seconds']:9.3f} s "
-                    f"(median of {len(result['times'])})  peak {result['peak_mib']:7.0f} MiB"
-                    f"  iter {result['iterations']:5d}  J = {result['cost']:.12e}")
+                history.setdefault(key, []).append((n, result["seconds"]))
+                if result["stopped"]:
+                    dead[key] = f"stopped at its cap at N = {fmt_n(n)}"
+                iters = "—" if result["iterations"] is None else result["iterations"]
+                say(f"  {problem:6s} N={n:>8} {method:16s} {result['seconds']:9.3f} s "
+                    f"(median of {len(result['times'])})  peak {result['peak_mib']:6.0f} MiB"
+                    f"  iter {iters!s:>4}  passes {result['evaluations']!s:>5}  "
+                    f"J = {result['cost']:.12e}{'  STOPPED AT CAP' if result['stopped'] else ''}")
 
 
 def run_extras(settings: Settings, files: dict, workdir: Path, report: dict) -> None:
-    """Load+assemble by N, `symcal simulate` and CSV/NPZ reading at the largest N, and
-    the profile of symcal's per-chunk evaluation."""
+    """Load+assemble by N, `symcal simulate` and CSV/NPZ reading at the largest N, the
+    profile of symcal's per-chunk evaluation, and the BLAS-threads check."""
     big = max(settings.sizes)
     assemble = {}
     for problem in PROBLEMS:
@@ -556,14 +646,16 @@ def run_extras(settings: Settings, files: dict, workdir: Path, report: dict) -> 
             assemble[(problem, n)] = run_child({"kind": "assemble", "problem": problem, "n": n},
                                                settings, timeout=300)
     report["assemble"] = assemble
-    say("\n== load + assemble (s): " + ", ".join(
-        f"{p} N={n}: {r.get('total', float('nan')):.3f}" for (p, n), r in assemble.items()))
+    say("== load + assemble (s): " + ", ".join(
+        f"{p} N={fmt_n(n)}: {r.get('total', float('nan')):.3f}"
+        for (p, n), r in assemble.items()))
 
     sim = {}
     for suffix in ("npz", "csv"):
         target = workdir / f"simulated.{suffix}"
-        cmd = [sys.executable, "-m", "symcal", "simulate", str(ROOT / PROBLEMS["dual"]["scenario"]),
-               "-o", str(target), "-n", str(big), "--run", "calibration", "--seed", str(SEED)]
+        cmd = [sys.executable, "-m", "symcal", "simulate",
+               str(ROOT / PROBLEMS["dual"]["scenario"]), "-o", str(target), "-n", str(big),
+               "--run", "calibration", "--seed", str(SEED)]
         start = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT,
                               env=child_env(settings.blas_threads))
@@ -571,45 +663,53 @@ def run_extras(settings: Settings, files: dict, workdir: Path, report: dict) -> 
                        "error": proc.stderr.strip()[-300:], "path": str(target),
                        "bytes": target.stat().st_size if target.exists() else 0}
     report["simulate"] = sim
-    say(f"== symcal simulate, N={big}: " + ", ".join(
+    say(f"== symcal simulate, N={fmt_n(big)}: " + ", ".join(
         f"{k} {v['seconds']:.2f} s" for k, v in sim.items()))
     if sim["csv"]["ok"] and sim["npz"]["ok"]:
         report["read"] = run_child({"kind": "read", "csv": sim["csv"]["path"],
                                     "npz": sim["npz"]["path"]}, settings, timeout=600)
-        say(f"== read_table, N={big}: csv {report['read'].get('csv', float('nan')):.2f} s, "
-            f"npz {report['read'].get('npz', float('nan')):.3f} s")
+        say(f"== read_table, N={fmt_n(big)}: csv {report['read'].get('csv', float('nan')):.2f} s,"
+            f" npz {report['read'].get('npz', float('nan')):.3f} s")
+    for suffix in ("npz", "csv"):
+        Path(sim[suffix]["path"]).unlink(missing_ok=True)
 
-    n_prof = min(big, 65_536)
-    profile_files = {}
     from symcal.data import write_table
+    from symcal.numeric import CHUNK
     from symcal.simulate import load_scenario, simulate_run
 
+    n_prof = min(big, CHUNK)
+    profile_files: dict[str, dict[str, str]] = {"chunk": {}, "small": {}}
     for problem, info in PROBLEMS.items():
         path = workdir / f"profile_{problem}.npz"
         write_table(path, simulate_run(load_scenario(ROOT / info["scenario"]), "calibration",
                                        seed=SEED, n=n_prof))
-        profile_files[problem] = str(path)
+        profile_files["chunk"][problem] = str(path)
+        profile_files["small"][problem] = files[(problem, min(settings.sizes))]["data"]
     starts = {p: files[(p, min(settings.sizes))]["start"] for p in PROBLEMS}
-    report["profile"] = run_child({"kind": "profile", "data": profile_files, "start": starts},
+    report["profile"] = run_child({"kind": "profile", **profile_files, "start": starts},
                                   settings, timeout=600)
-    say(f"== profile of one chunk of {n_prof}: {json.dumps(report['profile'])}")
+    say("== profile: " + "; ".join(
+        f"{k}: " + ", ".join(f"{m} {v:.3g}" if isinstance(v, float) else f"{m} {v}"
+                             for m, v in rec.items())
+        for k, rec in report["profile"].items() if isinstance(rec, dict)))
 
     # BLAS threads: the same jobs pinned to one thread and with the library default.
-    n_blas = 10_000 if 10_000 in settings.sizes else min(settings.sizes)
+    n_lin = 100_000 if 100_000 in settings.sizes else min(settings.sizes)
+    jobs = (("dual", "symcal", min(settings.sizes)), ("dual", "least_squares",
+                                                      min(settings.sizes)),
+            ("linear", "symcal", n_lin), ("linear", "floor", n_lin))
     sens = {}
     for label, threads in (("1 thread", "1"), ("BLAS default", None)):
-        for problem, method in (("dual", "symcal"), ("linear", "floor"),
-                                ("dual", "least_squares")):
+        for problem, method, n in jobs:
             job = {"kind": "solve", "problem": problem, "method": method,
-                   "data": files[(problem, n_blas)]["data"],
-                   "start": files[(problem, n_blas)]["start"],
-                   "repeats": 3, "repeat_budget": 30, "cap": settings.cap}
-            sens[(label, problem, method)] = run_child(job, settings, timeout=600,
-                                                       threads=threads)
-    report["blas"] = {"n": n_blas, "runs": sens}
+                   "data": files[(problem, n)]["data"], "start": files[(problem, n)]["start"],
+                   "repeats": 3, "repeat_budget": 10, "cap": settings.cap}
+            sens[(label, problem, method, n)] = run_child(job, settings, timeout=600,
+                                                          threads=threads)
+    report["blas"] = sens
     say("== BLAS threads: " + ", ".join(
-        f"{lab} {p} {m}: {r.get('seconds', float('nan')):.3f} s"
-        for (lab, p, m), r in sens.items()))
+        f"{lab} {p} {m} N={fmt_n(n)}: {r.get('seconds', float('nan')):.3f} s"
+        for (lab, p, m, n), r in sens.items()))
 
 
 # --------------------------------------------------------------------------- analysis
@@ -624,18 +724,26 @@ def exponent(points: list[tuple[int, float]]) -> float | None:
     return float(np.polyfit(x, y, 1)[0])
 
 
-def measured(rows: list[dict], problem: str, method: str) -> dict[int, dict]:
+def measured(rows: list[dict], problem: str, method: str,
+             finished: bool = False) -> dict[int, dict]:
+    """Rows of one method that ran, by N (``finished``: not stopped at the cap)."""
     return {r["n"]: r for r in rows if r["problem"] == problem and r["method"] == method
-            and "seconds" in r}
+            and "seconds" in r and not (finished and r.get("stopped"))}
 
 
-def exponents(rows: list[dict]) -> dict[tuple[str, str], tuple[float | None, float | None]]:
+def exponents(rows: list[dict]) -> dict[tuple[str, str], tuple[float | None, ...]]:
+    """Per (problem, method): the exponent of time over all sizes, over N >= 1e4, and of
+    time per pass over the data over N >= 1e4 (what is left once iteration counts that
+    differ between sizes are divided out)."""
     out = {}
     for problem, info in PROBLEMS.items():
         for method in info["methods"]:
-            got = measured(rows, problem, method)
+            got = measured(rows, problem, method, finished=True)
             pts = sorted((n, r["seconds"]) for n, r in got.items())
-            out[(problem, method)] = (exponent(pts), exponent([p for p in pts if p[0] >= 10_000]))
+            per_pass = sorted((n, r["seconds"] / r["evaluations"]) for n, r in got.items()
+                              if n >= 10_000 and r.get("evaluations"))
+            out[(problem, method)] = (exponent(pts), exponent([p for p in pts if p[0] >= 10_000]),
+                                      exponent(per_pass))
     return out
 
 
@@ -723,45 +831,80 @@ def fmt_n(n: int) -> str:
     return f"1e{e}" if 10**e == n else str(n)
 
 
+def _row_cells(r: dict, ref: float | None, best: float) -> str:
+    label = LABELS[r["method"]]
+    n = fmt_n(r["n"])
+    if "seconds" not in r:
+        why = r.get("skipped") or r.get("error", "")
+        return (f"| {n} | {label} | — | — | — | — | — | — | — | — | — | "
+                f"**skipped**: {why} |")
+    stopped = r.get("stopped")
+    shown = ("≥ " if stopped else "") + fmt_time(r["seconds"])
+    ratio = "—" if not ref else ("≥ " if stopped else "") + f"{r['seconds'] / ref:.1f}×"
+    rel = (r["cost"] - best) / best if best > 0 else 0.0
+    note = r["message"]
+    if len(note) > 100:
+        note = note[:97] + "..."
+    iters = "—" if r.get("iterations") is None else str(r["iterations"])
+    passes = "—" if r.get("evaluations") is None else str(r["evaluations"])
+    return (f"| {n} | {label} | {shown} | {len(r['times'])} | {ratio} | "
+            f"{r['peak_mib']:.0f} MiB | {r['peak_mib'] - r['baseline_mib']:.0f} MiB | {iters} | "
+            f"{passes} | {r['cost']:.12g} | {rel:.1e} | {note.replace('|', '/')} |")
+
+
 def render(report: dict, settings: Settings) -> str:
     rows = report["rows"]
     lines = [
         "# symcal benchmarks",
         "",
-        f"Produced by `{report['command']}` on {report['date']} "
-        f"in {report['elapsed'] / 60:.1f} min.  Do not edit by hand; see "
-        "[README.md](README.md) for what is measured and how.",
+        f"Produced by `{report['command']}` on {report['date']}; the whole run took "
+        f"{report['elapsed'] / 60:.1f} min.  Generated by `benchmarks/run.py`: do not edit "
+        "by hand.  [README.md](README.md) says what is measured and how.",
         "",
         "## Machine",
         "",
     ]
     lines += [f"- **{k}**: {v}" for k, v in report["machine"].items()]
+    code, end = report["code_start"], report["code_end"]
+    where = f"commit {code['commit']}" if code.get("commit") else "no git commit found"
+    if code.get("dirty"):
+        where += f" with uncommitted changes to {code['dirty']}"
+    lines.append(f"- **symcal measured**: {where} (source hash {code['hash']})")
+    if end["hash"] != code["hash"]:
+        lines.append(f"- **WARNING**: symcal's source changed during the run (hash "
+                     f"{code['hash']} → {end['hash']}); the rows mix two versions.")
     lines += [
         f"- **load average** (1, 5, 15 min) at the start: {report['load_start']}; at the end: "
-        f"{report['load_end']} (other jobs on the machine inflate every time alike)",
+        f"{report['load_end']}.  Other jobs were running on the machine; they slow every "
+        "method alike, but absolute times vary by tens of percent from run to run.",
         f"- **BLAS threads in every timed process**: "
         f"{settings.blas_threads or 'library default'} (OPENBLAS_NUM_THREADS, "
-        "OMP_NUM_THREADS, MKL_NUM_THREADS); see *BLAS threads* below",
+        "OMP_NUM_THREADS, MKL_NUM_THREADS; see *BLAS threads* below for why)",
         "",
-        "## Settings",
+        "## How it was measured",
         "",
-        f"- sizes N = {', '.join(fmt_n(n) for n in settings.sizes)} observations (simulated "
-        f"once per problem and N with seed {SEED}, stored as NPZ; every method reads the "
-        "same file)",
-        f"- wall time: `time.perf_counter` around the solve only, median of up to "
-        f"{settings.repeats} runs (1 at N = 1e6; fewer when a run takes long: repeats stop "
-        f"once they would pass {settings.repeat_budget:.0f} s); each (method, N) in a fresh "
-        "process",
-        "- peak memory: peak resident set size (VmHWM) of that process, Python, libraries "
-        "and the data included; Δ is the peak minus the resident size just before the first "
-        "timed run",
-        f"- cap: a peer is skipped at the sizes where its time, extrapolated from the "
-        f"smaller ones (at least linearly), passes {settings.cap:.0f} s; BFGS also stops at "
-        f"{settings.cap:.0f} s",
-        "- final cost J = Σ g² (mm², equal weights) evaluated with the numpy residual of "
-        "peers.py for every method; 'rel.' is (J − J_best)/J_best at that N",
-        "- peer residuals vs symcal's at a test point: max |difference| "
-        + ", ".join(f"{p} {v:.1e} mm" for p, v in report["residual_check"].items()),
+        f"- N = {', '.join(fmt_n(n) for n in settings.sizes)} observations of the scenario's "
+        f"`calibration` run, simulated once per problem and N (seed {SEED}) and stored as "
+        "NPZ: every method reads the same file.",
+        "- Each (method, N) runs in a fresh process.  Wall time: `time.perf_counter` around "
+        f"the solve only, median of up to {settings.repeats} runs (1 at N = 1e6; repeats stop "
+        f"once they would pass {settings.repeat_budget:.0f} s).",
+        "- Peak memory: the peak resident set size (VmHWM) of that process, Python, "
+        "libraries and the data included.  Δ is the peak minus the resident size just before "
+        "the first timed run: what the method itself added.",
+        f"- Caps: a peer (or the `run_stage` row) is not started at a size where its time, "
+        f"extrapolated linearly from the previous size, passes {settings.cap:.0f} s, or would "
+        f"pass the run's {settings.budget / 60:.1f} min budget; a peer that is started is "
+        f"stopped at {settings.cap:.0f} s (shown as ≥).  symcal's default path and the numpy "
+        "floor are never skipped.",
+        "- Iterations: IPOPT iterations (symcal), trial steps `nfev` (least_squares), `nit` "
+        "(BFGS).  Passes: passes over the data, i.e. residual evaluations for the peers "
+        "(a finite-difference gradient costs one per parameter) and calls of symcal's "
+        "`Objective` evaluators (`cost`, `normal_equations`, `accumulate_r`, ...).",
+        "- Final J = Σ g² (mm², equal weights) of every method's estimate, evaluated with the "
+        "same numpy residual; 'rel.' is (J − J_best)/J_best at that N.",
+        "- The numpy residuals of `peers.py` agree with symcal's at a perturbed test point to "
+        + ", ".join(f"{v:.1e} mm ({p})" for p, v in report["residual_check"].items()) + ".",
         "",
     ]
     exps = exponents(rows)
@@ -770,56 +913,47 @@ def render(report: dict, settings: Settings) -> str:
         if problem == "dual":
             lines += [
                 "All methods start from the same vector: symcal's first two stages (platen, "
-                "then coordination sensor; both closed form, equal weights) on the same data. "
-                "They then minimise the same single cost over all 49 parameters.  symcal "
-                "(default path) = `Objective` + `solve_ipopt` (IPOPT, Gauss-Newton Hessian, "
-                "exact Jacobian), which is what `solve()` runs for its `full` stage; the "
-                "`run_stage` row adds that stage's analysis (identifiability, conditioning at "
-                "the start and end, sandwich covariance).",
+                "then coordination sensor; closed form, equal weights) on the same data.  "
+                "From there they minimise the same single cost over all 49 parameters.  "
+                "*symcal (default path)* is `Objective` + `symcal.solve.nlp.solve_ipopt` "
+                "(IPOPT with the Gauss-Newton Hessian and CasADi's exact Jacobian, evaluated "
+                "by chunks), which is what `solve()` runs for the problem's `full` stage.  "
+                "The `run_stage` row is `symcal.calibrate.run_stage`: the same solve plus the "
+                "stage's analysis (R factor at the start, identifiability, sandwich "
+                "covariance).",
                 "",
             ]
         else:
             lines += [
-                "All methods start from the problem's initial values (all zero).  symcal "
-                "(default path) = `Objective` + `solve_linear` (closed form: chunked TSQR, "
-                "minimum-norm step); the `run_stage` row adds the stage's analysis.",
+                "All methods start from the problem's initial values (all zero).  *symcal "
+                "(default path)* is `Objective` + `symcal.solve.linear.solve_linear` (closed "
+                "form: residual and Jacobian by chunks, TSQR, minimum-norm step from the SVD "
+                "of R).  The floor assembles Γ of eq. (7) with numpy and calls "
+                "`numpy.linalg.lstsq` once.  The `run_stage` row adds the stage's analysis.",
                 "",
             ]
-        lines += ["| N | method | time (median) | runs | × symcal | peak RSS | Δ RSS | "
-                  "iterations | evaluations | final J (mm²) | rel. | note |",
+        lines += ["| N | method | time | runs | × symcal | peak RSS | Δ RSS | "
+                  "iterations | passes | final J (mm²) | rel. | note |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for n in settings.sizes:
             here = [r for r in rows if r["problem"] == problem and r["n"] == n]
             ok = [r for r in here if "seconds" in r]
             best = min((r["cost"] for r in ok), default=float("nan"))
             ref = next((r["seconds"] for r in ok if r["method"] == "symcal"), None)
-            for r in here:
-                label = LABELS[r["method"]]
-                if "seconds" not in r:
-                    why = r.get("skipped") or r.get("error", "")
-                    lines.append(f"| {fmt_n(n)} | {label} | — | — | — | — | — | — | — | — | — | "
-                                 f"**skipped**: {why} |")
-                    continue
-                ratio = f"{r['seconds'] / ref:.1f}×" if ref else "—"
-                rel = (r["cost"] - best) / best if best > 0 else 0.0
-                note = r["message"]
-                if len(note) > 90:
-                    note = note[:87] + "..."
-                evals = "—" if r.get("evaluations") is None else str(r["evaluations"])
-                lines.append(
-                    f"| {fmt_n(n)} | {label} | {fmt_time(r['seconds'])} | {len(r['times'])} | "
-                    f"{ratio} | {r['peak_mib']:.0f} MiB | {r['peak_mib'] - r['baseline_mib']:.0f}"
-                    f" MiB | {r['iterations']} | {evals} | {r['cost']:.12g} | {rel:.1e} | "
-                    f"{note.replace('|', '/')} |")
-        lines += ["", "Fitted exponent of time against N (time ∝ N^a):", ""]
-        lines += ["| method | a, all sizes measured | a, N ≥ 1e4 |", "|---|---|---|"]
+            lines += [_row_cells(r, ref, best) for r in here]
+        lines += ["", "Fitted exponent a of time ∝ N^a (least squares on log-log; rows "
+                  "stopped at the cap left out):", "",
+                  "| method | a, all sizes measured | a, N ≥ 1e4 | a of time per pass, "
+                  "N ≥ 1e4 |", "|---|---|---|---|"]
         for method in info["methods"]:
-            a_all, a_big = exps[(problem, method)]
-            lines.append(f"| {LABELS[method]} | {_show(a_all)} | {_show(a_big)} |")
+            a_all, a_big, a_pass = exps[(problem, method)]
+            lines.append(f"| {LABELS[method]} | {_show(a_all)} | {_show(a_big)} | "
+                         f"{_show(a_pass)} |")
         if problem == "dual":
-            lines += ["", "The common start (symcal's stages 1–2, closed form) took: " + ", ".join(
-                f"N = {fmt_n(n)}: {fmt_time(s['seconds'])}"
-                for (p, n), s in report["starts"].items() if p == "dual") + "."]
+            lines += ["", "The common start (symcal's stages 1–2, closed form, in their own "
+                      "process) took " + ", ".join(
+                          f"{fmt_time(st['seconds'])} at N = {fmt_n(n)}"
+                          for (p, n), st in report["starts"].items() if p == "dual") + "."]
         lines.append("")
     lines += ["## Targets", "", "| target | measured | verdict |", "|---|---|---|"]
     lines += [f"| {t['target']} | {t['measured']} | {t['verdict']} |"
@@ -829,95 +963,169 @@ def render(report: dict, settings: Settings) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _estimate(counts: dict[str, int], prof: dict[str, Any], chunks: int) -> float:
+    """Time of symcal's passes: calls of each evaluator × its measured time per chunk."""
+    return chunks * sum(counts.get(k, 0) * prof.get(k, 0.0)
+                        for k in ("normal_equations", "accumulate_r", "cost"))
+
+
 def why_section(report: dict, settings: Settings) -> list[str]:
-    """Where the time goes, from the profile measured in this run."""
+    """Where symcal's time goes, from measurements of this run."""
     prof = report.get("profile", {})
-    if "dual" not in prof:
-        return []
-    d, lin = prof["dual"], prof["linear"]
+    d, lin = prof.get("dual/chunk", {}), prof.get("linear/chunk", {})
+    ds = prof.get("dual/small", {})
+    if "chunk" not in d or "chunk" not in lin:
+        return ["## Where symcal's time goes", "", f"(profile failed: {prof})"]
     n = d["n"]
     rows = report["rows"]
     sym_dual = measured(rows, "dual", "symcal")
     sym_lin = measured(rows, "linear", "symcal")
     floor = measured(rows, "linear", "floor")
-    nb = max(settings.sizes)
+    ls = measured(rows, "dual", "least_squares")
+    nb, n0 = max(settings.sizes), min(settings.sizes)
     chunks_big = math.ceil(nb / n)
+
+    def work(r: dict[str, Any]) -> str:
+        return "—" if r.get("work_mib") is None else f"{r['work_mib']:.0f} MiB"
+
     lines = [
-        "## Why the missed targets are missed (measured in this run)",
+        "## Where symcal's time goes",
         "",
-        f"symcal evaluates its one-observation CasADi functions over chunks of up to "
-        f"{n} observations (`symcal.numeric.Mapped.chunk`).  On one chunk of {n} "
-        "observations (best of 3):",
+        "### 1. One pass over the data",
         "",
-        "| | dual problem | linear problem |",
+        f"symcal evaluates its one-observation CasADi functions over chunks of up to {n} "
+        "observations (`symcal.numeric.Mapped`, `CHUNK`).  Per chunk of "
+        f"{n} observations in this run (best of 2; *first call* includes building the "
+        "mapped function for that chunk length):",
+        "",
+        "| | dual | linear |",
         "|---|---|---|",
-        f"| `Mapped.chunk` of residual + Jacobian (what symcal does) | {fmt_time(d['chunk'])} "
-        f"| {fmt_time(lin['chunk'])} |",
-        f"| of which the CasADi call `Function.map(n)(θ, u)` (numpy → DM in, DM out) | "
-        f"{fmt_time(d['casadi_call'])} | {fmt_time(lin['casadi_call'])} |",
-        f"| of which `np.asarray(DM)` of the outputs | {fmt_time(d['to_numpy'])} | "
-        f"{fmt_time(lin['to_numpy'])} |",
-        f"| the same evaluation through `casadi.Function.buffer` into preallocated numpy "
-        f"arrays (θ shared, not repeated) | {fmt_time(d['buffer'])} | "
-        f"{fmt_time(lin['buffer'])} |",
-        f"| max difference buffer vs `Mapped.chunk` | {d['buffer_agrees']:.1e} | "
-        f"{lin['buffer_agrees']:.1e} |",
-        f"| transient peak RSS added by one `Mapped.chunk` | {d['chunk_peak_mib']:.0f} MiB | "
-        f"{lin['chunk_peak_mib']:.0f} MiB |",
-        f"| `Objective.normal_equations` (cost, Jᵀg, JᵀJ) over the {n} | "
+        f"| `Mapped.chunk`, residual + Jacobian | {fmt_time(d['chunk'])} | "
+        f"{fmt_time(lin['chunk'])} |",
+        f"| … its first call | {fmt_time(d['chunk_first'])} | "
+        f"{fmt_time(lin['chunk_first'])} |",
+        f"| … peak memory added by the first call | {d['chunk_first_peak_mib']:.0f} MiB | "
+        f"{lin['chunk_first_peak_mib']:.0f} MiB |",
+        f"| … work vector of the mapped function | {work(d)} | {work(lin)} |",
+        f"| `Objective.normal_equations` (residual, Jᵀg, JᵀJ) | "
         f"{fmt_time(d['normal_equations'])} | {fmt_time(lin['normal_equations'])} |",
-        f"| `Objective.accumulate_r` (TSQR) over the {n} | {fmt_time(d['accumulate_r'])} | "
+        f"| `Objective.accumulate_r` (TSQR) | {fmt_time(d['accumulate_r'])} | "
         f"{fmt_time(lin['accumulate_r'])} |",
-        f"| `Objective.cost` (residual only) over the {n} | {fmt_time(d['cost'])} | "
+        f"| `Objective.cost` (residual only) | {fmt_time(d['cost'])} | "
         f"{fmt_time(lin['cost'])} |",
         "",
     ]
-    conv = d["to_numpy"] / d["chunk"] if d["chunk"] else float("nan")
-    lines.append(
-        f"- The conversion of CasADi's `DM` results to numpy (`np.asarray` → `DM.full()` → "
-        f"`DM.elements()`, a Python list of floats) takes {100 * conv:.0f} % of a dual "
-        f"chunk, and the whole `Mapped.chunk` is {d['chunk'] / d['buffer']:.1f}× slower "
-        f"than the same numbers evaluated through `Function.buffer` "
-        f"({d['chunk'] / d['buffer']:.1f}× on the dual, {lin['chunk'] / lin['buffer']:.1f}× on "
-        "the linear problem).  This per-chunk overhead, not the solver, is what makes symcal "
-        "scale with a large constant.")
-    if nb in sym_dual:
+    if nb in sym_dual and sym_dual[nb].get("passes_by"):
         t = sym_dual[nb]
+        est = _estimate(t["passes_by"], d, chunks_big)
         lines.append(
-            f"- Dual, N = {fmt_n(nb)}: {chunks_big} chunks × {fmt_time(d['normal_equations'])} "
-            f"per Jacobian pass ≈ {chunks_big * d['normal_equations']:.0f} s for each of the "
-            f"{t['iterations'] + 1}+ Jacobian passes IPOPT needs ({t['iterations']} "
-            f"iterations), plus residual-only line-search passes and a final TSQR "
-            f"({chunks_big * d['accumulate_r']:.0f} s): measured {t['seconds']:.0f} s.  With "
-            f"buffer evaluation the Jacobian part would be ≈ {chunks_big * d['buffer']:.0f} s "
-            "per pass (extrapolated, not measured end to end).")
+            f"- Dual, N = {fmt_n(nb)}: {t['seconds']:.1f} s for {t['iterations']} IPOPT "
+            f"iterations and {t['evaluations']} passes ({_by(t['passes_by'])}).  Those "
+            f"passes at the per-chunk times above, × {chunks_big} chunks, come to "
+            f"{est:.1f} s; the rest is building the mapped functions and IPOPT itself.")
     if nb in sym_lin and nb in floor:
         lines.append(
-            f"- Linear, N = {fmt_n(nb)}: symcal {sym_lin[nb]['seconds']:.2f} s against the "
-            f"floor's {floor[nb]['seconds']:.2f} s; {chunks_big} chunks × "
-            f"{fmt_time(lin['accumulate_r'])} of `accumulate_r`, of which "
-            f"{fmt_time(lin['chunk'])} is `Mapped.chunk` (buffer evaluation: "
-            f"{fmt_time(lin['buffer'])}).")
-    blas = report.get("blas", {}).get("runs", {})
-    one = blas.get(("1 thread", "dual", "symcal"), {})
-    dflt = blas.get(("BLAS default", "dual", "symcal"), {})
+            f"- Linear, N = {fmt_n(nb)}: symcal {sym_lin[nb]['seconds']:.2f} s (one "
+            f"`accumulate_r` pass: {chunks_big} chunks × {fmt_time(lin['accumulate_r'])}), "
+            f"the numpy floor {floor[nb]['seconds']:.2f} s (building Γ, N × 36, in memory, "
+            "then one SVD-based `lstsq`).")
+    if n0 in sym_dual and n0 in ls and sym_dual[n0].get("passes_by") and "cost" in ds:
+        t, peer = sym_dual[n0], ls[n0]
+        est = _estimate(t["passes_by"], ds, 1)
+        ratio = peer["seconds"] / t["seconds"]
+        lines += [
+            "",
+            f"### 2. The dual problem at N = {fmt_n(n0)}",
+            "",
+            f"symcal took {fmt_time(t['seconds'])}: {t['evaluations']} passes "
+            f"({_by(t['passes_by'])}) at {fmt_time(ds['normal_equations'])} per "
+            f"`normal_equations`, {fmt_time(ds['cost'])} per `cost` and "
+            f"{fmt_time(ds['accumulate_r'])} per `accumulate_r` make {fmt_time(est)}.  The "
+            f"remaining {fmt_time(max(t['seconds'] - est, 0.0))} is building the mapped "
+            "functions of a new `Objective` (first `normal_equations` call: "
+            f"{fmt_time(ds['normal_equations_first'])}), creating the IPOPT solver and "
+            f"its iterations.  least_squares took {fmt_time(peer['seconds'])} for "
+            f"{peer['evaluations']} numpy residual evaluations "
+            f"({fmt_time(peer['seconds'] / peer['evaluations'])} each), i.e. "
+            f"{ratio:.1f}× symcal's time.",
+        ]
+        if ratio < 20:
+            lines.append(
+                f"\nReaching 20× needs symcal at ≤ {fmt_time(peer['seconds'] / 20)}: "
+                "fewer passes (IPOPT's line search evaluates the residual separately from "
+                "the Jacobian pass at the same point) or less fixed cost per solve.")
+    lines += ["", "### 3. IPOPT iterating on rounding noise", ""]
+    its = sorted(sym_dual.items())
+    lines.append("symcal's dual solve by N: " + "; ".join(
+        f"N = {fmt_n(k)}: {r['iterations']} iterations, {r['evaluations']} passes, "
+        f"{fmt_time(r['seconds'])}" for k, r in its) + ".")
+    stalled = [(k, r) for k, r in its
+               if sum(1e-14 <= v < 1e-12 for v in (r.get("decrements") or [])) >= 2]
+    if stalled:
+        k, r = max(stalled, key=lambda kr: kr[1]["evaluations"])
+        lines += [
+            "",
+            f"At N = {fmt_n(k)}, `symcal.solve.nlp.solve_ipopt` tested the Gauss-Newton "
+            "decrement after every iteration.  It stops when a Gauss-Newton step would "
+            "lower the cost by less than `GN_DECREMENT` = 1e-14 of itself, and the "
+            "decrement went " + ", ".join(f"{v:.3g}" for v in r["decrements"]) + ".  "
+            "Once it hovers just above 1e-14, the cost is flat to rounding.  IPOPT's line "
+            "search then finds no decrease and backtracks through many residual-only passes "
+            f"per iteration: {r['evaluations']} passes for {r['iterations']} iterations "
+            f"here, against {its[0][1]['evaluations']} for {its[0][1]['iterations']} at "
+            f"N = {fmt_n(its[0][0])}.  1e-14 is at the level of the rounding error of a "
+            "sum of 3N squares.  Whether the decrement stalls depends on the data and on "
+            "the order of summation, so symcal's time at one N can be several times that "
+            "of its neighbours.  That is also why its fitted exponent over N ≥ 1e4 is "
+            "below 1; time per pass is the fairer measure of growth.",
+        ]
+    else:
+        lines.append("\nNo size stalled above the 1e-14 decrement in this run.")
+    asm = {k: r for k, r in report.get("assemble", {}).items() if "total" in r}
+    if asm:
+        (wp, wn), worst = max(asm.items(), key=lambda kv: kv[1]["total"])
+        lines += [
+            "", "### 4. Building the mapped functions (load + assemble)", "",
+            f"The slowest load + assemble was {fmt_time(worst['total'])} ({wp}, "
+            f"N = {fmt_n(wn)}, chunk lengths {worst['chunks']}), of which "
+            f"{fmt_time(worst['assemble'])} is making the objectives and their mapped "
+            "functions: one per stage for the residual and one for the residual + "
+            "Jacobian, evaluated once on each chunk length.  The first call of a mapped "
+            f"function on {n} observations (dual residual + Jacobian) took "
+            f"{fmt_time(d['chunk_first'])} against {fmt_time(d['chunk'])} for a repeated "
+            f"call, and on {ds.get('n', '?')} observations the first `normal_equations` "
+            f"took {fmt_time(ds.get('normal_equations_first', float('nan')))} against "
+            f"{fmt_time(ds.get('normal_equations', float('nan')))}: building a mapped "
+            "function costs in proportion to the number of observations it maps."]
+
+    blas = report.get("blas", {})
+    one = blas.get(("1 thread", "dual", "symcal", n0), {})
+    dflt = blas.get(("BLAS default", "dual", "symcal", n0), {})
     if "seconds" in one and "seconds" in dflt:
-        lines.append(
-            f"- BLAS threads: symcal's dual solve at N = {fmt_n(report['blas']['n'])} took "
-            f"{fmt_time(one['seconds'])} with one BLAS thread and {fmt_time(dflt['seconds'])} "
-            f"with OpenBLAS's default ({dflt['seconds'] / one['seconds']:.1f}×).  symcal "
-            "reduces every chunk with BLAS (`jac.T @ jac`, `scipy.linalg.qr`) on tall, thin "
-            "matrices; with other processes on the two cores OpenBLAS's threads spin-wait "
-            "against them.  See the table below.")
+        lines += ["", "### 5. BLAS threads", "",
+                  f"symcal's dual solve at N = {fmt_n(n0)} took {fmt_time(one['seconds'])} "
+                  f"with one BLAS thread and {fmt_time(dflt['seconds'])} with OpenBLAS's "
+                  f"default of one thread per core ({dflt['seconds'] / one['seconds']:.1f}×) "
+                  "in this run.  symcal reduces every chunk with BLAS on tall, thin matrices "
+                  "(`jac.T @ jac` in `Objective.normal_equations`, `scipy.linalg.qr` in "
+                  "`Objective.accumulate_r`).  How much the default threads cost depends on "
+                  "what else is running on the two cores.  The harness pins every timed "
+                  "process, peers included, to one BLAS thread; the last table shows both "
+                  "settings."]
     return lines
+
+
+def _by(counts: dict[str, int]) -> str:
+    return ", ".join(f"{v} × `{k}`" for k, v in sorted(counts.items(), key=lambda kv: -kv[1]))
 
 
 def extras_section(report: dict, settings: Settings) -> list[str]:
     lines = ["## Load and assemble (YAML to a ready solver)", "",
-             "`load_problem` (parse, validate, build the symbolic problem), then for every "
-             "stage its `Objective` and the mapped residual and residual+Jacobian functions "
-             "for the chunk lengths N needs.  Fresh process each; `import symcal` is shown "
-             "apart.", "",
+             "`load_problem` (parse and validate the YAML, build the symbolic problem), then "
+             "for every stage its `Objective` and its mapped residual and residual + Jacobian "
+             "functions, each evaluated once on every chunk length N needs (which builds "
+             "what symcal builds on first use), in a fresh process.  `import symcal` is shown "
+             "apart and not counted.", "",
              "| problem | N | import symcal | load_problem | objectives + maps | load + assemble |",
              "|---|---|---|---|---|---|"]
     for (problem, n), r in report.get("assemble", {}).items():
@@ -931,13 +1139,14 @@ def extras_section(report: dict, settings: Settings) -> list[str]:
     sim = report.get("simulate", {})
     read = report.get("read", {})
     lines += ["", f"## Data at N = {fmt_n(big)}", "",
-              "| step | time | size |", "|---|---|---|"]
+              "| step | time | file size |", "|---|---|---|"]
     for kind in ("npz", "csv"):
         if kind in sim:
             s = sim[kind]
             status = "" if s["ok"] else f" (failed: {s['error']})"
-            lines.append(f"| `symcal simulate courier_dual.yaml --run calibration -n {big} "
-                         f"-o X.{kind}` (whole command){status} | {s['seconds']:.2f} s | "
+            lines.append(f"| `symcal simulate problems/scenarios/courier_dual.yaml --run "
+                         f"calibration -n {big} -o X.{kind}` (whole command, interpreter "
+                         f"start included){status} | {s['seconds']:.2f} s | "
                          f"{s['bytes'] / 2**20:.0f} MiB |")
     for kind in ("csv", "npz"):
         if kind in read:
@@ -945,19 +1154,23 @@ def extras_section(report: dict, settings: Settings) -> list[str]:
                          f"({read[f'{kind}_rows']} rows) | {fmt_time(read[kind])} | |")
     blas = report.get("blas", {})
     if blas:
-        lines += ["", f"## BLAS threads (N = {fmt_n(blas['n'])})", "",
-                  "The same job with OPENBLAS/OMP/MKL_NUM_THREADS=1 and with the library "
-                  "default (OpenBLAS: one thread per core).", "",
-                  "| problem | method | 1 thread | library default | ratio |",
-                  "|---|---|---|---|---|"]
-        pairs: dict[tuple[str, str], dict[str, Any]] = {}
-        for (label, problem, method), r in blas["runs"].items():
-            pairs.setdefault((problem, method), {})[label] = r
-        for (problem, method), got in pairs.items():
+        lines += ["", "## BLAS threads", "",
+                  "The same job with OPENBLAS_NUM_THREADS (and OMP_, MKL_) = 1, and with the "
+                  "variables unset (OpenBLAS then starts one thread per core).  The harness "
+                  "imports numpy before symcal, so a default symcal may set on import does "
+                  "not apply here.", "",
+                  "| problem | method | N | 1 thread | library default | ratio | iterations "
+                  "(1 thread / default) |", "|---|---|---|---|---|---|---|"]
+        pairs: dict[tuple[str, str, int], dict[str, Any]] = {}
+        for (label, problem, method, n), r in blas.items():
+            pairs.setdefault((problem, method, n), {})[label] = r
+        for (problem, method, n), got in pairs.items():
             a, b = got.get("1 thread", {}), got.get("BLAS default", {})
             if "seconds" in a and "seconds" in b:
-                lines.append(f"| {problem} | {LABELS[method]} | {fmt_time(a['seconds'])} | "
-                             f"{fmt_time(b['seconds'])} | {b['seconds'] / a['seconds']:.1f}× |")
+                lines.append(f"| {problem} | {LABELS[method]} | {fmt_n(n)} | "
+                             f"{fmt_time(a['seconds'])} | {fmt_time(b['seconds'])} | "
+                             f"{b['seconds'] / a['seconds']:.1f}× | {a['iterations']} / "
+                             f"{b['iterations']} |")
     return lines
 
 
@@ -989,8 +1202,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                                                     "(default 3; 1 with --quick)")
     parser.add_argument("--cap", type=float, default=120.0,
                         help="skip a peer whose projected time exceeds this (s, default 120)")
-    parser.add_argument("--repeat-budget", type=float, default=40.0,
-                        help="stop repeating once the runs would pass this (s, default 40)")
+    parser.add_argument("--repeat-budget", type=float, default=20.0,
+                        help="stop repeating once the runs would pass this (s, default 20)")
+    parser.add_argument("--budget", type=float, default=12.5,
+                        help="wall-clock budget of the whole run in minutes: capped rows "
+                             "are skipped or stopped to stay within it (default 12.5)")
     parser.add_argument("--blas-threads", default="1",
                         help="BLAS threads in every timed process ('default' leaves the "
                              "library's choice; default 1)")
@@ -1012,18 +1228,18 @@ def main(argv: list[str] | None = None) -> int:
     if not sizes or min(sizes) < 10:
         raise SystemExit("--sizes: give observation counts of at least 10")
     settings = Settings(sizes, args.repeats or (1 if args.quick else 3), args.cap,
-                        args.repeat_budget,
+                        args.repeat_budget, 60 * args.budget,
                         None if args.blas_threads == "default" else args.blas_threads,
                         Path(args.out), args.quick)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # clean up the data on kill
-    started = time.perf_counter()
+    clock = Clock(settings.budget)
     given = argv if argv is not None else sys.argv[1:]
     command = ("make bench" if not given else
                "python benchmarks/run.py " + " ".join(given))
     report: dict[str, Any] = {
         "command": command,
         "date": datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z"),
-        "machine": machine(), "load_start": load_average(),
+        "machine": machine(), "load_start": load_average(), "code_start": code_state(),
     }
     say(f"symcal benchmarks: N = {', '.join(fmt_n(n) for n in sizes)}; "
         f"machine: {report['machine']['CPU']}; load {report['load_start']}")
@@ -1034,13 +1250,18 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="symcal-bench-") as tmp:
         workdir = Path(tmp)
         files = make_data(workdir, sizes)
-        run_benchmarks(settings, files, report)
+        compute_starts(settings, files, report)
         run_extras(settings, files, workdir, report)
+        run_benchmarks(settings, files, report, clock)
     report["load_end"] = load_average()
-    report["elapsed"] = time.perf_counter() - started
-    say("\n== fitted exponent of time vs N (all sizes; N >= 1e4):")
-    for (problem, method), (a_all, a_big) in exponents(report["rows"]).items():
-        say(f"  {problem:6s} {LABELS[method]:44s} {_show(a_all):>5}  {_show(a_big):>5}")
+    report["code_end"] = code_state()
+    report["elapsed"] = clock.elapsed()
+    if report["code_end"]["hash"] != report["code_start"]["hash"]:
+        say("WARNING: symcal's source changed during the run; the results mix versions")
+    say("\n== fitted exponent of time vs N (all sizes; N >= 1e4; time per pass, N >= 1e4):")
+    for (problem, method), (a_all, a_big, a_pass) in exponents(report["rows"]).items():
+        say(f"  {problem:6s} {LABELS[method]:44s} {_show(a_all):>5}  {_show(a_big):>5}  "
+            f"{_show(a_pass):>5}")
     say("\n== targets:")
     for t in targets(report, settings):
         say(f"  {t['target']}: {t['measured']} -> {t['verdict']}")
