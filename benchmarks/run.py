@@ -117,7 +117,7 @@ def _cost(problem: str, theta: np.ndarray, cols: dict[str, np.ndarray]) -> float
 def _single_stage_problem(problem: str):
     """The problem file with one stage over every parameter and all constraints."""
     from symcal.problem import build_problem
-    from symcal.spec.problem import load_problem_spec
+    from symcal.language.problem import load_problem_spec
 
     spec = load_problem_spec(ROOT / PROBLEMS[problem]["path"])
     return build_problem(dataclasses.replace(spec, stages=()))
@@ -132,7 +132,7 @@ def _count_passes() -> None:
     """Count every pass of symcal's Objective over the data (cost, normal equations, R
     factor, residual statistics): the analogue of a peer's residual evaluation.  The
     wrappers only count; they are installed in the benchmark's child process only."""
-    from symcal.solve.objective import Objective
+    from symcal.solvers.objective import Objective
 
     if getattr(Objective, "_bench_counted", False):
         return
@@ -164,9 +164,9 @@ def _symcal_solver(problem: str, cols: dict[str, np.ndarray]):
     default path for the single stage: Objective + closed form (linear) or IPOPT."""
     from symcal.calibrate import needed_columns
     from symcal.data import make_dataset
-    from symcal.solve.linear import solve_linear
-    from symcal.solve.nlp import solve_ipopt
-    from symcal.solve.objective import Objective
+    from symcal.solvers.linear import solve_linear
+    from symcal.solvers.nlp import solve_ipopt
+    from symcal.solvers.objective import Objective
 
     _count_passes()
     prob = _single_stage_problem(problem)
@@ -280,7 +280,7 @@ def child_assemble(job: dict[str, Any]) -> dict[str, Any]:
     start = time.perf_counter()
     import symcal
     from symcal.numeric import CHUNK, chunks
-    from symcal.solve.objective import Objective
+    from symcal.solvers.objective import Objective
 
     imported = time.perf_counter()
     prob = symcal.load_problem(ROOT / PROBLEMS[job["problem"]]["path"])
@@ -328,7 +328,7 @@ def _timed(fn) -> float:
 def _profile_problem(problem: str, data_path: str, start_path: str) -> dict[str, Any]:
     from symcal.calibrate import needed_columns
     from symcal.data import make_dataset
-    from symcal.solve.objective import Objective
+    from symcal.solvers.objective import Objective
 
     prob = _single_stage_problem(problem)
     cols = _load_columns(data_path)
@@ -915,7 +915,7 @@ def render(report: dict, settings: Settings) -> str:
                 "All methods start from the same vector: symcal's first two stages (platen, "
                 "then coordination sensor; closed form, equal weights) on the same data.  "
                 "From there they minimise the same single cost over all 49 parameters.  "
-                "*symcal (default path)* is `Objective` + `symcal.solve.nlp.solve_ipopt` "
+                "*symcal (default path)* is `Objective` + `symcal.solvers.nlp.solve_ipopt` "
                 "(IPOPT with the Gauss-Newton Hessian and CasADi's exact Jacobian, evaluated "
                 "by chunks), which is what `solve()` runs for the problem's `full` stage.  "
                 "The `run_stage` row is `symcal.calibrate.run_stage`: the same solve plus the "
@@ -926,7 +926,7 @@ def render(report: dict, settings: Settings) -> str:
         else:
             lines += [
                 "All methods start from the problem's initial values (all zero).  *symcal "
-                "(default path)* is `Objective` + `symcal.solve.linear.solve_linear` (closed "
+                "(default path)* is `Objective` + `symcal.solvers.linear.solve_linear` (closed "
                 "form: residual and Jacobian by chunks, TSQR, minimum-norm step from the SVD "
                 "of R).  The floor assembles Γ of eq. (7) with numpy and calls "
                 "`numpy.linalg.lstsq` once.  The `run_stage` row adds the stage's analysis.",
@@ -1065,7 +1065,7 @@ def why_section(report: dict, settings: Settings) -> list[str]:
         k, r = max(stalled, key=lambda kr: kr[1]["evaluations"])
         lines += [
             "",
-            f"At N = {fmt_n(k)}, `symcal.solve.nlp.solve_ipopt` tested the Gauss-Newton "
+            f"At N = {fmt_n(k)}, `symcal.solvers.nlp.solve_ipopt` tested the Gauss-Newton "
             "decrement after every iteration.  It stops when a Gauss-Newton step would "
             "lower the cost by less than `GN_DECREMENT` = 1e-14 of itself, and the "
             "decrement went " + ", ".join(f"{v:.3g}" for v in r["decrements"]) + ".  "

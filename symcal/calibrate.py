@@ -12,15 +12,15 @@ from symcal.analysis.identifiability import analyse, conditioning
 from symcal.analysis.implicit import implicit_checks
 from symcal.data import Dataset, load_dataset
 from symcal.errors import DataError, SolveError, SymcalError
+from symcal.language.common import DISPLAY_UNITS
+from symcal.language.problem import WEIGHTINGS
+from symcal.language.yamlio import display_path
 from symcal.problem import Problem, Stage, load_problem
 from symcal.result import ConstraintCost, DatasetInfo, ParameterResult, Result, StageResult
-from symcal.solve.base import SolverOutput
-from symcal.solve.linear import solve_linear
-from symcal.solve.nlp import solve_ipopt
-from symcal.solve.objective import Objective
-from symcal.spec.common import DISPLAY_UNITS
-from symcal.spec.problem import WEIGHTINGS
-from symcal.spec.yamlio import display_path
+from symcal.solvers.base import SolverOutput
+from symcal.solvers.linear import solve_linear
+from symcal.solvers.nlp import solve_ipopt
+from symcal.solvers.objective import Objective
 from symcal.suggest import did_you_mean
 
 METHODS = ("auto", "linear", "ipopt")

@@ -34,10 +34,10 @@ from typing import Any
 
 import casadi as ca
 
-from symcal.data import atomic_write_text
 from symcal.errors import SymcalError
+from symcal.files import atomic_write_text
+from symcal.language.model import ModelSpec
 from symcal.problem import Problem
-from symcal.spec.model import ModelSpec
 
 __all__ = ["CName", "InstancePlan", "Plan", "c_identifier", "casadi_functions", "generate",
            "plan"]
@@ -837,7 +837,7 @@ def _sample(p: Plan) -> tuple[list[float], str]:
 # ------------------------------------------------------------------------ generate
 
 def _command(problem: Problem, outdir: Path, result: object) -> str:
-    from symcal.spec.yamlio import display_path
+    from symcal.language.yamlio import display_path
 
     text = f"symcal codegen {display_path(Path(problem.path))}"
     if result is not None and not isinstance(result, Mapping):

@@ -1,4 +1,4 @@
-"""Datasets: CSV/NPZ loading, simulated runs, column checks, atomic writing.
+"""Datasets: CSV/NPZ reading and writing, column checks.
 
 A dataset is a table with one row per observation and named numeric columns (the data
 contract in DESIGN.md).  Loading checks what a person would otherwise discover late:
@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import csv
 import io
-import os
-import tempfile
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,8 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from symcal.errors import DataError
-from symcal.spec.problem import DatasetSpec
-from symcal.spec.yamlio import display_path
+from symcal.files import atomic_write_bytes, atomic_write_text
+from symcal.language.problem import DatasetSpec
+from symcal.language.yamlio import display_path
 from symcal.suggest import did_you_mean
 
 
@@ -194,35 +193,15 @@ def load_dataset(
     return make_dataset(spec.name, spec.source, columns, needed, drop_invalid)
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file and a rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_table(path: str | Path, columns: Mapping[str, np.ndarray]) -> None:
     """Write columns as CSV (or NPZ for a ``.npz`` path), atomically."""
     path = Path(path)
     names = list(columns)
     table = np.column_stack([np.asarray(columns[k], dtype=float) for k in names])
     if path.suffix.lower() == ".npz":
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz")
-        os.close(fd)
-        try:
-            np.savez(tmp, **{k: np.asarray(columns[k], dtype=float) for k in names})
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        buf = io.BytesIO()
+        np.savez(buf, **{k: np.asarray(columns[k], dtype=float) for k in names})
+        atomic_write_bytes(path, buf.getvalue())
         return
     buf = io.StringIO()
     buf.write(",".join(names) + "\n")

@@ -21,10 +21,10 @@ from symcal.analysis.residuals import Binned, Periodogram, Variable, periodogram
 from symcal.calibrate import load_datasets, solve
 from symcal.data import Dataset
 from symcal.effects import effect_yaml
+from symcal.language.common import DISPLAY_UNITS
 from symcal.numeric import mapped
 from symcal.problem import Problem, build_problem, load_problem
 from symcal.result import Result
-from symcal.spec.common import DISPLAY_UNITS
 
 ANGLE_UNITS = ("rad", "mrad", "urad", "µrad", "deg")
 HARMONICS = 8

@@ -12,9 +12,9 @@ from pathlib import Path
 import yaml
 
 from symcal.analysis.discovery import Candidate
+from symcal.language.common import parse_expr
+from symcal.language.model import load_model
 from symcal.problem import Problem, build_problem
-from symcal.spec.common import parse_expr
-from symcal.spec.model import load_model
 
 _TAGS = {"harmonic": "h", "linear": "lin", "quadratic": "quad", "drift": "drift",
          "angle_harmonic": "ah"}

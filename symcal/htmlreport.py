@@ -14,7 +14,8 @@ from html import escape
 from pathlib import Path
 from typing import Any
 
-from symcal.plots import Doc, atomic_write_bytes, figure_captions, render_png
+from symcal.files import atomic_write_bytes
+from symcal.plots import Doc, figure_captions, render_png
 
 TOP_DETAILED = 3
 

@@ -17,9 +17,9 @@ import casadi as ca
 
 from symcal import expr
 from symcal.errors import SpecError, Where
-from symcal.spec.common import ExprSpec, ParameterSpec, apply_parameter_overrides
-from symcal.spec.model import ImplicitSpec
-from symcal.spec.problem import DatasetSpec, InstanceSpec, ProblemSpec, load_problem_spec
+from symcal.language.common import ExprSpec, ParameterSpec, apply_parameter_overrides
+from symcal.language.model import ImplicitSpec
+from symcal.language.problem import DatasetSpec, InstanceSpec, ProblemSpec, load_problem_spec
 from symcal.suggest import did_you_mean
 
 

@@ -25,8 +25,9 @@ import pytest
 from conftest import ROOT
 
 import symcal
-from symcal import cli_codegen, codegen
+from symcal import codegen
 from symcal.calibrate import load_datasets
+from symcal.cli import codegen as cli_codegen
 from symcal.numeric import mapped
 from symcal.problem import Problem, Quantity
 

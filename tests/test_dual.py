@@ -12,9 +12,9 @@ from conftest import ROOT
 import symcal
 from symcal.cli import main
 from symcal.data import make_dataset
+from symcal.language.problem import load_problem_spec
 from symcal.problem import build_problem
 from symcal.simulate import load_scenario, simulate_run, truth
-from symcal.spec.problem import load_problem_spec
 
 DUAL = ROOT / "problems" / "dual_sensor_calibration.yaml"
 PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"

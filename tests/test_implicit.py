@@ -16,7 +16,7 @@ from symcal.cli import main
 from symcal.data import make_dataset
 from symcal.errors import SpecError
 from symcal.simulate import load_scenario, noise_floor, simulate_run, truth
-from symcal.solve.objective import Objective
+from symcal.solvers.objective import Objective
 
 PROBLEMS = ROOT / "problems"
 SCENARIOS = PROBLEMS / "scenarios"

@@ -12,7 +12,7 @@ from conftest import ROOT, basis, courier_data
 import symcal
 from symcal.data import make_dataset
 from symcal.errors import SolveError
-from symcal.solve.objective import Objective
+from symcal.solvers.objective import Objective
 
 PROBLEM = ROOT / "problems" / "platen_self_calibration.yaml"
 NOISE = 0.5e-3

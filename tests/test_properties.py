@@ -50,7 +50,7 @@ def test_random_structures_as_problem_and_model(tmp_path: Path, doc: object) -> 
     for path in ("m.yaml", "p.yaml"):
         try:
             if path == "m.yaml":
-                from symcal.spec.model import load_model
+                from symcal.language.model import load_model
 
                 load_model(tmp_path / path)
             else:

@@ -16,6 +16,7 @@ import pytest
 import yaml
 
 from symcal.errors import SpecError
+from symcal.language.yamlio import display_path
 from symcal.simulate import (
     load_scenario,
     noise_floor,
@@ -23,7 +24,6 @@ from symcal.simulate import (
     simulate_run,
     truth,
 )
-from symcal.spec.yamlio import display_path
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "problems" / "scenarios"

@@ -8,9 +8,9 @@ import casadi as ca
 import numpy as np
 
 from symcal.data import Dataset
+from symcal.language.common import DISPLAY_UNITS
 from symcal.numeric import mapped
 from symcal.problem import Problem
-from symcal.spec.common import DISPLAY_UNITS
 
 
 @dataclass(frozen=True)

@@ -74,7 +74,7 @@ from pathlib import Path
 from typing import Any
 
 from symcal.errors import SpecError, Where
-from symcal.spec.fields import (
+from symcal.language.fields import (
     check_keys,
     child_where,
     expect_int,
@@ -84,7 +84,7 @@ from symcal.spec.fields import (
     expect_number,
     expect_str,
 )
-from symcal.spec.yamlio import YMap, load_yaml
+from symcal.language.yamlio import YMap, load_yaml
 from symcal.suggest import did_you_mean
 
 SEGMENT_NAMES: tuple[str, ...] = ("s1", "s2", "s3", "s4")
@@ -584,7 +584,7 @@ def parse_scenario(doc: YMap, where: Where) -> Scenario:
     Parameters
     ----------
     doc
-        The top-level mapping, as returned by :func:`symcal.spec.yamlio.load_yaml`.
+        The top-level mapping, as returned by :func:`symcal.language.yamlio.load_yaml`.
     where
         Its provenance.
 

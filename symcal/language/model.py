@@ -8,7 +8,7 @@ from typing import Any
 
 from symcal import expr
 from symcal.errors import SpecError, Where
-from symcal.spec.common import (
+from symcal.language.common import (
     ConstantSpec,
     ExprSpec,
     ParameterSpec,
@@ -18,8 +18,8 @@ from symcal.spec.common import (
     parse_parameter,
     section,
 )
-from symcal.spec.fields import check_keys, child_where, expect_int, expect_name, expect_str
-from symcal.spec.yamlio import display_path, load_yaml
+from symcal.language.fields import check_keys, child_where, expect_int, expect_name, expect_str
+from symcal.language.yamlio import display_path, load_yaml
 from symcal.suggest import did_you_mean
 
 MODEL_KEYS = ["doc", "extends", "constants", "inputs", "parameters", "expressions", "outputs",

@@ -16,8 +16,8 @@ import numpy as np
 
 from symcal.analysis.identifiability import rank_tolerance
 from symcal.data import Dataset
-from symcal.solve.base import SolverOutput
-from symcal.solve.objective import Objective
+from symcal.solvers.base import SolverOutput
+from symcal.solvers.objective import Objective
 
 
 def min_norm_step(r: np.ndarray, c: np.ndarray, scales: np.ndarray, rows: int) -> np.ndarray:

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from symcal.errors import SpecError, Where
-from symcal.spec.common import (
+from symcal.language.common import (
     ConstantSpec,
     ExprSpec,
     ParameterSpec,
@@ -18,7 +18,7 @@ from symcal.spec.common import (
     parse_parameter,
     section,
 )
-from symcal.spec.fields import (
+from symcal.language.fields import (
     check_keys,
     child_where,
     expect_bool,
@@ -30,8 +30,8 @@ from symcal.spec.fields import (
     expect_number,
     expect_str,
 )
-from symcal.spec.model import ImplicitSpec, ModelSpec, load_model, parse_implicit
-from symcal.spec.yamlio import YMap, display_path, load_yaml
+from symcal.language.model import ImplicitSpec, ModelSpec, load_model, parse_implicit
+from symcal.language.yamlio import YMap, display_path, load_yaml
 from symcal.suggest import did_you_mean
 
 PROBLEM_KEYS = ["doc", "constants", "parameters", "columns", "expressions", "comparisons",

@@ -17,9 +17,10 @@ import numpy as np
 
 from symcal.calibrate import load_datasets, solve
 from symcal.data import Dataset
+from symcal.files import atomic_write_bytes
+from symcal.language.yamlio import display_path
 from symcal.problem import load_problem
 from symcal.result import Result
-from symcal.spec.yamlio import display_path
 
 
 @dataclass(frozen=True)
@@ -125,7 +126,6 @@ def save_ladder_plot(rungs: Sequence[Rung], outdir: str | Path,
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from symcal.plots import atomic_write_bytes
 
     keys: list[tuple[str, str]] = []
     for r in rungs:

@@ -21,8 +21,8 @@ import casadi as ca
 import numpy as np
 
 from symcal.data import Dataset
-from symcal.solve.base import SolverOutput
-from symcal.solve.objective import Objective
+from symcal.solvers.base import SolverOutput
+from symcal.solvers.objective import Objective
 
 #: IPOPT's return statuses in words; the boolean says whether the estimate can be used.
 PRINT_LEVEL = 0

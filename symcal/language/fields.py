@@ -7,7 +7,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from symcal.errors import SpecError, Where
-from symcal.spec.yamlio import YList, YMap
+from symcal.language.yamlio import YList, YMap
 from symcal.suggest import did_you_mean
 
 

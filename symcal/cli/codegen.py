@@ -1,14 +1,11 @@
-"""``symcal codegen``: the argparse glue over :func:`symcal.codegen.generate`.
-
-Wired into :mod:`symcal.cli` with ``cli_codegen.add_parser(sub)`` and the command
-``"codegen": cli_codegen.run``; errors are :class:`~symcal.errors.SymcalError` (exit 2),
-printed by ``symcal.cli.main``.
-"""
+"""``symcal codegen``: export the calibrated model as C99 (:func:`symcal.codegen.generate`)."""
 
 from __future__ import annotations
 
 import argparse
 from typing import Any
+
+from symcal.cli.common import debug_option
 
 HELP = "export the calibrated model as C99 (residuals, Jacobian, sensor outputs)"
 
@@ -27,8 +24,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                           "argument of every function")
     cmd.add_argument("-o", "--output", required=True, metavar="DIR",
                      help="output directory (created if absent)")
-    cmd.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
-                     help=argparse.SUPPRESS)
+    debug_option(cmd)
     return cmd
 
 

@@ -8,7 +8,7 @@ from typing import Any
 
 from symcal import expr
 from symcal.errors import SpecError, Where
-from symcal.spec.fields import (
+from symcal.language.fields import (
     check_keys,
     child_where,
     expect_bool,
@@ -17,7 +17,7 @@ from symcal.spec.fields import (
     expect_number,
     expect_str,
 )
-from symcal.spec.yamlio import YMap
+from symcal.language.yamlio import YMap
 from symcal.suggest import did_you_mean
 
 #: Display units and their size in symcal's internal units (mm, rad, s).

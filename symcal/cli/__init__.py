@@ -1,0 +1,47 @@
+"""Command-line interface: a thin argparse layer over the public API.
+
+One module per command (``symcal/cli/<command>.py``), each with ``add_parser(subparsers)``
+and ``run(args) -> exit code``; :func:`main` dispatches.  Exit codes: 0 success, 1 failed
+solve, 2 bad input.  Errors are printed as one message without a traceback unless
+``--debug`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from symcal.cli import codegen, compare, diagnose, simulate, solve
+from symcal.cli.common import Parser
+from symcal.errors import SymcalError
+
+#: The commands, in the order ``symcal --help`` lists them.
+COMMANDS = {"solve": solve, "diagnose": diagnose, "compare": compare, "codegen": codegen,
+            "simulate": simulate}
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = Parser(prog="symcal", description="Autonomous calibration through sensor "
+                                               "redundancy.")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
+    for module in COMMANDS.values():
+        module.add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; return the exit code."""
+    args = _parser().parse_args(argv)
+    try:
+        return int(COMMANDS[args.command].run(args))
+    except SymcalError as exc:
+        if args.debug:
+            raise
+        print(f"symcal: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,37 @@
+"""``symcal compare``: model revisions solved on the same data, side by side."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from symcal.cli.common import data_map, data_options
+
+HELP = "model revisions on the same data: the ladder"
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add the ``compare`` command to ``subparsers``."""
+    cmd = subparsers.add_parser("compare", help=HELP)
+    cmd.add_argument("problems", nargs="+", help="problem YAML files, simplest first")
+    data_options(cmd)
+    cmd.add_argument("--plots", metavar="DIR", help="write the ladder figure to DIR")
+    cmd.add_argument("--json", action="store_true", help="print the ladder as JSON")
+    return cmd
+
+
+def run(args: argparse.Namespace) -> int:
+    """Solve every revision; print the ladder; write its figure when asked."""
+    from symcal.compare import compare, ladder_report, save_ladder_plot
+    from symcal.report import plain_json
+
+    rungs = compare(args.problems, data_map(args), drop_invalid=args.drop_invalid)
+    if args.plots:
+        for path in save_ladder_plot(rungs, args.plots):
+            print(f"wrote {path}", file=sys.stderr)
+    if args.json:
+        sys.stdout.write(plain_json([r.to_dict() for r in rungs]))
+    else:
+        sys.stdout.write(ladder_report(rungs))
+    return 0 if all(r.success for r in rungs) else 1
