@@ -1,11 +1,12 @@
-# symcal: `make demo` runs the bundled default calibration, `make test` runs the suite.
+# symcal: `make demo` runs the bundled default calibration, `make test` runs the suite,
+# `make test-fast` the suite without the tests marked slow (about a minute on 2 cores).
 # Each target creates .venv and installs what it needs.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 DEMO_DIR := build/demo
 
-.PHONY: demo test bench clean
+.PHONY: demo test test-fast lint bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -25,9 +26,15 @@ demo: $(VENV)/.installed
 	  --data calibration=$(DEMO_DIR)/courier.calibration.csv \
 	  --data flyby=$(DEMO_DIR)/courier.flyby.csv --out $(DEMO_DIR)/result
 
-test: $(VENV)/.installed-test
-	$(BIN)/ruff check symcal tests
+# Static checks run by `make test` before the suite (type checking goes here too).
+lint: $(VENV)/.installed-test
+	$(BIN)/ruff check symcal tests benchmarks
+
+test: lint
 	$(BIN)/python -m pytest
+
+test-fast: $(VENV)/.installed-test
+	$(BIN)/python -m pytest -m "not slow"
 
 bench: $(VENV)/.installed
 	$(BIN)/python benchmarks/run.py

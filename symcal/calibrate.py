@@ -1,7 +1,8 @@
-"""The public entry points: load a problem's data, solve it stage by stage, analyse."""
+"""The public entry point: solve a problem's study stage by stage, then analyse."""
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -10,11 +11,11 @@ import numpy as np
 from symcal.analysis.fit import series_statistics
 from symcal.analysis.identifiability import analyse, conditioning
 from symcal.analysis.implicit import implicit_checks
-from symcal.data import Dataset, load_dataset
+from symcal.data import Dataset
+from symcal.datasets import load_datasets
 from symcal.errors import DataError, SolveError, SymcalError
-from symcal.language.common import DISPLAY_UNITS
-from symcal.language.problem import WEIGHTINGS
-from symcal.language.yamlio import display_path
+from symcal.language.options import METHODS, SolveOptions
+from symcal.linalg import is_singular, numerical_rank, sqrt_psd, whitening
 from symcal.problem import Problem, Stage, load_problem
 from symcal.result import ConstraintCost, DatasetInfo, ParameterResult, Result, StageResult
 from symcal.solvers.base import SolverOutput
@@ -22,52 +23,9 @@ from symcal.solvers.linear import solve_linear
 from symcal.solvers.nlp import solve_ipopt
 from symcal.solvers.objective import Objective
 from symcal.suggest import did_you_mean
+from symcal.units import DISPLAY_UNITS
 
-METHODS = ("auto", "linear", "ipopt")
-
-
-def needed_columns(problem: Problem) -> list[str]:
-    """Columns every dataset must have: those the constraints read."""
-    needed: list[str] = []
-    for c in problem.constraints:
-        needed += [col for col in problem.columns_of(c.sx) if col not in needed]
-    return needed
-
-
-def load_datasets(
-    problem: Problem,
-    overrides: Mapping[str, str | Path] | None = None,
-    drop_invalid: bool = False,
-    names: list[str] | None = None,
-) -> dict[str, Dataset]:
-    """Load every dataset of ``problem``, replacing those named in ``overrides``.
-
-    Parameters
-    ----------
-    problem
-        The problem whose ``datasets`` section says where data comes from.
-    overrides
-        Dataset name → CSV/NPZ path (``symcal solve --data NAME=PATH``).
-    drop_invalid
-        Drop rows with NaN/inf in a needed column instead of refusing the data.
-    names
-        Load only these datasets (default: all of them).
-
-    Raises
-    ------
-    DataError
-        Unknown dataset name, missing file or column, malformed cells, invalid rows.
-    """
-    overrides = dict(overrides or {})
-    for name in overrides:
-        if name not in problem.datasets:
-            raise DataError(f"--data {name}=...: the problem has no dataset '{name}'"
-                            f"{did_you_mean(name, problem.datasets)}; it has: "
-                            f"{', '.join(problem.datasets)}")
-    needed = needed_columns(problem)
-    wanted = list(problem.datasets) if names is None else names
-    return {name: load_dataset(problem.datasets[name], needed, overrides.get(name), drop_invalid)
-            for name in wanted}
+Progress = Callable[[str], None] | None
 
 
 def _out_of_bounds(problem: Problem, theta: np.ndarray, free: np.ndarray) -> list[str]:
@@ -77,7 +35,7 @@ def _out_of_bounds(problem: Problem, theta: np.ndarray, free: np.ndarray) -> lis
 
 def _solve_stage(
     objective: Objective, data: Dataset, theta: np.ndarray, method: str,
-    progress: Callable[[str], None] | None, label: str, max_iter: int,
+    progress: Progress, label: str, options: SolveOptions,
 ) -> tuple[SolverOutput, list[str]]:
     nonlinear = objective.nonlinear()
     notes: list[str] = []
@@ -91,23 +49,23 @@ def _solve_stage(
             if not explicit.nonlinear():
                 theta = solve_linear(explicit, data, theta).theta
                 notes.append("IPOPT started from the explicit model's closed-form estimate")
-        return solve_ipopt(objective, data, theta, progress, max_iter, label=label), notes
+        return _ipopt(objective, data, theta, progress, label, options), notes
     out = solve_linear(objective, data, theta)
     outside = _out_of_bounds(objective.problem, out.theta, objective.free)
     if outside and method == "auto":
         notes.append(f"the closed-form estimate put {', '.join(outside)} outside its bounds; "
                      "solved again with IPOPT, which respects them")
-        return solve_ipopt(objective, data, theta, progress, max_iter, label=label), notes
+        return _ipopt(objective, data, theta, progress, label, options), notes
     if outside:
         notes.append(f"{', '.join(outside)} lie(s) outside the bounds: the closed form "
                      "does not apply bounds")
     return out, notes
 
 
-def _sqrt_psd(matrix: np.ndarray) -> np.ndarray:
-    """L with L Lᵀ = matrix for a symmetric positive semi-definite matrix."""
-    w, v = np.linalg.eigh((matrix + matrix.T) / 2)
-    return v * np.sqrt(np.clip(w, 0.0, None))[None, :]
+def _ipopt(objective: Objective, data: Dataset, theta: np.ndarray, progress: Progress,
+           label: str, options: SolveOptions) -> SolverOutput:
+    return solve_ipopt(objective, data, theta, progress, options.max_iter, options.tol,
+                       label=label, extra=options.ipopt)
 
 
 def _constraint_costs(objective: Objective, data: Dataset, before: np.ndarray,
@@ -125,18 +83,17 @@ def _constraint_costs(objective: Objective, data: Dataset, before: np.ndarray,
 
 def _reweighted(
     objective: Objective, first: SolverOutput, data: Dataset, method: str,
-    progress: Callable[[str], None] | None, label: str, max_iter: int,
+    progress: Progress, label: str, options: SolveOptions,
 ) -> tuple[Objective, SolverOutput, str]:
     """Solve again, weighted by the constraints' covariance estimated from the residuals."""
-    rank = int(np.linalg.matrix_rank(first.r_factor * objective.scales[None, :]))
+    rank = numerical_rank(first.r_factor, first.rows, objective.scales)
     cov = objective.residual_covariance(data, first.theta, rank)
-    w, v = np.linalg.eigh((cov + cov.T) / 2)
-    if w.min() <= 1e-12 * max(w.max(), 1e-300):
+    if is_singular(cov):
         return objective, first, ("weighting: the constraints' residual covariance is "
                                   "singular; kept equal weights")
     whitened = Objective(objective.problem, objective.constraints, objective.free,
-                         (v / np.sqrt(w)[None, :]).T)
-    second, _ = _solve_stage(whitened, data, first.theta, method, progress, label, max_iter)
+                         whitening(cov)[0])
+    second, _ = _solve_stage(whitened, data, first.theta, method, progress, label, options)
     merged = SolverOutput(
         second.theta, second.free, second.method, second.success, second.status,
         second.message + "; weighted by the estimated covariance of the constraints",
@@ -183,8 +140,7 @@ def _check_information(stage: Stage, data: Dataset, rows: int, rank: int,
 
 def run_stage(
     problem: Problem, stage: Stage, data: Dataset, theta: np.ndarray,
-    method: str | None = None, progress: Callable[[str], None] | None = None,
-    max_iter: int = 200, weighting: str | None = None,
+    options: SolveOptions | None = None, progress: Progress = None,
 ) -> tuple[np.ndarray, StageResult]:
     """Solve one stage from ``theta`` and analyse its outcome.
 
@@ -193,23 +149,23 @@ def run_stage(
     (theta, StageResult)
         The new parameter vector and what happened.
     """
+    options = options or problem.options
     free = np.array([p.name in stage.free for p in problem.parameters])
     plain = Objective(problem, stage.constraints, free)
     _check_finite(plain, data, theta)
-    method = method or stage.method
-    out, notes = _solve_stage(plain, data, theta, method, progress, stage.name, max_iter)
+    method = options.method or stage.method
+    out, notes = _solve_stage(plain, data, theta, method, progress, stage.name, options)
     objective = plain
-    if (weighting or problem.weighting) == "estimated" and len(stage.constraints) > 1 \
-            and out.success:
+    if problem.weighting == "estimated" and len(stage.constraints) > 1 and out.success:
         objective, out, note = _reweighted(plain, out, data, method, progress, stage.name,
-                                           max_iter)
+                                           options)
         notes.append(note)
     names, scales, idx = objective.names, objective.scales, objective.index
     meat = None
     if len(stage.constraints) > 1:
-        rank = int(np.linalg.matrix_rank(out.r_factor * scales[None, :]))
+        rank = numerical_rank(out.r_factor, out.rows, scales)
         cov_g = objective.residual_covariance(data, out.theta, rank)
-        meat = objective.accumulate_r(data, out.theta, _sqrt_psd(cov_g).T)[0]
+        meat = objective.accumulate_r(data, out.theta, sqrt_psd(cov_g).T)[0]
     ident, unc = analyse(out.r_factor, out.rows, out.rss, names, scales, out.theta[idx],
                          meat)
     _check_information(stage, data, out.rows, ident.rank,
@@ -233,12 +189,11 @@ def run_stage(
 def solve(
     problem: Problem | str | Path,
     data: Mapping[str, Dataset | str | Path] | None = None,
+    options: SolveOptions | None = None,
+    *,
     drop_invalid: bool = False,
-    method: str | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress = None,
     initial: Mapping[str, float] | None = None,
-    max_iter: int = 200,
-    weighting: str | None = None,
 ) -> Result:
     """Calibrate: estimate the parameters on the ``calibration`` dataset, stage by stage.
 
@@ -249,55 +204,42 @@ def solve(
     data
         Datasets by name, as :class:`~symcal.data.Dataset` objects or file paths; those not
         given come from the problem's ``datasets`` section.
+    options
+        How to solve (:class:`~symcal.language.options.SolveOptions`: method, iteration
+        limit, IPOPT options); default: the problem file's ``solver:`` section.
     drop_invalid
         Drop rows with NaN/inf instead of refusing them.
-    method
-        Override every stage's method: ``"auto"`` (closed form when linear), ``"linear"``
-        or ``"ipopt"``.
     progress
         Called with one line per solver iteration (None: silent).
     initial
         Initial values by parameter name, replacing those of the problem file.
-    max_iter
-        Iteration limit of each IPOPT stage.
-    weighting
-        Override the problem's ``weighting``: ``"equal"`` or ``"estimated"``.
 
     Returns
     -------
     Result
-        Frozen: estimates with standard errors, identifiability (rank, condition number,
-        named null space), every stage's report, and before/after statistics on every
-        dataset.  ``success`` is False when a stage failed.
+        Frozen: the problem, the estimate with standard errors, identifiability (rank,
+        condition number, named null space), every stage's report, before/after
+        statistics on every dataset, and the datasets themselves.  ``success`` is False
+        when a stage failed.
     """
-    if method is not None and method not in METHODS:
-        raise SolveError(f"unknown method '{method}'{did_you_mean(method, METHODS)}; "
-                         f"methods: {', '.join(METHODS)}")
-    if weighting is not None and weighting not in WEIGHTINGS:
-        raise SolveError(f"unknown weighting '{weighting}'{did_you_mean(weighting, WEIGHTINGS)}"
-                         f"; choose from: {', '.join(WEIGHTINGS)}")
     if not isinstance(problem, Problem):
         problem = load_problem(problem)
-    data = dict(data or {})
-    given = {k: v for k, v in data.items() if isinstance(v, Dataset)}
-    paths = {k: v for k, v in data.items() if not isinstance(v, Dataset)}
-    unknown = [k for k in given if k not in problem.datasets]
-    if unknown:
-        raise DataError(f"the problem has no dataset '{unknown[0]}'"
-                        f"{did_you_mean(unknown[0], problem.datasets)}")
-    loaded = load_datasets(problem, paths, drop_invalid,
-                           [k for k in problem.datasets if k not in given])
-    datasets = {k: given[k] if k in given else loaded[k] for k in problem.datasets}
+    options = options or problem.options
+    if options.method is not None and options.method not in METHODS:
+        raise SolveError(f"unknown method '{options.method}'"
+                         f"{did_you_mean(options.method, METHODS)}; "
+                         f"methods: {', '.join(METHODS)}")
+    datasets = load_datasets(problem, data, drop_invalid)
     theta0 = _initial(problem, initial or {})
     theta = theta0
     stages: list[StageResult] = []
     for stage in problem.stages:
-        theta, result = run_stage(problem, stage, datasets["calibration"], theta, method,
-                                  progress, max_iter, weighting)
+        theta, result = run_stage(problem, stage, datasets["calibration"], theta, options,
+                                  progress)
         stages.append(result)
         if not result.success:
             break
-    return _result(problem, datasets, theta0, theta, tuple(stages))
+    return _result(problem, datasets, data or {}, theta0, theta, tuple(stages))
 
 
 def _initial(problem: Problem, initial: Mapping[str, float]) -> np.ndarray:
@@ -311,7 +253,20 @@ def _initial(problem: Problem, initial: Mapping[str, float]) -> np.ndarray:
     return theta
 
 
-def _result(problem: Problem, datasets: dict[str, Dataset], theta0: np.ndarray,
+def _info(ds: Dataset, given: Dataset | str | Path | None, spec_path: Path | None
+          ) -> DatasetInfo:
+    """What a dataset was; a file's absolute path and hash, so a result can find it again."""
+    file = None if isinstance(given, Dataset) else (Path(given) if given is not None
+                                                     else spec_path)
+    if file is None:
+        return DatasetInfo(ds.name, ds.source, ds.n, ds.dropped)
+    file = file.resolve()
+    return DatasetInfo(ds.name, ds.source, ds.n, ds.dropped, str(file),
+                       hashlib.sha256(file.read_bytes()).hexdigest())
+
+
+def _result(problem: Problem, datasets: dict[str, Dataset],
+            given: Mapping[str, Dataset | str | Path], theta0: np.ndarray,
             theta: np.ndarray, stages: tuple[StageResult, ...]) -> Result:
     last = stages[-1]
     params = tuple(
@@ -329,9 +284,10 @@ def _result(problem: Problem, datasets: dict[str, Dataset], theta0: np.ndarray,
         f"{c.contraction:.3g} >= 1, so its fixed-point steps do not converge and the result "
         "is not to be trusted (the errors are too large for this form of the model)"
         for c in checks if not c.contracts]
-    infos = tuple(DatasetInfo(d.name, d.source, d.n, d.dropped) for d in datasets.values())
-    return Result(problem.name, display_path(problem.path), stages, params,
-                  last.identifiability, last.uncertainty, stats, infos, tuple(notes), checks)
+    infos = tuple(_info(d, given.get(d.name), problem.datasets[d.name].path)
+                  for d in datasets.values())
+    return Result(problem, theta0, theta, stages, params, last.identifiability,
+                  last.uncertainty, stats, infos, tuple(notes), checks, datasets)
 
 
 def _no_se_reason(name: str, fixed: bool, last: StageResult) -> str | None:

@@ -22,7 +22,6 @@ symcal's internal units (mm, rad, s); a constraint's display unit (µm) is only 
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import re
 import tempfile
@@ -36,8 +35,12 @@ import casadi as ca
 
 from symcal.errors import SymcalError
 from symcal.files import atomic_write_text
-from symcal.language.model import ModelSpec
 from symcal.problem import Problem
+from symcal.result import Result, check_result_problem, read_result_document
+from symcal.units import internal_unit
+
+#: A calibration result: the object, its ``result.json`` file, or that file's document.
+ResultLike = Result | str | Path | Mapping[str, Any]
 
 __all__ = ["CName", "InstancePlan", "Plan", "c_identifier", "casadi_functions", "generate",
            "plan"]
@@ -69,8 +72,6 @@ _EXPORTABLE_OPS = frozenset(
     """.split())
 _OP_NAMES = {getattr(ca, n): n[3:].lower() for n in dir(ca) if n.startswith("OP_")}
 
-_LENGTH_UNITS = {"mm", "um", "µm", "nm", "m"}
-_ANGLE_UNITS = {"rad", "mrad", "urad", "µrad", "deg"}
 
 
 @dataclass(frozen=True)
@@ -173,45 +174,20 @@ class _Namespace:
         return c
 
 
-def _internal_unit(display: str) -> str:
-    """The unit of a constraint's value in the code (its YAML unit is a display unit)."""
-    if display in _LENGTH_UNITS:
-        return "mm"
-    if display in _ANGLE_UNITS:
-        return "rad"
-    return "" if display in ("", "1") else display
-
-
 # ------------------------------------------------------------------------ results
 
-def _load_result(result: str | Path | Mapping[str, Any], problem: Problem
-                 ) -> tuple[tuple[float, ...], str]:
-    """The parameter values of a result file (or its dict), in θ order, and its label."""
-    if isinstance(result, Mapping):
-        doc: Any = result
-        label = "the result"
-    else:
-        label = f"result file {result}"
-        try:
-            text = Path(result).read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise SymcalError(f"{label} not found") from None
-        except OSError as exc:
-            raise SymcalError(f"{label} cannot be read: {exc.strerror}") from None
-        try:
-            doc = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise SymcalError(f"{label} is not valid JSON: {exc.msg} at line {exc.lineno}, "
-                              f"column {exc.colno}") from None
-    if not isinstance(doc, Mapping) or "symcal_result" not in doc:
-        raise SymcalError(f"{label} is not a symcal result (no 'symcal_result' key); "
-                          "write one with 'symcal solve PROBLEM --out DIR'")
-    if doc["symcal_result"] != 1:
-        raise SymcalError(f"{label} has format version {doc['symcal_result']!r}; this symcal "
-                          "reads version 1")
-    if doc.get("problem") != problem.name:
-        raise SymcalError(f"{label} is for problem '{doc.get('problem')}', not "
-                          f"'{problem.name}'")
+def _load_result(result: ResultLike, problem: Problem) -> tuple[tuple[float, ...], str]:
+    """The parameter values of a result (object, file or dict), in θ order, and its label."""
+    if isinstance(result, Result):
+        if not result.success:
+            raise SymcalError(f"the result of '{result.name}' is from a failed solve; symcal "
+                              "exports only a successful calibration")
+        if result.problem.parameter_names != problem.parameter_names:
+            raise SymcalError(f"the result is for problem '{result.name}', whose parameters "
+                              f"are not those of '{problem.name}'")
+        return tuple(float(v) for v in result.theta), f"the result of '{result.name}'"
+    doc, label = read_result_document(result)
+    check_result_problem(doc, label, problem)
     solver = doc.get("solver")
     if isinstance(solver, Mapping) and solver.get("success") is False:
         raise SymcalError(f"{label} is from a failed solve; symcal exports only a "
@@ -248,23 +224,8 @@ def _load_result(result: str | Path | Mapping[str, Any], problem: Problem
 
 # --------------------------------------------------------------------------- plan
 
-def _model_files(model: ModelSpec) -> list[Path]:
-    files = [model.path]
-    if model.extends is not None:
-        files += _model_files(model.extends)
-    return files
-
-
 def _source_files(problem: Problem) -> tuple[Path, ...]:
-    files = [Path(problem.path)]
-    if problem.spec is not None:
-        for inst in problem.spec.instances.values():
-            files += _model_files(inst.model)
-    unique: list[Path] = []
-    for f in files:
-        if f not in unique:
-            unique.append(f)
-    return tuple(unique)
+    return (Path(problem.path), *problem.model_files())
 
 
 def _hash(problem: Problem, files: Iterable[Path], values: tuple[float, ...] | None) -> str:
@@ -302,8 +263,7 @@ def _outputs(problem: Problem) -> list[tuple[str, list[tuple[str, Any]]]]:
     """Per instance with outputs: its name and its (output name, Quantity) pairs."""
     signals = {s.name: s for s in problem.signals}
     out = []
-    instances = problem.spec.instances if problem.spec is not None else {}
-    for inst_name, inst in instances.items():
+    for inst_name, inst in problem.instances.items():
         items = [(o, signals[f"{inst_name}.{o}"]) for o in inst.model.outputs
                  if f"{inst_name}.{o}" in signals]
         if items:
@@ -311,7 +271,7 @@ def _outputs(problem: Problem) -> list[tuple[str, list[tuple[str, Any]]]]:
     return out
 
 
-def plan(problem: Problem, result: str | Path | Mapping[str, Any] | None = None) -> Plan:
+def plan(problem: Problem, result: ResultLike | None = None) -> Plan:
     """Decide the C names, units and values of a problem's export, or refuse it.
 
     Parameters
@@ -319,8 +279,9 @@ def plan(problem: Problem, result: str | Path | Mapping[str, Any] | None = None)
     problem
         The problem (``symcal.load_problem``).
     result
-        A result file (``symcal solve --out DIR`` writes ``DIR/result.json``), its dict
-        (``Result.to_dict()``), or None to take the parameters as an argument.
+        A :class:`~symcal.result.Result`, a result file (``symcal solve --out DIR``
+        writes ``DIR/result.json``), its dict (``Result.to_dict()``), or None to take the
+        parameters as an argument.
 
     Returns
     -------
@@ -347,7 +308,7 @@ def plan(problem: Problem, result: str | Path | Mapping[str, Any] | None = None)
         for _, q in items:
             _check_exportable(f"output '{q.name}'", q.sx, symbols)
 
-    spec_columns = problem.spec.columns if problem.spec is not None else {}
+    spec_columns = problem.column_specs
     used: set[str] = set()
     for q in problem.constraints:
         used.update(problem.columns_of(q.sx))
@@ -370,7 +331,7 @@ def plan(problem: Problem, result: str | Path | Mapping[str, Any] | None = None)
     fields = _Namespace({"dg_dtheta": "symcal's Jacobian field"})
     residuals = []
     for q in problem.constraints:
-        unit = _internal_unit(q.unit)
+        unit = internal_unit(q.unit)
         note = f"symcal reports it in {q.unit}" if q.unit and q.unit != unit else ""
         doc = "; ".join(t for t in (q.doc, note) if t)
         residuals.append(CName(q.name, fields.claim(q.name), unit, doc))
@@ -383,7 +344,7 @@ def plan(problem: Problem, result: str | Path | Mapping[str, Any] | None = None)
         for _, q in items:
             reads += [c for c in problem.columns_of(q.sx) if c not in reads]
         reads = [c for c in problem.columns if c in reads]
-        doc = problem.spec.instances[inst_name].doc if problem.spec is not None else ""
+        doc = problem.instances[inst_name].doc
         instances.append(InstancePlan(inst_name, c_identifier(inst_name), outs,
                                       tuple(reads), doc))
     files = _source_files(problem)
@@ -815,7 +776,7 @@ class _Render:
 
 def _sample(p: Plan) -> tuple[list[float], str]:
     """The first observation of the calibration dataset (0 where a column is absent)."""
-    from symcal.calibrate import load_datasets
+    from symcal.datasets import load_datasets
 
     if not p.inputs:
         return [], "without inputs"
@@ -840,13 +801,13 @@ def _command(problem: Problem, outdir: Path, result: object) -> str:
     from symcal.language.yamlio import display_path
 
     text = f"symcal codegen {display_path(Path(problem.path))}"
-    if result is not None and not isinstance(result, Mapping):
+    if isinstance(result, (str, Path)):
         text += f" --result {result}"
     return text + f" -o {outdir}"
 
 
 def generate(problem: Problem, outdir: str | Path,
-             result: str | Path | Mapping[str, Any] | None = None) -> list[Path]:
+             result: ResultLike | None = None) -> list[Path]:
     """Write the C export of ``problem`` to ``outdir``.
 
     Parameters
@@ -889,7 +850,7 @@ def generate(problem: Problem, outdir: str | Path,
         "Makefile": render.makefile(),
     }
     inputs = {f.resolve() for f in p.files}
-    if result is not None and not isinstance(result, Mapping):
+    if isinstance(result, (str, Path)):
         inputs.add(Path(result).resolve())
     for name in texts:
         if (outdir / name).resolve() in inputs:

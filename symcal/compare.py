@@ -9,17 +9,13 @@ information criteria rise).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from symcal.calibrate import load_datasets, solve
-from symcal.data import Dataset
 from symcal.files import atomic_write_bytes
-from symcal.language.yamlio import display_path
-from symcal.problem import load_problem
 from symcal.result import Result
 
 
@@ -34,18 +30,18 @@ class Rung:
     free: int
     rows: int
     rss: float
+    aic: float
+    bic: float
     spreads: dict[tuple[str, str], tuple[float, str]]   # (dataset, quantity) -> (std, unit)
 
-    @property
-    def aic(self) -> float:
-        """Akaike information criterion of the calibration fit (Gaussian residuals)."""
-        return self.rows * float(np.log(self.rss / self.rows)) + 2 * self.identifiable
-
-    @property
-    def bic(self) -> float:
-        """Bayesian information criterion of the calibration fit."""
-        return (self.rows * float(np.log(self.rss / self.rows))
-                + self.identifiable * float(np.log(self.rows)))
+    @classmethod
+    def of(cls, result: Result) -> Rung:
+        """The rung of one calibration result."""
+        spreads = {(s.dataset, s.name): (s.shown("after").std, s.unit or "(internal)")
+                   for s in result.statistics}
+        return cls(result.name, result.problem_path, result.success,
+                   result.identifiability.rank, len(result.stages[-1].free), result.rows,
+                   result.rss, result.aic, result.bic, spreads)
 
     def to_dict(self) -> dict:
         """Plain-data form."""
@@ -56,37 +52,10 @@ class Rung:
                             for (d, q), (s, u) in self.spreads.items()]}
 
 
-def compare(
-    problems: Sequence[str | Path],
-    data: Mapping[str, str | Path] | None = None,
-    drop_invalid: bool = False,
-) -> tuple[Rung, ...]:
-    """Solve every problem on the same data (the first problem's datasets, with ``data``
-    replacing some of them) and summarise each fit as a :class:`Rung`."""
-    first = load_problem(problems[0])
-    datasets: dict[str, Dataset] = load_datasets(first, data, drop_invalid)
-    rungs = []
-    for path in problems:
-        problem = first if path == problems[0] else load_problem(path)
-        mine = {k: v for k, v in datasets.items() if k in problem.datasets}
-        result = solve(problem, mine)
-        last = result.stages[-1]
-        spreads = {(s.dataset, s.name): (s.shown("after").std, s.unit or "(internal)")
-                   for s in result.statistics}
-        rungs.append(Rung(problem.name, display_path(Path(path)), result.success,
-                          last.identifiability.rank, len(last.free), _rows(result),
-                          _rss(result), spreads))
-    return tuple(rungs)
-
-
-def _rows(result: Result) -> int:
-    """Residual rows of the last stage's fit."""
-    return int(result.uncertainty.dof + result.identifiability.rank)
-
-
-def _rss(result: Result) -> float:
-    """The last stage's cost Σ (g/σ)²."""
-    return float(result.stages[-1].cost_after)
+def compare(results: Sequence[Result]) -> tuple[Rung, ...]:
+    """Summarise calibrations of model revisions (solved on the same data, simplest
+    first) as the rungs of a ladder; nothing is solved again."""
+    return tuple(Rung.of(r) for r in results)
 
 
 def ladder_report(rungs: Sequence[Rung]) -> str:

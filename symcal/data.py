@@ -17,7 +17,6 @@ import numpy as np
 
 from symcal.errors import DataError
 from symcal.files import atomic_write_bytes, atomic_write_text
-from symcal.language.problem import DatasetSpec
 from symcal.language.yamlio import display_path
 from symcal.suggest import did_you_mean
 
@@ -175,22 +174,6 @@ def make_dataset(
         if dropped == n:
             raise DataError(f"{source}: every row has NaN or inf in a needed column")
     return Dataset(name, source, _freeze(dict(columns)), dropped)
-
-
-def load_dataset(
-    spec: DatasetSpec, needed: Iterable[str], path: str | Path | None = None,
-    drop_invalid: bool = False,
-) -> Dataset:
-    """Load the dataset ``spec`` describes, or the file ``path`` that replaces it."""
-    if path is not None:
-        return make_dataset(spec.name, display_path(Path(path)), read_table(path), needed,
-                            drop_invalid)
-    if spec.path is not None:
-        return make_dataset(spec.name, spec.source, read_table(spec.path), needed, drop_invalid)
-    from symcal.simulate import load_scenario, simulate_run
-
-    columns = simulate_run(load_scenario(spec.scenario), spec.run, seed=spec.seed, n=spec.n)
-    return make_dataset(spec.name, spec.source, columns, needed, drop_invalid)
 
 
 def write_table(path: str | Path, columns: Mapping[str, np.ndarray]) -> None:

@@ -1,7 +1,7 @@
 """`symcal diagnose`: compare the calibrated model with the measurements, show where it
 fails, and name the physical effect that is most likely missing (DESIGN.md, Diagnosis).
 
-The flow: solve → evaluate every residual (constraints and reference comparisons) on
+The flow: a calibration result → evaluate every residual (constraints and reference comparisons) on
 every dataset, with its sensitivity to each sensor output (exact, through hooks) and to
 the free parameters → where it fails (binned structure, periodograms) → which effect is
 missing (candidate library, projected F-tests, indistinguishable groups) → words, YAML.
@@ -9,24 +9,22 @@ missing (candidate library, projected F-tests, indistinguishable groups) → wor
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
 from symcal.analysis.discovery import Basis, Candidate, Design, test_candidates
 from symcal.analysis.residuals import Binned, Periodogram, Variable, periodogram, structure
-from symcal.calibrate import load_datasets, solve
 from symcal.data import Dataset
 from symcal.effects import effect_yaml
-from symcal.language.common import DISPLAY_UNITS
+from symcal.linalg import whitening
 from symcal.numeric import mapped
-from symcal.problem import Problem, build_problem, load_problem
+from symcal.problem import Problem
 from symcal.result import Result
+from symcal.units import ANGLE_UNITS, DISPLAY_UNITS
 
-ANGLE_UNITS = ("rad", "mrad", "urad", "µrad", "deg")
 HARMONICS = 8
 
 
@@ -101,7 +99,7 @@ class Diagnosis:
         """Plain data (``--json``; with ``series`` the plotting contract)."""
         ranked = list(self.leads)
         return {
-            "problem": self.result.problem, "alpha": self.alpha, "tested": self.tested,
+            "problem": self.result.name, "alpha": self.alpha, "tested": self.tested,
             "datasets": [{"name": d.name, "n": d.n} for d in self.result.datasets],
             "residuals": [v.to_dict(series) for v in self.residuals],
             "candidates": [
@@ -117,12 +115,6 @@ class Diagnosis:
             "singular_values": list(self.result.identifiability.singular_values),
             "correlation": self.result.uncertainty.to_dict()["correlation"],
         }
-
-    def report(self) -> str:
-        """The diagnosis in words (what `symcal diagnose` prints)."""
-        from symcal.report import diagnosis_report
-
-        return diagnosis_report(self)
 
 
 def _words(cand: Candidate, alpha: float, tested: int) -> str:
@@ -148,17 +140,6 @@ def _words(cand: Candidate, alpha: float, tested: int) -> str:
         text += (f" These data cannot tell it apart from: {shown}{more}. Only a reference "
                  "sensor or another constraint can separate them.")
     return text
-
-
-def _sqrt_inv(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Whitening T (r × n_q) with T S Tᵀ = I, and its inverse (n_q × r), for a covariance
-    S of rank r.  Directions where S vanishes are dropped: residuals that are exact
-    combinations of others (e.g. g_p = l_s·(θx error − θy error) with an exact reference)
-    carry no information of their own."""
-    w, v = np.linalg.eigh((cov + cov.T) / 2)
-    keep = w > 1e-9 * max(float(w.max()), 1e-300)
-    w, v = w[keep], v[:, keep]
-    return (v / np.sqrt(w)[None, :]).T, v * np.sqrt(w)[None, :]
 
 
 @dataclass
@@ -205,7 +186,7 @@ def _evaluate(hp: Problem, ds: Dataset, theta0: np.ndarray, theta: np.ndarray,
     after, dh, dj, values = fn(theta, u)
     before = fn(theta0, u)[0]
     n, nq = after.shape
-    variables = [Variable(name, values[:, k], unit, period, kind)
+    variables = [Variable(name, values[:, k], unit, period, kind, _role(hp, name))
                  for k, (name, _, unit, period, kind) in enumerate(var_specs)]
     variables += _unused_columns(hp, ds)
     return _Block(ds, names, kinds, units, offsets, before, after,
@@ -224,11 +205,11 @@ def _variable_specs(hp: Problem) -> list[tuple[str, ca.SX, str, float | None, st
     references = _references(hp)
     hooks = ca.vertcat(*hp.hooks.values())
     out = []
-    spec_columns = hp.spec.columns if hp.spec else {}
     for k, col in enumerate(hp.columns):
         if col not in references:
-            unit = spec_columns[col].unit if col in spec_columns else ""
-            out.append((col, hp.u[k], unit, None, "drift" if col == "t" else "column"))
+            spec = hp.column_specs.get(col)
+            unit = spec.unit if spec is not None else ""
+            out.append((col, hp.u[k], unit, None, _column_kind(hp, col)))
     for sig in hp.signals:
         derived = ca.depends_on(sig.sx, hooks)
         out.append((sig.name, sig.sx, sig.unit, sig.period, "derived" if derived else "signal"))
@@ -248,13 +229,23 @@ def _unused_columns(hp: Problem, ds: Dataset) -> list[Variable]:
     """Data columns the problem does not use yet (but the references): an effect may
     depend on them, e.g. a drift in time."""
     references = _references(hp)
-    assert hp.spec is not None
     out = []
-    for col, spec in hp.spec.columns.items():
+    for col, spec in hp.column_specs.items():
         if col in ds.columns and col not in hp.columns and col not in references:
-            kind = "drift" if col == "t" else "column"
-            out.append(Variable(col, np.asarray(ds.columns[col]), spec.unit, None, kind))
+            out.append(Variable(col, np.asarray(ds.columns[col]), spec.unit, None,
+                                _column_kind(hp, col), spec.role))
     return out
+
+
+def _role(hp: Problem, name: str) -> str:
+    spec = hp.column_specs.get(name)
+    return spec.role if spec is not None else ""
+
+
+def _column_kind(hp: Problem, col: str) -> str:
+    """``drift`` for the column declared as time (``role: time``), else ``column``."""
+    spec = hp.column_specs.get(col)
+    return "drift" if spec is not None and spec.role == "time" else "column"
 
 
 def _distinct(variables: list[Variable]) -> list[Variable]:
@@ -329,21 +320,17 @@ def _angle_harmonic(ia: int, iv: int, w: float) -> Callable:
         [np.sin(w * vs[iv].values), np.cos(w * vs[iv].values)])
 
 
-def diagnose(
-    problem: Problem | str | Path,
-    data: Mapping[str, Dataset | str | Path] | None = None,
-    alpha: float = 0.01,
-    progress: Callable[[str], None] | None = None,
-    drop_invalid: bool = False,
-) -> Diagnosis:
-    """Solve, then find where the model fails and which effect is most likely missing.
+def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
+    """Find where a calibrated model fails and which effect is most likely missing.
+
+    Nothing is solved again: the residuals, their sensitivities and the candidate terms
+    are evaluated at the result's estimate on its datasets.
 
     Parameters
     ----------
-    problem
-        A problem or its file.
-    data
-        Datasets by name (objects or paths) replacing the problem's.
+    result
+        A calibration (:func:`symcal.solve`), or one loaded with
+        :meth:`~symcal.result.Result.load`.
     alpha
         Family-wise significance level over all candidates (Bonferroni).
 
@@ -351,19 +338,10 @@ def diagnose(
     -------
     Diagnosis
     """
-    if not isinstance(problem, Problem):
-        problem = load_problem(problem)
-    data = dict(data or {})
-    paths = {k: v for k, v in data.items() if not isinstance(v, Dataset)}
-    loaded = load_datasets(problem, paths, drop_invalid,
-                           [k for k in problem.datasets if not isinstance(data.get(k), Dataset)])
-    datasets = {k: data[k] if isinstance(data.get(k), Dataset) else loaded[k]
-                for k in problem.datasets}
-    result = solve(problem, datasets, progress=progress)
-    assert problem.spec is not None
-    hp = build_problem(problem.spec, hooks=True)
-    theta = np.array([result.params[n] for n in problem.parameter_names])
-    theta0 = np.array([p.initial for p in result.parameters])
+    problem = result.problem
+    hp = problem.diagnostic
+    datasets = result.data
+    theta, theta0 = result.theta, result.theta0
     free = np.array([n in result.stages[-1].free for n in problem.parameter_names])
     blocks = [_evaluate(hp, ds, theta0, theta, free) for ds in datasets.values()]
     calibration = blocks[0]
@@ -389,8 +367,8 @@ def diagnose(
             regressors.append(np.vstack(cols))
     def local(cand: Candidate) -> bool:
         instance = cand.output.split(".", 1)[0]
-        own = {f"{instance}.{k}" for k in problem.spec.instances[instance].bindings}
-        own |= {b.text for b in problem.spec.instances[instance].bindings.values()}
+        bindings = problem.instances[instance].bindings
+        own = {f"{instance}.{k}" for k in bindings} | set(bindings.values())
         return cand.basis.variable in own
 
     ranked = test_candidates(design, candidates, regressors, alpha, local)
@@ -424,7 +402,7 @@ def _design(blocks: list[_Block], problem: Problem, free: np.ndarray,
             if off:
                 resid[:, k] -= resid[:, k].mean()
         noise = resid if residuals is None else residuals[i]
-        t, t_inv = _sqrt_inv(np.cov(noise, rowvar=False, bias=True).reshape(len(b.names), -1))
+        t, t_inv = whitening(np.cov(noise, rowvar=False, bias=True).reshape(len(b.names), -1))
         whiteners.append(t)
         n, nq = resid.shape
         rank = t.shape[0]
@@ -448,13 +426,21 @@ def _design(blocks: list[_Block], problem: Problem, free: np.ndarray,
     return design, whiteners
 
 
+def _axis(block: _Block) -> Variable | None:
+    """What residuals are plotted against: the declared position reading (``role: axis``)
+    that moves most on the dataset, else the time column, else None (the index)."""
+    axes = [v for v in block.variables if v.role == "axis"]
+    if axes:
+        return max(axes, key=lambda v: float(np.std(v.values)))
+    return next((v for v in block.variables if v.role == "time"), None)
+
+
 def _views(blocks: list[_Block]) -> list[ResidualView]:
     views = []
     for b in blocks:
         variables = _distinct(b.variables)
         periodic = [v for v in variables if v.period]
-        moving = max((v for v in b.variables if v.unit == "mm" and v.kind == "column"),
-                     key=lambda v: float(np.std(v.values)), default=None)
+        moving = _axis(b)
         for k, name in enumerate(b.names):
             after = b.after[:, k] - (b.after[:, k].mean() if b.offsets[k] else 0.0)
             before = b.before[:, k] - (b.before[:, k].mean() if b.offsets[k] else 0.0)

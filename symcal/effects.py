@@ -6,15 +6,13 @@ from __future__ import annotations
 
 import os
 import re
-from dataclasses import replace
+from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-
 from symcal.analysis.discovery import Candidate
-from symcal.language.common import parse_expr
+from symcal.files import atomic_write_text
 from symcal.language.model import load_model
-from symcal.problem import Problem, build_problem
+from symcal.problem import Problem
 
 _TAGS = {"harmonic": "h", "linear": "lin", "quadratic": "quad", "drift": "drift",
          "angle_harmonic": "ah"}
@@ -26,28 +24,33 @@ def _ident(text: str) -> str:
 
 def _in_model(problem: Problem, instance: str, variable: str) -> str | None:
     """The instance's own input that ``variable`` is (its name in the model), if any."""
-    assert problem.spec is not None
-    spec = problem.spec.instances[instance]
-    for name, binding in spec.bindings.items():
-        if variable in (f"{instance}.{name}", binding.text):
+    for name, text in problem.instances[instance].bindings.items():
+        if variable in (f"{instance}.{name}", text):
             return name
     return None
 
 
-def effect_yaml(problem: Problem, cand: Candidate) -> str:
-    """YAML text (a new model file and the instance line) that adds ``cand``'s term.
+@dataclass(frozen=True)
+class Suggestion:
+    """A candidate effect as a model that extends the instance's model, and the instance's
+    new bindings (inputs the new model adds)."""
 
-    Parameters
-    ----------
-    problem
-        The problem the candidate was found in.
-    cand
-        The candidate: ``output`` (``instance.output``) and its basis.
-    """
-    assert problem.spec is not None
+    instance: str
+    output: str
+    model_name: str
+    body: tuple[str, ...]
+    new_inputs: dict[str, str]
+
+    def model_text(self, extends: str) -> str:
+        """The new model file, extending ``extends`` (a path as written in the file)."""
+        lines = [f"model: {self.model_name}", f"extends: {extends}", *self.body]
+        return "\n".join(lines) + "\n"
+
+
+def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
+    """The model extension that adds ``cand``'s term to its output."""
     instance, output = cand.output.split(".", 1)
-    ispec = problem.spec.instances[instance]
-    model = ispec.model
+    model = problem.instances[instance].model
     basis = cand.basis
     new_inputs: dict[str, str] = {}
 
@@ -62,34 +65,46 @@ def effect_yaml(problem: Problem, cand: Candidate) -> str:
     v = symbol(basis.variable)
     a = symbol(basis.angle) if basis.angle else ""
     n = re.search(r"harmonic (\d+)", basis.description)
-    tag = _TAGS[basis.kind] + (n.group(1) if n and basis.kind == "harmonic" else "")
+    tag = _TAGS[basis.kind] + (n.group(1) if n is not None and basis.kind == "harmonic" else "")
     tag += "_" + _ident(basis.variable.replace(f"{instance}.", ""))
     params = [f"{col}_{_ident(basis.variable.replace(f'{instance}.', ''))}"
               for col in basis.columns]
     terms = [t.format(v=v, a=a) for t in basis.terms]
     out_unit = model.outputs[output].unit if output in model.outputs else ""
-    new_name = f"{model.name}_{tag}"
-    assert problem.path is not None
-    home = problem.path.parent / "models"   # the user's own models, beside the problem
-    lines = [f"# models/{new_name}.yaml (beside {problem.path.name})", f"model: {new_name}",
-             f"extends: {Path(os.path.relpath(model.path, home)).as_posix()}",
-             f"doc: {model.name} plus {basis.description} on {output} (found by symcal "
-             "diagnose)"]
+    body = [f"doc: {model.name} plus {basis.description} on {output} (found by symcal "
+            "diagnose)"]
     if new_inputs:
-        lines.append("inputs:")
-        lines += [f"  {k}: {{doc: bound to {val} in the problem}}"
-                  for k, val in new_inputs.items()]
-    lines.append("parameters:")
-    lines += [f"  {p}: {{value: 0, unit: {out_unit or '1'}, scale: 0.001}}" for p in params]
-    lines.append("outputs:")
-    body = " + ".join(f"{p}*{t}" for p, t in zip(params, terms, strict=True))
-    lines.append(f"  {output}: base.{output} + {body}")
-    rel = f"models/{new_name}.yaml"
-    bindings = {k: b.text for k, b in ispec.bindings.items()}
-    bindings.update(new_inputs)
+        body.append("inputs:")
+        body += [f"  {k}: {{doc: bound to {val} in the problem}}" for k, val in new_inputs.items()]
+    body.append("parameters:")
+    body += [f"  {p}: {{value: 0, unit: {out_unit or '1'}, scale: 0.001}}" for p in params]
+    body.append("outputs:")
+    terms_text = " + ".join(f"{p}*{t}" for p, t in zip(params, terms, strict=True))
+    body.append(f"  {output}: base.{output} + {terms_text}")
+    return Suggestion(instance, output, f"{model.name}_{tag}", tuple(body), new_inputs)
+
+
+def effect_yaml(problem: Problem, cand: Candidate) -> str:
+    """YAML text (a new model file and the instance line) that adds ``cand``'s term.
+
+    Parameters
+    ----------
+    problem
+        The problem the candidate was found in.
+    cand
+        The candidate: ``output`` (``instance.output``) and its basis.
+    """
+    sug = suggestion(problem, cand)
+    inst = problem.instances[sug.instance]
+    home = problem.path.parent / "models"   # the user's own models, beside the problem
+    extends = Path(os.path.relpath(inst.model.path, home)).as_posix()
+    lines = [f"# models/{sug.model_name}.yaml (beside {problem.path.name})",
+             sug.model_text(extends).rstrip("\n")]
+    bindings = dict(inst.bindings)
+    bindings.update(sug.new_inputs)
     shown = ", ".join(f"{k}: {val}" for k, val in bindings.items())
-    lines += ["", f"# in {problem.path.name}, instance {instance}:",
-              f"  {instance}: {{model: {rel}, inputs: {{{shown}}}}}"]
+    lines += ["", f"# in {problem.path.name}, instance {sug.instance}:",
+              f"  {sug.instance}: {{model: models/{sug.model_name}.yaml, inputs: {{{shown}}}}}"]
     return "\n".join(lines) + "\n"
 
 
@@ -104,23 +119,8 @@ def revised_problem(problem: Problem, cand: Candidate, directory: str | Path) ->
     Problem
         A new problem; ``problem`` is not modified.
     """
-    assert problem.spec is not None
-    instance = cand.output.split(".", 1)[0]
-    text = effect_yaml(problem, cand)
-    model_text, _, instance_text = text.partition("\n\n")
-    base = problem.spec.instances[instance].model.path
-    model_text = re.sub(r"^extends: .*$", f"extends: {base.as_posix()}", model_text,
-                        flags=re.MULTILINE)
-    name = re.search(r"^model: (\S+)$", model_text, re.MULTILINE).group(1)
-    path = Path(directory) / f"{name}.yaml"
-    path.write_text(model_text)
-    line = yaml.safe_load(instance_text.split("\n", 1)[1])[instance]
-    spec = problem.spec
-    old = spec.instances[instance]
-    bindings = dict(old.bindings)
-    for key, value in line["inputs"].items():
-        if key not in bindings:
-            bindings[key] = parse_expr(str(value), old.where.child("inputs").child(key))
-    new = replace(old, model=load_model(path), bindings=bindings)
-    instances = {k: (new if k == instance else v) for k, v in spec.instances.items()}
-    return build_problem(replace(spec, instances=instances))
+    sug = suggestion(problem, cand)
+    base = problem.instances[sug.instance].model.path
+    path = Path(directory) / f"{sug.model_name}.yaml"
+    atomic_write_text(path, sug.model_text(base.as_posix()))
+    return problem.with_instance(sug.instance, load_model(path), sug.new_inputs)

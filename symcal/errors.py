@@ -34,27 +34,45 @@ class SymcalError(Exception):
 
 @dataclass(frozen=True)
 class Where:
-    """Provenance of a value in a YAML file: file, 1-based line and key path."""
+    """Provenance of a value in a YAML file: file, 1-based line and key path.
+
+    ``via`` names the file that was loaded when the value came from a file it
+    ``extends`` (directly or not); :class:`SpecError` then says so after the message.
+    """
 
     file: str
     line: int | None = None
     keypath: str = ""
+    via: str | None = None
 
     def __str__(self) -> str:
         loc = self.file if self.line is None else f"{self.file}:{self.line}"
         return f"{loc}: {self.keypath}" if self.keypath else loc
 
-    def child(self, key: str | int, line: int | None = None) -> Where:
-        """Provenance of a child key (``parent.key``) at ``line`` (default: this line)."""
+    @property
+    def note(self) -> str:
+        """`` (in the base of FILE)`` for a value reached through an overlay, else ``""``."""
+        return f" (in the base of {self.via})" if self.via else ""
+
+    def child(self, key: str | int, line: int | None = None, file: str | None = None) -> Where:
+        """Provenance of a child key (``parent.key``) at ``line`` (default: this line).
+
+        ``file`` is the file that wrote the key when it differs from this one (a key
+        merged from a base file); ``via`` then names the file that was loaded.
+        """
         path = f"{self.keypath}.{key}" if self.keypath else str(key)
-        return Where(self.file, self.line if line is None else line, path)
+        line = self.line if line is None else line
+        if file is None or file == self.file:
+            return Where(self.file, line, path, self.via)
+        top = self.via or self.file
+        return Where(file, line, path, None if file == top else top)
 
 
 class SpecError(SymcalError):
     """A YAML model, problem or scenario that cannot be used as written."""
 
     def __init__(self, where: Where, message: str) -> None:
-        super().__init__(f"{where}: {message}")
+        super().__init__(f"{where}: {message}{where.note}")
         self.where = where
         self.detail = message
 

@@ -1,25 +1,44 @@
 """Spec → symbolic :class:`Problem`: parameters θ, per-observation inputs u, named residuals.
 
-Names are resolved lazily and memoised: a constraint pulls in the problem expressions and
-instance outputs it refers to, an instance pulls in its input bindings, and a cycle among
-definitions is reported with its path.  Models see only their own symbols; problems see
-constants, parameters, expressions, data columns and dotted instance signals (``s1.p_hat``).
+One build per problem.  Names are resolved lazily and memoised: a constraint pulls in the
+problem expressions and instance outputs it refers to, an instance pulls in its input
+bindings, and a cycle among definitions is reported with its path.  Models see only their
+own symbols; problems see constants, parameters, expressions, data columns and dotted
+instance signals (``s1.p_hat``).
+
+The build leaves two kinds of symbols open, and the problem's views are derived from it by
+substitution, never by building again:
+
+- every implicit definition (``x = F(x)``) is a placeholder symbol with its start and its
+  map; the problem in use unrolls the maps (fixed-point steps), the explicit twin
+  (:attr:`Problem.explicit`) takes every start (zero steps: the explicit model);
+- every instance output carries a *hook*, a symbol added to it; the problem in use sets
+  the hooks to zero, the diagnostic view (:attr:`Problem.diagnostic`) keeps them, so that
+  the derivative of any residual with respect to any sensor output is exact.
 """
 
 from __future__ import annotations
 
 import fnmatch
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 import casadi as ca
 
 from symcal import expr
 from symcal.errors import SpecError, Where
-from symcal.language.common import ExprSpec, ParameterSpec, apply_parameter_overrides
-from symcal.language.model import ImplicitSpec
-from symcal.language.problem import DatasetSpec, InstanceSpec, ProblemSpec, load_problem_spec
+from symcal.language.common import ExprSpec, ParameterSpec, apply_parameter_overrides, parse_expr
+from symcal.language.model import ImplicitSpec, ModelSpec
+from symcal.language.options import SolveOptions
+from symcal.language.problem import (
+    ColumnSpec,
+    DatasetSpec,
+    InstanceSpec,
+    ProblemSpec,
+    load_problem_spec,
+)
 from symcal.suggest import did_you_mean
 
 
@@ -88,9 +107,33 @@ class Stage:
     doc: str = ""
 
 
+@dataclass(frozen=True)
+class Instance:
+    """A sensor instance of the problem: its model, its input bindings (as written)."""
+
+    name: str
+    model: ModelSpec
+    bindings: Mapping[str, str]
+    doc: str
+
+
+@dataclass(frozen=True)
+class Study:
+    """On what data and in which steps a problem is solved.
+
+    ``weighting``: ``"equal"`` (the cost is Σ (g/σ)² as written) or ``"estimated"`` (each
+    stage with several constraints is solved again, weighted by the inverse of their
+    covariance estimated from the residuals: feasible generalised least squares).
+    """
+
+    datasets: Mapping[str, DatasetSpec]
+    stages: tuple[Stage, ...]
+    weighting: str
+
+
 @dataclass(frozen=True, eq=False)
 class Problem:
-    """A calibration problem in symbolic form.
+    """A calibration problem in symbolic form: the system, the study, the solve options.
 
     Attributes
     ----------
@@ -110,27 +153,20 @@ class Problem:
         Every instance input and output (``s1.p``, ``s1.p_hat``).
     comparisons
         Estimates to compare with a reference sensor.
-    datasets
-        Where each named dataset comes from.
-    stages
-        The ordered steps of the calibration (one stage over everything by default).
-    weighting
-        ``"equal"``: the cost is Σ (g/σ)² as written; ``"estimated"``: each stage with
-        several constraints is solved again, weighted by the inverse of their covariance
-        estimated from the residuals (feasible generalised least squares).
+    study
+        Datasets, stages and weighting (:class:`Study`).
+    options
+        The solve options the problem file declares (``solver:``).
+    instances
+        The sensor instances by name.
+    column_specs
+        Every column the problem declares (used or not), with unit, role and doc.
     implicit
         Definitions solved by fixed-point steps, with their convergence checks.
-    explicit
-        When there are implicit definitions: the same problem with zero steps each (each
-        one equal to its start: the explicit model), used to start the solver from a
-        closed-form estimate.
-    spec
-        The validated spec the problem was built from.
     hooks
-        Only in a diagnostic build (``build_problem(spec, hooks=True)``): for each instance
-        output, a symbol added to it (zero in use), so that the derivative of any residual
-        with respect to any sensor output is exact.  Evaluate with the hooks as extra rows
-        of u set to zero.
+        Instance output → its hook symbol (see :attr:`diagnostic`).
+    spec
+        The validated spec the problem was built from (for derived problems).
     """
 
     name: str
@@ -144,24 +180,45 @@ class Problem:
     expressions: tuple[Quantity, ...]
     signals: tuple[Quantity, ...]
     comparisons: tuple[Comparison, ...]
-    datasets: dict[str, DatasetSpec]
-    stages: tuple[Stage, ...]
-    weighting: str
-    index: dict[str, int] = field(repr=False)
-    implicit: tuple[ImplicitOutput, ...] = ()
-    explicit: Problem | None = field(default=None, repr=False)
-    spec: ProblemSpec | None = field(default=None, repr=False)
-    hooks: dict[str, ca.SX] = field(default_factory=dict, repr=False)
+    study: Study
+    options: SolveOptions
+    instances: Mapping[str, Instance]
+    column_specs: Mapping[str, ColumnSpec]
+    implicit: tuple[ImplicitOutput, ...]
+    hooks: Mapping[str, ca.SX]
+    spec: ProblemSpec = field(repr=False)
+    _build: _Build | None = field(default=None, repr=False)
+    _mode: str = field(default="use", repr=False)
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
         """Names of all parameters, in the order of ``theta``."""
         return tuple(p.name for p in self.parameters)
 
+    @cached_property
+    def index(self) -> dict[str, int]:
+        """Position of each parameter in θ, by name."""
+        return {p.name: i for i, p in enumerate(self.parameters)}
+
     @property
     def free(self) -> tuple[bool, ...]:
         """Which parameters are free (not fixed)."""
         return tuple(not p.fixed for p in self.parameters)
+
+    @property
+    def datasets(self) -> Mapping[str, DatasetSpec]:
+        """Where each named dataset comes from (``study.datasets``)."""
+        return self.study.datasets
+
+    @property
+    def stages(self) -> tuple[Stage, ...]:
+        """The ordered steps of the calibration (``study.stages``)."""
+        return self.study.stages
+
+    @property
+    def weighting(self) -> str:
+        """``"equal"`` or ``"estimated"`` (``study.weighting``)."""
+        return self.study.weighting
 
     def constraint(self, name: str) -> Quantity:
         """The constraint called ``name``."""
@@ -172,6 +229,81 @@ class Problem:
         used = {v.name() for v in ca.symvar(sx)}
         return [c for c in self.columns if c in used]
 
+    def quantity(self, name: str) -> ca.SX:
+        """The SX of a named constraint, expression, signal or comparison (estimate minus
+        reference).
+
+        Raises
+        ------
+        KeyError
+            With the names there are, for an unknown name.
+        """
+        for group in (self.constraints, self.expressions, self.signals):
+            for q in group:
+                if q.name == name:
+                    return q.sx
+        for comp in self.comparisons:
+            if comp.name == name:
+                return comp.estimate - comp.reference
+        known = [q.name for g in (self.constraints, self.expressions, self.signals) for q in g]
+        known += [c.name for c in self.comparisons]
+        raise KeyError(f"problem '{self.name}' has no quantity '{name}'"
+                       f"{did_you_mean(name, known)}")
+
+    def model_files(self) -> tuple[Path, ...]:
+        """Every model file the problem's instances read, through ``extends`` too."""
+        files: list[Path] = []
+        for inst in self.instances.values():
+            model: ModelSpec | None = inst.model
+            while model is not None:
+                if model.path not in files:
+                    files.append(model.path)
+                model = model.extends
+        return tuple(files)
+
+    @property
+    def explicit(self) -> Problem | None:
+        """With implicit definitions: the same problem with every one at its start (zero
+        fixed-point steps: the explicit model), to start the solver from a closed form."""
+        if not self.implicit or self._build is None or self._mode != "use":
+            return None
+        return self._view("explicit")
+
+    @property
+    def diagnostic(self) -> Problem:
+        """The problem with the hooks left open: evaluate with the hooks as extra rows of
+        u set to zero; the derivative of a residual by a hook is its derivative by that
+        sensor output."""
+        if self._build is None or self._mode == "diagnostic":
+            return self
+        return self._view("diagnostic")
+
+    def _view(self, mode: str) -> Problem:
+        cache = self.__dict__.setdefault("_views", {})
+        if mode not in cache:
+            assert self._build is not None
+            cache[mode] = self._build.problem(mode)
+        return cache[mode]  # type: ignore[no-any-return]
+
+    def with_instance(self, name: str, model: ModelSpec,
+                      bindings: Mapping[str, str] | None = None) -> Problem:
+        """The problem with instance ``name`` using ``model``, its bindings kept and
+        ``bindings`` (input → expression text) added; this problem is not modified."""
+        old = self.spec.system.instances[name]
+        new_bindings = dict(old.bindings)
+        for key, text in (bindings or {}).items():
+            new_bindings[key] = parse_expr(str(text), old.where.child("inputs").child(key))
+        new = replace(old, model=model, bindings=new_bindings)
+        instances = {k: (new if k == name else v) for k, v in self.spec.system.instances.items()}
+        return build_problem(replace(self.spec, system=replace(self.spec.system,
+                                                               instances=instances)))
+
+    def with_weighting(self, weighting: str) -> Problem:
+        """The problem with another weighting of its constraints (no rebuild)."""
+        if weighting == self.weighting:
+            return self
+        return replace(self, study=replace(self.study, weighting=weighting))
+
 
 def _enter(stack: list[str], key: str, where: Where) -> None:
     """Push ``key`` on the resolution stack, or report the cycle it would close."""
@@ -181,11 +313,25 @@ def _enter(stack: list[str], key: str, where: Where) -> None:
     stack.append(key)
 
 
+@dataclass
+class _Implicit:
+    """An implicit definition left open by the build: x = F(x), from ``start``."""
+
+    key: str
+    symbol: ca.SX
+    start: ca.SX
+    fmap: ca.SX
+    steps: int
+    where: Where
+
+
 class _Scope:
     """Lazy, memoised resolution of names to SX with cycle detection.
 
     ``values`` are ready symbols; ``defs`` are expressions resolved on first use;
-    ``fallback`` resolves other names (columns, dotted signals) or returns None.
+    ``fallback`` resolves other names (columns, dotted signals) or returns None.  A name in
+    ``implicit`` resolves to a placeholder symbol whose start and map are recorded in
+    ``opened``.
     """
 
     def __init__(
@@ -196,8 +342,8 @@ class _Scope:
         fallback: Callable[[str, Where, list[str]], ca.SX | None],
         known: Callable[[], list[str]],
         stack: list[str],
-        implicit: dict[str, ImplicitSpec] | None = None,
-        explicit: bool = False,
+        implicit: Mapping[str, ImplicitSpec],
+        opened: list[_Implicit],
     ) -> None:
         self.label = label
         self.values = dict(values)
@@ -205,10 +351,8 @@ class _Scope:
         self.fallback = fallback
         self.known = known
         self.stack = stack
-        self.implicit = implicit or {}
-        self.explicit = explicit
-        self.unknowns: dict[str, ca.SX] = {}
-        self.solved: list[ImplicitOutput] = []
+        self.implicit = implicit
+        self.opened = opened
 
     def build(self, spec: ExprSpec) -> ca.SX:
         """Build one expression, reporting errors at its provenance."""
@@ -217,10 +361,8 @@ class _Scope:
     def lookup(self, name: str, where: Where) -> ca.SX:
         if name in self.values:
             return self.values[name]
-        if name in self.unknowns:
-            return self.unknowns[name]
         if name in self.implicit and name in self.defs:
-            return self._solve_implicit(name, where)
+            return self._open_implicit(name, where)
         if name in self.defs:
             _enter(self.stack, f"{self.label}{name}", where)
             try:
@@ -235,9 +377,8 @@ class _Scope:
         pool = [k for k in self.known() if k != "pi"]  # pi is never what a typo meant
         raise SpecError(where, f"unknown symbol '{name}'{did_you_mean(name, pool)}")
 
-
-    def _solve_implicit(self, name: str, where: Where) -> ca.SX:
-        """Unroll ``x = F(x)`` from its start; memoised intermediates get the final x."""
+    def _open_implicit(self, name: str, where: Where) -> ca.SX:
+        """A placeholder for ``name``; its start and its map are built and recorded."""
         spec = self.implicit[name]
         key = f"{self.label}{name}"
         _enter(self.stack, key, where)  # a start that needs the name itself is a cycle
@@ -245,37 +386,23 @@ class _Scope:
             start = self.build(spec.start)
         finally:
             self.stack.pop()
-        unknown = ca.SX.sym(key)
-        if ca.depends_on(start, unknown):  # pragma: no cover - a fresh symbol
-            raise SpecError(spec.where, f"the start of '{name}' refers to '{name}' itself")
-        known_before = set(self.values)
-        self.unknowns[name] = unknown
-        outer, self.stack = self.stack, [key]  # definitions in progress outside are rebuilt
-        try:                                   # here in terms of the unknown
+        symbol = ca.SX.sym(key)
+        self.values[name] = symbol
+        outer, self.stack = self.stack, [key]  # definitions in progress outside are built
+        try:                                   # again here, in terms of the placeholder
             fmap = self.build(self.defs[name])
         finally:
             self.stack = outer
-            del self.unknowns[name]
-        if not ca.depends_on(fmap, unknown):
+        if not ca.depends_on(fmap, symbol):
             raise SpecError(spec.where, f"'{name}' is declared implicit but its definition "
                                         "does not refer to itself")
-        steps = 0 if self.explicit else spec.steps
-        iterates = [start]
-        for _ in range(steps):
-            iterates.append(ca.substitute(fmap, unknown, iterates[-1]))
-        final = iterates[-1]
-        last_step = final - iterates[-2] if steps else ca.SX(0)
-        for other in set(self.values) - known_before:
-            self.values[other] = ca.substitute(self.values[other], unknown, final)
-        self.values[name] = final
-        self.solved.append(ImplicitOutput(
-            key, steps, ca.substitute(ca.jacobian(fmap, unknown), unknown, final), last_step))
-        return final
+        self.opened.append(_Implicit(key, symbol, start, fmap, spec.steps, spec.where))
+        return symbol
 
 
-def _model_scope(
+def _instance_scope(
     inst: InstanceSpec, inputs: dict[str, ca.SX], params: dict[str, ca.SX], stack: list[str],
-    explicit: bool = False,
+    opened: list[_Implicit],
 ) -> _Scope:
     model = inst.model
     values: dict[str, ca.SX] = {k: ca.SX(c.value) for k, c in model.constants.items()}
@@ -295,43 +422,54 @@ def _model_scope(
         return None
 
     return _Scope(f"{inst.name}.", values, defs, fallback,
-                  lambda: [*values, *defs], stack, model.implicit, explicit)
+                  lambda: [*values, *defs], stack, model.implicit, opened)
 
 
-class _Builder:
-    """Builds a :class:`Problem` from a :class:`ProblemSpec`."""
+def _unroll(fmap: ca.SX, x: ca.SX, start: ca.SX, steps: int) -> tuple[ca.SX, ca.SX]:
+    """The final iterate of ``x ← fmap(x)`` from ``start`` and the change of its last step."""
+    iterates = [start]
+    for _ in range(steps):
+        iterates.append(ca.substitute(fmap, x, iterates[-1]))
+    last = iterates[-1] - iterates[-2] if steps else ca.SX.zeros(start.shape)
+    return iterates[-1], last
 
-    def __init__(self, spec: ProblemSpec, explicit: bool = False,
-                 shared: _Builder | None = None, presets: dict[str, ca.SX] | None = None,
-                 hooks: bool = False) -> None:
+
+class _Build:
+    """The one build of a problem: every expression with its implicit placeholders and
+    hooks open, and how to close them for each view (``use``, ``explicit``,
+    ``diagnostic``)."""
+
+    def __init__(self, spec: ProblemSpec) -> None:
         self.spec = spec
-        self.explicit = explicit
-        self.with_hooks = hooks
-        self.hooks: dict[str, ca.SX] = {}
-        self.implicit: list[ImplicitOutput] = []
+        system = spec.system
+        self.model_level: list[_Implicit] = []
         self.stack: list[str] = []
         self.signals: dict[str, Quantity] = {}
+        self.hooks: dict[str, ca.SX] = {}
         self.built: set[str] = set()
-        self.nested = shared is not None
-        if shared is not None:  # a sub-build sharing θ and the data columns
-            self.parameters, self.symbols = shared.parameters, shared.symbols
-            self.column_symbols = shared.column_symbols
-        else:
-            self.parameters, self.symbols, self.column_symbols = [], {}, {}
-            for inst in spec.instances.values():
-                for pname, pspec in inst.model.parameters.items():
-                    if pname in inst.overrides:
-                        entry, at = inst.overrides[pname]
-                        pspec = apply_parameter_overrides(pspec, entry, at)
-                    self._add_parameter(f"{inst.name}.{pname}", pspec)
-            for pspec in spec.parameters.values():
-                self._add_parameter(pspec.name, pspec)
-        values = {k: ca.SX(c.value) for k, c in spec.constants.items()}
-        values.update({p.name: self.symbols[p.name] for p in spec.parameters.values()})
+        self.parameters: list[Parameter] = []
+        self.symbols: dict[str, ca.SX] = {}
+        self.column_symbols: dict[str, ca.SX] = {}
+        for inst in system.instances.values():
+            for pname, pspec in inst.model.parameters.items():
+                if pname in inst.overrides:
+                    entry, at = inst.overrides[pname]
+                    pspec = apply_parameter_overrides(pspec, entry, at)
+                self._add_parameter(f"{inst.name}.{pname}", pspec)
+        for pspec in system.parameters.values():
+            self._add_parameter(pspec.name, pspec)
+        values = {k: ca.SX(c.value) for k, c in system.constants.items()}
+        values.update({p.name: self.symbols[p.name] for p in system.parameters.values()})
         values["pi"] = ca.SX(ca.pi)
-        values.update(presets or {})
-        defs = {k: q.expr for k, q in spec.expressions.items()}
-        self.scope = _Scope("", values, defs, self._fallback, self._known, self.stack)
+        # problem-level implicit names are placeholders from the start, so that instances
+        # bound to them can be built before their maps
+        self.problem_symbols = {n: ca.SX.sym(n) for n in system.implicit}
+        values.update(self.problem_symbols)
+        defs = {k: q.expr for k, q in system.expressions.items()}
+        self.scope = _Scope("", values, defs, self._fallback, self._known, self.stack, {}, [])
+        self._build_all()
+
+    # ------------------------------------------------------------------ building
 
     def _add_parameter(self, name: str, p: ParameterSpec) -> None:
         scale = p.scale if p.scale is not None else (abs(p.value) or 1.0)
@@ -340,30 +478,31 @@ class _Builder:
         self.symbols[name] = ca.SX.sym(name)
 
     def _known(self) -> list[str]:
-        return [*self.scope.values, *self.scope.defs, *self.spec.columns, *self._signal_names(),
-                *self.symbols]
+        return [*self.scope.values, *self.scope.defs, *self.spec.system.columns,
+                *self._signal_names(), *self.symbols]
 
     def _signal_names(self) -> list[str]:
-        return [f"{i}.{n}" for i, inst in self.spec.instances.items()
+        return [f"{i}.{n}" for i, inst in self.spec.system.instances.items()
                 for n in (*inst.model.outputs, *inst.model.inputs)]
 
     def _fallback(self, name: str, where: Where, stack: list[str]) -> ca.SX | None:
+        system = self.spec.system
         if "." in name:
             if name in self.symbols:
                 return self.symbols[name]
             inst_name = name.split(".", 1)[0]
-            if inst_name in self.spec.instances:
-                self._instance(self.spec.instances[inst_name], where)
+            if inst_name in system.instances:
+                self._instance(system.instances[inst_name], where)
                 if name in self.signals:
                     return self.signals[name].sx
-                inst = self.spec.instances[inst_name]
+                inst = system.instances[inst_name]
                 known = [f"{inst_name}.{n}" for n in (*inst.model.outputs, *inst.model.inputs,
                                                       *inst.model.parameters)]
                 raise SpecError(where, f"unknown symbol '{name}': instance '{inst_name}' has no "
                                        f"output, input or parameter '{name.split('.', 1)[1]}'"
                                        f"{did_you_mean(name, known)}")
             return None
-        if name in self.spec.columns:
+        if name in system.columns:
             if name not in self.column_symbols:
                 self.column_symbols[name] = ca.SX.sym(name)
             return self.column_symbols[name]
@@ -378,18 +517,15 @@ class _Builder:
         finally:
             self.stack.pop()
         params = {k: self.symbols[f"{inst.name}.{k}"] for k in inst.model.parameters}
-        scope = _model_scope(inst, inputs, params, self.stack, self.explicit)
+        scope = _instance_scope(inst, inputs, params, self.stack, self.model_level)
         model = inst.model
         for name, out in model.outputs.items():
-            sx = scope.lookup(name, out.where)
             full = f"{inst.name}.{name}"
-            if self.with_hooks:
-                self.hooks[full] = ca.SX.sym(f"hook:{full}")
-                sx = sx + self.hooks[full]
+            self.hooks[full] = ca.SX.sym(f"hook:{full}")
+            sx = scope.lookup(name, out.where) + self.hooks[full]
             self.signals[full] = Quantity(full, sx, out.unit, doc=out.doc)
         for name in model.implicit:
             scope.lookup(name, model.implicit[name].where)
-        self.implicit += scope.solved
         for name, inp in model.inputs.items():
             period = None
             if inp.period is not None:
@@ -401,81 +537,149 @@ class _Builder:
                 f"{inst.name}.{name}", inputs[name], inp.unit, doc=inp.doc, period=period)
         self.built.add(inst.name)
 
-    def _solve_problem_implicit(self) -> None:
-        """Solve the problem's implicit expressions jointly by unrolled fixed-point steps.
-
-        The map is built by a sub-build in which the implicit names are placeholders, so
-        that every instance that depends on them is evaluated afresh; the final iterates
-        are then preset for the real build.
-        """
-        items = self.spec.implicit
-        names = list(items)
-        start = ca.vertcat(*(self.scope.build(items[n].start) for n in names))
-        unknowns = {n: ca.SX.sym(n) for n in names}
-        x = ca.vertcat(*unknowns.values())
-        if ca.depends_on(start, x):  # pragma: no cover - fresh symbols
-            raise SpecError(self.spec.where, "an implicit start refers to an implicit name")
-        sub = _Builder(self.spec, self.explicit, shared=self, presets=unknowns)
-        fmap = ca.vertcat(*(sub.scope.build(self.spec.expressions[n].expr) for n in names))
-        for n in names if not self.explicit else ():
-            if not ca.depends_on(fmap, unknowns[n]):
-                raise SpecError(items[n].where, f"'{n}' is declared implicit but no implicit "
-                                                "definition depends on it")
-        steps = 0 if self.explicit else max(item.steps for item in items.values())
-        iterates = [start]
-        for _ in range(steps):
-            iterates.append(ca.substitute(fmap, x, iterates[-1]))
-        final = iterates[-1]
-        for k, n in enumerate(names):
-            self.scope.values[n] = final[k]
-        norm = ca.mmax(ca.sum2(ca.fabs(ca.jacobian(fmap, x))))  # ‖∂F/∂x‖∞
-        last = ca.mmax(ca.fabs(final - iterates[-2])) if steps else ca.SX(0)
-        self.implicit.append(ImplicitOutput(", ".join(names), steps,
-                                            ca.substitute(norm, x, final), last))
-
-    def build(self) -> Problem:
-        spec = self.spec
-        if spec.implicit and not self.nested:
-            self._solve_problem_implicit()
-        for inst in spec.instances.values():
+    def _build_all(self) -> None:
+        system = self.spec.system
+        for inst in system.instances.values():
             self._instance(inst, inst.where)
-        expressions = tuple(
-            Quantity(k, self.scope.lookup(k, q.where), q.unit, doc=q.doc)
-            for k, q in spec.expressions.items()
-        )
-        constraints = tuple(
-            Quantity(k, self.scope.build(q.expr), q.unit, q.sigma, q.doc)
-            for k, q in spec.constraints.items()
-        )
-        comparisons = tuple(
-            Comparison(k, self.scope.build(c.estimate), self.scope.build(c.reference),
-                       c.unit, c.datasets, c.remove_mean, c.doc)
-            for k, c in spec.comparisons.items()
-        )
-        for q in constraints if not self.explicit else ():
-            if not any(ca.depends_on(q.sx, self.symbols[p.name]) for p in self.parameters):
-                raise SpecError(spec.constraints[q.name].where,
-                                f"constraint '{q.name}' does not depend on any parameter")
-        columns = tuple(c for c in spec.columns if c in self.column_symbols)
+        self.expressions = [Quantity(k, self.scope.lookup(k, q.where), q.unit, doc=q.doc)
+                            for k, q in system.expressions.items()]
+        self.constraints = [Quantity(k, self.scope.build(q.expr), q.unit, q.sigma, q.doc)
+                            for k, q in system.constraints.items()]
+        self.comparisons = [Comparison(k, self.scope.build(c.estimate),
+                                       self.scope.build(c.reference), c.unit, c.datasets,
+                                       c.remove_mean, c.doc)
+                            for k, c in system.comparisons.items()]
+        self.problem_level = self._problem_implicit()
+
+    def _problem_implicit(self) -> list[_Implicit]:
+        system = self.spec.system
+        hooks = list(self.hooks.values())
+        out = []
+        for n, item in system.implicit.items():
+            start = self.scope.build(item.start)
+            if any(ca.depends_on(start, s) for s in self.problem_symbols.values()):
+                raise SpecError(item.where, "an implicit start refers to an implicit name")
+            fmap = self.scope.build(system.expressions[n].expr)
+            if hooks:  # the true positions are solved from the outputs as modelled
+                fmap = ca.substitute(fmap, ca.vertcat(*hooks), ca.SX.zeros(len(hooks)))
+            out.append(_Implicit(n, self.problem_symbols[n], start, fmap, item.steps,
+                                 item.where))
+        return out
+
+    # ------------------------------------------------------------------ closing
+
+    def _close(self, unrolled: bool) -> tuple[list[ca.SX], list[ca.SX], list[ImplicitOutput]]:
+        """Placeholders and their values in this view, and the implicit checks."""
+        model, top = self.model_level, self.problem_level
+        if not unrolled:
+            symbols = [d.symbol for d in (*model, *top)]
+            values = _resolve_starts(symbols, [d.start for d in (*model, *top)])
+            zero = ca.SX(0)
+            checks = [ImplicitOutput(d.key, 0, zero, zero) for d in model]
+            if top:
+                checks.insert(0, ImplicitOutput(", ".join(d.key for d in top), 0, zero, zero))
+            return symbols, values, checks
+        # model level: innermost (latest opened) first, each in terms of the ones opened
+        # before it; then forward, so that every value is free of model placeholders
+        finals: dict[int, tuple[ca.SX, ca.SX, ca.SX]] = {}
+        for k in range(len(model) - 1, -1, -1):
+            d = model[k]
+            later = [model[j].symbol for j in finals]
+            later_values = [finals[j][0] for j in finals]
+            fmap = ca.substitute(d.fmap, ca.vertcat(*later), ca.vertcat(*later_values)) \
+                if later else d.fmap
+            start = ca.substitute(d.start, ca.vertcat(*later), ca.vertcat(*later_values)) \
+                if later else d.start
+            final, last = _unroll(fmap, d.symbol, start, d.steps)
+            deriv = ca.substitute(ca.jacobian(fmap, d.symbol), d.symbol, final)
+            finals[k] = (final, deriv, last)
+        values: list[ca.SX] = []
+        outs: list[tuple[ca.SX, ca.SX]] = []
+        for k in range(len(model)):
+            final, deriv, last = finals[k]
+            if k:
+                earlier = ca.vertcat(*(m.symbol for m in model[:k]))
+                final, deriv, last = ca.substitute([final, deriv, last], [earlier],
+                                                   [ca.vertcat(*values)])
+            values.append(final)
+            outs.append((deriv, last))
+        symbols = [d.symbol for d in model]
+        checks_pending = [(d.key, d.steps, deriv, last) for d, (deriv, last) in zip(model, outs,
+                                                                                   strict=True)]
+        if top:
+            x = ca.vertcat(*(d.symbol for d in top))
+            fmap = ca.vertcat(*(d.fmap for d in top))
+            if model:
+                fmap = ca.substitute([fmap], symbols, values)[0]
+            for d in top:
+                if not ca.depends_on(fmap, d.symbol):
+                    raise SpecError(d.where, f"'{d.key}' is declared implicit but no implicit "
+                                             "definition depends on it")
+            steps = max(d.steps for d in top)
+            final, last = _unroll(fmap, x, ca.vertcat(*(d.start for d in top)), steps)
+            norm = ca.mmax(ca.sum2(ca.fabs(ca.jacobian(fmap, x))))  # ‖∂F/∂x‖∞
+            top_values = [final[k] for k in range(len(top))]
+            top_symbols = [d.symbol for d in top]
+            values = ca.substitute(values, top_symbols, top_values) if values else []
+            checks_pending = [(k, s, *ca.substitute([dv, ls], top_symbols, top_values))
+                              for k, s, dv, ls in checks_pending]
+            checks_pending.insert(0, (", ".join(d.key for d in top), steps,
+                                      ca.substitute(norm, x, final), ca.mmax(ca.fabs(last))))
+            symbols += top_symbols
+            values += top_values
+        checks = [ImplicitOutput(k, s, dv, ls) for k, s, dv, ls in checks_pending]
+        return symbols, values, checks
+
+    def problem(self, mode: str) -> Problem:
+        """The problem in view ``mode``: ``use``, ``explicit`` or ``diagnostic``."""
+        symbols, values, checks = self._close(unrolled=mode != "explicit")
+        hooks = list(self.hooks.values())
+        if mode != "diagnostic" and hooks:
+            symbols, values = symbols + hooks, values + [ca.SX(0)] * len(hooks)
+        groups: list[list[ca.SX]] = [
+            [q.sx for q in self.constraints], [q.sx for q in self.expressions],
+            [q.sx for q in self.signals.values()],
+            [c.estimate for c in self.comparisons], [c.reference for c in self.comparisons]]
+        flat = [sx for g in groups for sx in g]
+        closed = ca.substitute(flat, symbols, values) if symbols and flat else flat
+        it = iter(closed)
+        cons = [replace(q, sx=next(it)) for q in self.constraints]
+        exprs = [replace(q, sx=next(it)) for q in self.expressions]
+        order = [n for n in self._signal_names() if n in self.signals]
+        sig_closed = {q.name: replace(q, sx=next(it)) for q in self.signals.values()}
+        comps_est = [next(it) for _ in self.comparisons]
+        comps = [replace(c, estimate=e, reference=next(it))
+                 for c, e in zip(self.comparisons, comps_est, strict=True)]
+        if mode == "use":
+            self._check_dependence(cons)
+        system, study = self.spec.system, self.spec.study
+        columns = tuple(c for c in system.columns if c in self.column_symbols)
         u = ca.vertcat(*(self.column_symbols[c] for c in columns)) if columns else ca.SX(0, 1)
         theta = ca.vertcat(*(self.symbols[p.name] for p in self.parameters))
-        signal_order = self._signal_names()
-        signals = tuple(self.signals[n] for n in signal_order if n in self.signals)
+        instances = {k: Instance(k, i.model, {b: e.text for b, e in i.bindings.items()}, i.doc)
+                     for k, i in system.instances.items()}
         return Problem(
-            spec.name, spec.doc, spec.path, tuple(self.parameters), theta, columns, u,
-            constraints, expressions, signals, comparisons, dict(spec.datasets),
-            self._stages(), spec.weighting, {p.name: i for i, p in enumerate(self.parameters)},
-            tuple(self.implicit), None, spec, dict(self.hooks),
-        )
+            self.spec.name, self.spec.doc, self.spec.path, tuple(self.parameters), theta,
+            columns, u, tuple(cons), tuple(exprs), tuple(sig_closed[n] for n in order),
+            tuple(comps), Study(dict(study.datasets), self._stages(), study.weighting),
+            self.spec.options, instances, dict(system.columns), tuple(checks),
+            dict(self.hooks) if mode == "diagnostic" else {}, self.spec, self, mode)
+
+    def _check_dependence(self, constraints: list[Quantity]) -> None:
+        for q in constraints:
+            if not any(ca.depends_on(q.sx, self.symbols[p.name]) for p in self.parameters):
+                raise SpecError(self.spec.system.constraints[q.name].where,
+                                f"constraint '{q.name}' does not depend on any parameter")
 
     def _stages(self) -> tuple[Stage, ...]:
         names = [p.name for p in self.parameters]
         fixed = {p.name for p in self.parameters if p.fixed}
-        if not self.spec.stages:
+        study = self.spec.study
+        if not study.stages:
             free = tuple(n for n in names if n not in fixed)
-            return (Stage("calibration", tuple(self.spec.constraints), free),)
+            return (Stage("calibration", tuple(self.spec.system.constraints), free),)
         stages = []
-        for st in self.spec.stages:
+        for st in study.stages:
             chosen: list[str] = []
             for pattern, where in st.free:
                 matched = [n for n in names if fnmatch.fnmatchcase(n, pattern)]
@@ -490,17 +694,21 @@ class _Builder:
         return tuple(stages)
 
 
-def build_problem(spec: ProblemSpec, hooks: bool = False) -> Problem:
-    """Turn a validated spec into a symbolic :class:`Problem`.
+def _resolve_starts(symbols: list[ca.SX], starts: list[ca.SX]) -> list[ca.SX]:
+    """Every placeholder at its start, starts that name other placeholders included."""
+    values = list(starts)
+    for _ in range(len(symbols) + 1):
+        if not any(ca.depends_on(v, s) for v in values for s in symbols):
+            return values
+        values = ca.substitute(values, symbols, values)
+    raise SpecError(Where("implicit"), "the starts of implicit definitions refer to each "
+                                       "other in a cycle")
 
-    With implicit definitions, the problem carries an explicit twin (zero fixed-point
-    steps each) in ``explicit``.  ``hooks=True`` makes a diagnostic build (see
-    :attr:`Problem.hooks`), without a twin.
-    """
-    problem = _Builder(spec, hooks=hooks).build()
-    if not problem.implicit or hooks:
-        return problem
-    return replace(problem, explicit=_Builder(spec, explicit=True).build())
+
+def build_problem(spec: ProblemSpec) -> Problem:
+    """Turn a validated spec into a symbolic :class:`Problem` (one build; the explicit twin
+    and the diagnostic view are derived from it on demand)."""
+    return _Build(spec).problem("use")
 
 
 def load_problem(path: str | Path) -> Problem:

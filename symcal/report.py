@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import json
 import math
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from symcal.files import json_text as plain_json
 from symcal.result import Result
 
 if TYPE_CHECKING:
@@ -140,7 +140,7 @@ def _implicit_lines(result: Result) -> list[str]:
 def text_report(result: Result) -> str:
     """The report a person reads: data, solver, identifiability, fit, parameters."""
     state = "" if result.success else "  *** FAILED ***"
-    lines = [f"symcal: {result.problem} ({result.problem_path}){state}", "", "Data"]
+    lines = [f"symcal: {result.name} ({result.problem_path}){state}", "", "Data"]
     lines += _table([[d.name, f"{d.n} observations", d.source
                       + (f" ({d.dropped} invalid rows dropped)" if d.dropped else "")]
                      for d in result.datasets], "lrl")
@@ -164,20 +164,6 @@ def text_report(result: Result) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plain_json(doc: object) -> str:
-    """JSON text of plain data; non-finite numbers become null."""
-    def clean(x: object) -> object:
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        if isinstance(x, dict):
-            return {k: clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        return x
-
-    return json.dumps(clean(doc), indent=2) + "\n"
-
-
 def json_report(result: Result) -> str:
     """The machine-readable document (``--json``)."""
     return plain_json(result.to_dict())
@@ -185,7 +171,7 @@ def json_report(result: Result) -> str:
 
 def diagnosis_report(diag: Diagnosis) -> str:
     """What `symcal diagnose` prints: where the model fails, which effect is missing."""
-    lines = [f"symcal diagnose: {diag.result.problem} ({diag.result.problem_path})", "",
+    lines = [f"symcal diagnose: {diag.result.name} ({diag.result.problem_path})", "",
              "Where the model fails (after calibration; std of each residual, the variables "
              "along which it varies most, and its dominant period)"]
     for v in diag.residuals:

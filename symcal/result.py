@@ -1,15 +1,37 @@
-"""The frozen outcome of a calibration: estimate, identifiability, uncertainty, fit."""
+"""The frozen outcome of a calibration: its problem, estimate, data, identifiability, fit.
+
+A :class:`Result` carries the :class:`~symcal.problem.Problem` it solved, the estimate
+and the datasets, so that diagnosis, comparison and code generation work from it without
+solving again.  :meth:`Result.save` and :meth:`Result.load` are the one writer and reader
+of ``result.json``.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
-from dataclasses import dataclass
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
 from types import MappingProxyType
 from typing import Any
+
+import numpy as np
 
 from symcal.analysis.fit import SeriesStats
 from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
 from symcal.analysis.implicit import ImplicitCheck
+from symcal.data import Dataset
+from symcal.errors import SymcalError
+from symcal.files import atomic_write_text, json_text
+from symcal.language.yamlio import display_path
+from symcal.numeric import mapped
+from symcal.problem import Problem
+
+#: Version of the ``result.json`` layout.
+FORMAT = 1
 
 
 @dataclass(frozen=True)
@@ -44,17 +66,28 @@ class ParameterResult:
         return {"name": self.name, "value": self.value, "initial": self.initial,
                 "unit": self.unit, "fixed": self.fixed, "se": self.se,
                 "se_reason": self.se_reason, "lower": bound(self.lower),
-                "upper": bound(self.upper), "at_bound": self.at_bound}
+                "upper": bound(self.upper), "at_bound": self.at_bound, "doc": self.doc}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> ParameterResult:
+        """Inverse of :meth:`to_dict`."""
+        lower = -math.inf if doc.get("lower") is None else doc["lower"]
+        upper = math.inf if doc.get("upper") is None else doc["upper"]
+        return cls(doc["name"], doc["value"], doc["initial"], doc["unit"], doc["fixed"],
+                   doc["se"], doc["se_reason"], lower, upper, doc.get("doc", ""))
 
 
 @dataclass(frozen=True)
 class DatasetInfo:
-    """Which data a result was computed on."""
+    """Which data a result was computed on: ``file`` (absolute) and its ``sha256`` when
+    the data came from a file, None when simulated or given as an object."""
 
     name: str
     source: str
     n: int
     dropped: int
+    file: str | None = None
+    sha256: str | None = None
 
 
 @dataclass(frozen=True)
@@ -116,24 +149,65 @@ class StageResult:
             "hessian_conditioning": {"before": self.conditioning_before.to_dict(),
                                      "after": self.conditioning_after.to_dict()},
             "identifiability": self.identifiability.to_dict(),
+            "uncertainty": self.uncertainty.to_dict(),
             "notes": list(self.notes),
         }
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> StageResult:
+        """Inverse of :meth:`to_dict`."""
+        cond = doc["hessian_conditioning"]
+        return cls(doc["name"], doc["doc"], doc["method"], doc["success"], doc["status"],
+                   doc["message"], doc["iterations"], doc["seconds"], tuple(doc["free"]),
+                   tuple(ConstraintCost(**c) for c in doc["costs"]), tuple(doc["unmoved"]),
+                   tuple(doc["at_bound"]), Conditioning.from_dict(cond["before"]),
+                   Conditioning.from_dict(cond["after"]),
+                   Identifiability.from_dict(doc["identifiability"]),
+                   Uncertainty.from_dict(doc["uncertainty"]), tuple(doc["notes"]))
+
+
+def file_hashes(problem: Problem) -> dict[str, str]:
+    """sha256 of the problem file and of every model file it reads, by path relative to
+    the problem file's folder (so that a moved project keeps its results)."""
+    home = Path(problem.path).resolve().parent
+    out = {}
+    for path in (Path(problem.path), *problem.model_files()):
+        key = Path(os.path.relpath(Path(path).resolve(), home)).as_posix()
+        try:
+            out[key] = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        except OSError as exc:
+            raise SymcalError(f"cannot read {display_path(Path(path))} to hash it: "
+                              f"{exc.strerror}") from None
+    return out
 
 
 @dataclass(frozen=True, eq=False)
 class Result:
     """A calibration result.
 
-    Use ``.params`` for the estimated values by name, ``.report()`` for the table a person
-    reads and ``.to_dict()`` for the machine-readable document (``symcal solve --json``).
-    ``identifiability`` and ``uncertainty`` are those of the last stage; each stage's own
-    are in ``stages``.  ``success`` is False when a stage failed (the estimate is then the
-    failed stage's last iterate and later stages did not run) or when an implicit
-    definition's fixed-point map does not contract on the data (``implicit``).
+    Use ``.params`` for the estimated values by name, :func:`symcal.report.text_report`
+    for the table a person reads and ``.to_dict()`` for the machine-readable document
+    (``symcal solve --json``).  ``identifiability`` and ``uncertainty`` are those of the
+    last stage; each stage's own are in ``stages``.  ``success`` is False when a stage
+    failed (the estimate is then the failed stage's last iterate and later stages did not
+    run) or when an implicit definition's fixed-point map does not contract on the data
+    (``implicit``).
+
+    Attributes
+    ----------
+    problem
+        The problem solved.
+    theta0, theta
+        The parameter vector at the start and the estimate, in ``problem.theta`` order.
+    data
+        The datasets by name (loaded again from their files for a loaded result).
+    datasets
+        What each dataset was: source, size, file and hash.
     """
 
-    problem: str
-    problem_path: str
+    problem: Problem
+    theta0: np.ndarray
+    theta: np.ndarray
     stages: tuple[StageResult, ...]
     parameters: tuple[ParameterResult, ...]
     identifiability: Identifiability
@@ -142,6 +216,17 @@ class Result:
     datasets: tuple[DatasetInfo, ...]
     notes: tuple[str, ...]
     implicit: tuple[ImplicitCheck, ...] = ()
+    _data: Mapping[str, Dataset] | None = field(default=None, repr=False)
+
+    @property
+    def name(self) -> str:
+        """The problem's name."""
+        return self.problem.name
+
+    @property
+    def problem_path(self) -> str:
+        """The problem file as shown in messages."""
+        return display_path(Path(self.problem.path))
 
     @property
     def success(self) -> bool:
@@ -158,6 +243,49 @@ class Result:
         """Estimated parameter values by name (read-only)."""
         return MappingProxyType({p.name: p.value for p in self.parameters})
 
+    @property
+    def data(self) -> Mapping[str, Dataset]:
+        """The datasets by name; for a loaded result, read again from their sources (and
+        refused when a file changed since the solve)."""
+        if self._data is None:
+            object.__setattr__(self, "_data", MappingProxyType(self._reload()))
+        assert self._data is not None
+        return self._data
+
+    def _reload(self) -> dict[str, Dataset]:
+        from symcal.datasets import load_datasets
+
+        files = {d.name: d.file for d in self.datasets if d.file is not None}
+        for info in self.datasets:
+            if info.file is not None and info.sha256 is not None:
+                if _sha256(Path(info.file)) != info.sha256:
+                    raise SymcalError(f"dataset '{info.name}' ({info.file}) changed since the "
+                                      "result was computed; solve again")
+        return load_datasets(self.problem, files, drop_invalid=any(d.dropped
+                                                                    for d in self.datasets),
+                             names=[d.name for d in self.datasets])
+
+    @property
+    def rows(self) -> int:
+        """Residual rows of the last stage's fit (observations × constraints)."""
+        return int(self.uncertainty.dof + self.identifiability.rank)
+
+    @property
+    def rss(self) -> float:
+        """The last stage's cost Σ (g/σ)²."""
+        return float(self.stages[-1].cost_after)
+
+    @property
+    def aic(self) -> float:
+        """Akaike information criterion of the calibration fit (Gaussian residuals)."""
+        return self.rows * float(np.log(self.rss / self.rows)) + 2 * self.identifiability.rank
+
+    @property
+    def bic(self) -> float:
+        """Bayesian information criterion of the calibration fit."""
+        return (self.rows * float(np.log(self.rss / self.rows))
+                + self.identifiability.rank * float(np.log(self.rows)))
+
     def stat(self, name: str, dataset: str = "calibration") -> SeriesStats:
         """The statistics of constraint or comparison ``name`` on ``dataset``."""
         for s in self.statistics:
@@ -165,11 +293,30 @@ class Result:
                 return s
         raise KeyError(f"no statistics for '{name}' on dataset '{dataset}'")
 
+    def value(self, name: str, dataset: str = "calibration") -> np.ndarray:
+        """A named constraint, expression, sensor signal or comparison (estimate minus
+        reference) evaluated at the estimate on every observation of ``dataset``, in
+        internal units.
+
+        Raises
+        ------
+        KeyError
+            An unknown quantity or dataset, naming the ones there are.
+        """
+        sx = self.problem.quantity(name)
+        if dataset not in self.data:
+            raise KeyError(f"no dataset '{dataset}'; datasets: {', '.join(self.data)}")
+        ds = self.data[dataset]
+        fn = mapped(self.problem.theta, self.problem.u, [sx], "value")
+        return fn(self.theta, ds.matrix(self.problem.columns))[0][:, 0]
+
     def to_dict(self) -> dict[str, Any]:
         """The whole result as plain data (JSON-ready)."""
         return {
-            "symcal_result": 1,
-            "problem": self.problem, "problem_path": self.problem_path,
+            "symcal_result": FORMAT,
+            "problem": self.problem.name, "problem_path": self.problem_path,
+            "problem_file": str(Path(self.problem.path).resolve()),
+            "files": file_hashes(self.problem),
             "solver": {"method": self.method, "success": self.success,
                        "seconds": sum(st.seconds for st in self.stages)},
             "stages": [st.to_dict() for st in self.stages],
@@ -179,11 +326,118 @@ class Result:
             "uncertainty": self.uncertainty.to_dict(),
             "statistics": [s.to_dict() for s in self.statistics],
             "implicit": [c.to_dict() for c in self.implicit],
+            "information_criteria": {"aic": self.aic, "bic": self.bic, "rows": self.rows,
+                                     "rss": self.rss},
             "notes": list(self.notes),
         }
 
-    def report(self) -> str:
-        """The human-readable report (what ``symcal solve`` prints)."""
-        from symcal.report import text_report
+    def save(self, path: str | Path) -> Path:
+        """Write ``result.json`` (the document of :meth:`to_dict`) atomically to ``path``."""
+        return atomic_write_text(path, json_text(self.to_dict()))
 
-        return text_report(self)
+    @classmethod
+    def load(cls, path: str | Path, problem: Problem | None = None) -> Result:
+        """Read a ``result.json`` written by :meth:`save`.
+
+        Parameters
+        ----------
+        path
+            The result file.
+        problem
+            The problem it is for (default: load the file it names).  Refused when its
+            name differs, or when the problem or model files changed since the solve.
+
+        Raises
+        ------
+        SymcalError
+            A missing, unreadable or foreign file, another format version, another
+            problem, or changed problem or model files.
+        """
+        doc, label = read_result_document(path)
+        if problem is None:
+            from symcal.problem import load_problem
+
+            file = doc.get("problem_file")
+            if not isinstance(file, str):
+                raise SymcalError(f"{label} does not name its problem file; give the problem")
+            problem = load_problem(file)
+        check_result_problem(doc, label, problem)
+        theta = np.array([_value_of(doc, label, p.name) for p in problem.parameters])
+        theta0 = np.array([_value_of(doc, label, p.name, "initial") for p in problem.parameters])
+        return cls(problem, theta0, theta,
+                   tuple(StageResult.from_dict(s) for s in doc["stages"]),
+                   tuple(ParameterResult.from_dict(p) for p in doc["parameters"]),
+                   Identifiability.from_dict(doc["identifiability"]),
+                   Uncertainty.from_dict(doc["uncertainty"]),
+                   tuple(SeriesStats.from_dict(s) for s in doc["statistics"]),
+                   tuple(DatasetInfo(**d) for d in doc["datasets"]), tuple(doc["notes"]),
+                   tuple(ImplicitCheck.from_dict(c) for c in doc.get("implicit", [])))
+
+
+def _sha256(path: Path) -> str | None:
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
+def read_result_document(result: str | Path | Mapping[str, Any]) -> tuple[Mapping[str, Any],
+                                                                          str]:
+    """A result file's document (or the given dict) and how to name it in messages.
+
+    Raises
+    ------
+    SymcalError
+        A missing or unreadable file, invalid JSON, not a symcal result, another version.
+    """
+    if isinstance(result, Mapping):
+        doc: Any = result
+        label = "the result"
+    else:
+        label = f"result file {result}"
+        try:
+            text = Path(result).read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise SymcalError(f"{label} not found") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            reason = getattr(exc, "strerror", None) or exc.__class__.__name__
+            raise SymcalError(f"{label} cannot be read: {reason}") from None
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise SymcalError(f"{label} is not valid JSON: {exc.msg} at line {exc.lineno}, "
+                              f"column {exc.colno}") from None
+    if not isinstance(doc, Mapping) or "symcal_result" not in doc:
+        raise SymcalError(f"{label} is not a symcal result (no 'symcal_result' key); "
+                          "write one with 'symcal solve PROBLEM --out DIR'")
+    if doc["symcal_result"] != FORMAT:
+        raise SymcalError(f"{label} has format version {doc['symcal_result']!r}; this symcal "
+                          f"reads version {FORMAT}")
+    return doc, label
+
+
+def check_result_problem(doc: Mapping[str, Any], label: str, problem: Problem) -> None:
+    """Refuse a result document for another problem, or from changed problem/model files."""
+    if doc.get("problem") != problem.name:
+        raise SymcalError(f"{label} is for problem '{doc.get('problem')}', not "
+                          f"'{problem.name}'")
+    stored = doc.get("files")
+    if isinstance(stored, Mapping):
+        home = Path(problem.path).resolve().parent
+        current = file_hashes(problem)
+        for file, digest in current.items():
+            if file in stored and stored[file] != digest:
+                raise SymcalError(f"{label} was computed from another version of "
+                                  f"{display_path(home / file)} (it changed since the "
+                                  "solve); solve again")
+        missing = [f for f in current if f not in stored]
+        if missing:
+            raise SymcalError(f"{label} was not computed with "
+                              f"{display_path(home / missing[0])}; solve again")
+
+
+def _value_of(doc: Mapping[str, Any], label: str, name: str, key: str = "value") -> float:
+    for entry in doc.get("parameters", []):
+        if isinstance(entry, Mapping) and entry.get("name") == name:
+            return float(entry[key])
+    raise SymcalError(f"{label} has no value for parameter '{name}'")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 import sys
@@ -47,7 +48,8 @@ def test_solve_json_document(csvs, capsys) -> None:
         assert rows[key]["after"]["rms"] < rows[key]["before"]["rms"]
     assert len(doc["parameters"]) == 36
     assert doc["datasets"][0] == {"name": "calibration", "source": str(csvs[0]), "n": 600,
-                                  "dropped": 0}
+                                  "dropped": 0, "file": str(Path(csvs[0]).resolve()),
+                                  "sha256": hashlib.sha256(csvs[0].read_bytes()).hexdigest()}
 
 
 def test_solve_text_report_and_out(csvs, tmp_path, capsys) -> None:
@@ -68,8 +70,8 @@ def test_spec_error_exit_2_no_traceback(tmp_path, monkeypatch, capsys) -> None:
     assert capsys.readouterr().err == (
         "symcal: error: bad.yaml:3: constraint: unknown key 'constraint' (did you mean "
         "'constraints'?); allowed keys: problem, instances, constraints, datasets, doc, "
-        "constants, parameters, columns, expressions, comparisons, stages, weighting, "
-        "implicit\n")
+        "extends, constants, parameters, columns, expressions, comparisons, stages, "
+        "weighting, implicit, solver\n")
 
 
 def test_unknown_dataset_override(csvs, capsys) -> None:

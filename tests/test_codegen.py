@@ -290,6 +290,7 @@ constraints:
   g: s1.y - s1_p.y
 datasets:
   calibration: {path: data.csv}
+columns: courier
 """
 
 

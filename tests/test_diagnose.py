@@ -41,6 +41,11 @@ def _data(scenario, seed: int, n: int | None = None) -> dict[str, symcal.Dataset
             for name in ("calibration", "flyby")}
 
 
+def _diagnose(problem, data, alpha: float = 0.01):
+    """Solve once, then diagnose the result (what `symcal diagnose` does)."""
+    return diagnose(symcal.solve(problem, data), alpha=alpha)
+
+
 def _floors(scenario, result: symcal.Result) -> dict[str, float]:
     floors = noise_floor(scenario)
     rows = result.uncertainty.dof + result.identifiability.rank
@@ -51,12 +56,12 @@ def _floors(scenario, result: symcal.Result) -> dict[str, float]:
 def _loop(problem, data, tmp_path, rounds: int = 3):
     """Diagnose, add the leading significant term, repeat; return first diagnosis and
     the last result."""
-    first = diagnosis = diagnose(problem, data)
+    first = diagnosis = _diagnose(problem, data)
     for _ in range(rounds):
         if not diagnosis.significant:
             break
         problem = revised_problem(problem, diagnosis.significant[0], tmp_path)
-        diagnosis = diagnose(problem, data)
+        diagnosis = _diagnose(problem, data)
     return first, diagnosis
 
 
@@ -81,6 +86,7 @@ CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(CASES))
 def test_platen_hidden_effect_found_and_fixed(case, tmp_path) -> None:
     effects, truth = CASES[case]
@@ -99,7 +105,7 @@ def test_lateral_effect_is_reported_with_its_twin(tmp_path) -> None:
     """Through g_p and θ the lateral term of s1 and the same term on s3 are the same
     column: the diagnosis must say that it cannot tell them apart."""
     effects, truth = CASES["lateral dependence of s1"]
-    first = diagnose(PLATEN, _data(_platen(effects), seed=32))
+    first = _diagnose(PLATEN, _data(_platen(effects), seed=32))
     lead = first.significant[0]
     twin = "s3.p_hat += harmonic 1 of s4.p (period 1.016 mm)"
     assert {lead.label, *lead.indistinguishable} >= {truth, twin}
@@ -110,6 +116,7 @@ def test_lateral_effect_is_reported_with_its_twin(tmp_path) -> None:
         in first.yaml[truth]
 
 
+@pytest.mark.slow
 def test_coordination_sensor_nonlinearity_found_and_fixed(tmp_path) -> None:
     sc = load_scenario(SCENARIOS / "courier_dual.yaml")
     platen = dataclasses.replace(sc.platen, distortion_at="reading", geometry="small_angle")
@@ -124,17 +131,19 @@ def test_coordination_sensor_nonlinearity_found_and_fixed(tmp_path) -> None:
         assert last.result.stat(name).after.std < 1.2 * floor, name
 
 
+@pytest.mark.slow
 def test_false_alarm_rate_without_hidden_effect() -> None:
     """No hidden effect: at a family-wise level of 5 % at most 2 of 8 seeds may show a
     significant candidate (probability of 3 or more by chance: 0.6 %)."""
     scenario = _platen(Effects())
     alarms = 0
     for seed in range(8):
-        diag = diagnose(PLATEN, _data(scenario, seed=40 + seed, n=500), alpha=0.05)
+        diag = _diagnose(PLATEN, _data(scenario, seed=40 + seed, n=500), alpha=0.05)
         alarms += bool(diag.significant)
     assert alarms <= 2, alarms
 
 
+@pytest.mark.slow
 def test_cli_diagnose_json_plots_report(tmp_path, capsys) -> None:
     scenario = _platen(CASES["extra 3rd harmonic in s2"][0])
     paths = {}

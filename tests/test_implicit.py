@@ -74,7 +74,8 @@ def test_fixed_point_checks_reported(platen_pair) -> None:
         assert c.steps == 4 and c.contracts
         assert 0.05 < c.contraction < 0.5
         assert c.remaining < 0.05 * UM  # four steps leave well under 0.1 µm
-    assert "Implicit definitions (fixed-point steps, checked at the estimate)" in implicit.report()
+    assert "Implicit definitions (fixed-point steps, checked at the estimate)" in \
+        symcal.text_report(implicit)
 
 
 def test_implicit_model_is_nonlinear_and_its_twin_linear() -> None:
@@ -109,13 +110,16 @@ def dual_noiseless():
     data = _data(scenario, seed=23)
     true = dict(truth(scenario)["parameters"])
     true["cs.h"] = true.pop("h")
-    explicit = symcal.solve(PROBLEMS / "dual_sensor_calibration.yaml", data,
-                            weighting="equal")
-    implicit = symcal.solve(PROBLEMS / "dual_sensor_calibration_implicit.yaml", data,
-                            weighting="equal")
+    explicit = symcal.solve(
+        symcal.load_problem(PROBLEMS / "dual_sensor_calibration.yaml").with_weighting("equal"),
+        data)
+    implicit = symcal.solve(
+        symcal.load_problem(PROBLEMS / "dual_sensor_calibration_implicit.yaml")
+        .with_weighting("equal"), data)
     return true, explicit, implicit
 
 
+@pytest.mark.slow
 def test_implicit_dual_removes_the_mounting_bias(dual_noiseless) -> None:
     """Noiseless data: the implicit form recovers h, l_x, l_y to well under 2 µm, where the
     explicit form is biased (measured: h +6.2, l_x -11.5, l_y -54 µm)."""
@@ -130,13 +134,10 @@ def test_implicit_dual_removes_the_mounting_bias(dual_noiseless) -> None:
 
 
 def test_not_a_contraction_is_a_failed_result(tmp_path, capsys) -> None:
-    text = (PROBLEMS / "platen_self_calibration_implicit.yaml").read_text()
-    text = text.replace("inputs: {p: p1}, doc: x segment}",
-                        "inputs: {p: p1}, parameters: {k1: {value: 0.3, fixed: true}}}")
-    text = text.replace("../models/", f"{(ROOT / 'models').as_posix()}/").replace(
-        "scenarios/", f"{SCENARIOS.as_posix()}/")
+    base = (PROBLEMS / "platen_self_calibration_implicit.yaml").as_posix()
     path = tmp_path / "steep.yaml"
-    path.write_text(text)
+    path.write_text(f"problem: steep\nextends: {base}\n"
+                    "instances:\n  s1: {parameters: {k1: {value: 0.3, fixed: true}}}\n")
     problem = symcal.load_problem(path)
     theta = np.array([p.value for p in problem.parameters])
     data = _data(load_scenario(SCENARIOS / "courier_platen_clean.yaml"), seed=24)
@@ -183,12 +184,14 @@ def test_implicit_spec_errors(tmp_path, monkeypatch, implicit, message) -> None:
           s2: {model: seg.yaml, inputs: {p: p2}}
         constraints: {g: s1.p_hat - s2.p_hat}
         datasets: {calibration: {path: data.csv}}
+        columns: courier
         """))
     with pytest.raises(SpecError) as err:
         symcal.load_problem("prob.yaml")
     assert str(err.value) == message
 
 
+@pytest.mark.slow
 def test_implicit_dual_reaches_the_noise_floor_on_clean_data() -> None:
     """The bundled implicit dual problem on clean simulated data: every constraint at its
     noise floor (within 5 %); the explicit problem stays above it on the same data."""

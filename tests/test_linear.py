@@ -129,6 +129,7 @@ def _variant(tmp_path: Path, extra: str, constraint: str) -> Path:
           g: {constraint}
         datasets:
           calibration: {{path: data.csv}}
+        columns: courier
         """)
     path = tmp_path / "variant.yaml"
     path.write_text(text)
@@ -146,7 +147,8 @@ def test_nonlinear_constraint_goes_to_ipopt(tmp_path: Path, true_k) -> None:
     result = symcal.solve(problem, _data(true_k, 300, flyby=False))
     assert result.method == "ipopt" and result.success
     with pytest.raises(SolveError) as err:
-        symcal.solve(problem, _data(true_k, 300, flyby=False), method="linear")
+        symcal.solve(problem, _data(true_k, 300, flyby=False),
+                     symcal.SolveOptions(method="linear"))
     assert str(err.value) == ("stage 'calibration': method 'linear' was asked for, but "
                               "constraint(s) g are not linear in its free parameters")
 

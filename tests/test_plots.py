@@ -137,6 +137,7 @@ def test_figure_names(doc: dict, minimal: dict) -> None:
     assert list(plots.figure_captions(doc)) == plots.figure_names(doc)
 
 
+@pytest.mark.slow
 def test_save_figures_writes_every_figure_in_every_format(doc: dict, tmp_path: Path) -> None:
     out = tmp_path / "new" / "plots"
     written = plots.save_figures(doc, out, formats=plots.FORMATS)
@@ -249,6 +250,7 @@ def test_correlation_and_singular_values(doc: dict) -> None:
     assert fig.axes[0].get_yscale() == "log"
 
 
+@pytest.mark.slow
 def test_html_report(doc: dict, page: str) -> None:
     names = plots.figure_names(doc)
     assert page.count('<img src="data:image/png;base64,') == len(names)
@@ -277,6 +279,7 @@ def test_html_report_minimal(minimal: dict) -> None:
     assert "<pre>x &lt; y</pre>" in page
 
 
+@pytest.mark.slow
 def test_write_html(doc: dict, page: str, tmp_path: Path) -> None:
     target = tmp_path / "out" / "report.html"
     assert write_html(doc, TEXT_REPORT, target) == target

@@ -478,6 +478,7 @@ def test_bad_arguments(tmp_path):
         simulate_run(sc, "calibration", seed=-1)
 
 
+@pytest.mark.slow
 def test_one_million_poses(tmp_path):
     sc = load_scenario(SCENARIOS / "courier_platen.yaml")
     data = simulate_run(sc, "calibration", seed=0, n=10**6)

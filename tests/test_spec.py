@@ -39,6 +39,7 @@ constraints:
   g: s1.p_hat - s2.p_hat
 datasets:
   calibration: {path: data.csv}
+columns: courier
 """
 
 

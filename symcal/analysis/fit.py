@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import casadi as ca
 import numpy as np
 
 from symcal.data import Dataset
-from symcal.language.common import DISPLAY_UNITS
 from symcal.numeric import mapped
 from symcal.problem import Problem
+from symcal.units import DISPLAY_UNITS
 
 
 @dataclass(frozen=True)
@@ -59,6 +61,18 @@ class SeriesStats:
             "unit": self.unit or "(internal)", "n": self.n, "remove_mean": self.remove_mean,
             "before": self.shown("before").__dict__, "after": self.shown("after").__dict__,
         }
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> SeriesStats:
+        """Inverse of :meth:`to_dict` (values back in internal units)."""
+        unit = "" if doc["unit"] == "(internal)" else doc["unit"]
+        scale = DISPLAY_UNITS[unit]
+
+        def spread(d: Mapping[str, float]) -> Spread:
+            return Spread(d["rms"] * scale, d["mean"] * scale, d["std"] * scale)
+
+        return cls(doc["name"], doc["kind"], doc["dataset"], unit, doc["n"],
+                   spread(doc["before"]), spread(doc["after"]), doc["remove_mean"])
 
 
 def series_statistics(

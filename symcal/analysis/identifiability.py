@@ -8,9 +8,13 @@ subspace only, with a reason where a value cannot be given.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+
+from symcal.linalg import rank_tolerance
 
 _ZERO = 1e-9  # relative size below which a coefficient counts as zero
 
@@ -28,6 +32,12 @@ class Combination:
         """Plain-data form."""
         return {"combination": self.text, "coefficients": dict(self.coefficients),
                 "value": self.value, "se": self.se}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> Combination:
+        """Inverse of :meth:`to_dict`."""
+        return cls(dict(doc["coefficients"]), doc["combination"], doc.get("value"),
+                   doc.get("se"))
 
 
 @dataclass(frozen=True)
@@ -68,8 +78,18 @@ class Identifiability:
             "condition_number": self.condition_number,
             "singular_values": list(self.singular_values),
             "null_space": [c.text for c in self.null_space],
+            "null_space_coefficients": [dict(c.coefficients) for c in self.null_space],
             "identifiable_combinations": [c.to_dict() for c in self.identifiable_combinations],
         }
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> Identifiability:
+        """Inverse of :meth:`to_dict`."""
+        null = tuple(Combination(dict(c), t) for t, c in
+                     zip(doc["null_space"], doc["null_space_coefficients"], strict=True))
+        return cls(doc["n_free"], doc["rank"], tuple(doc["singular_values"]),
+                   _float(doc["condition_number"]), null,
+                   tuple(Combination.from_dict(c) for c in doc["identifiable_combinations"]))
 
 
 @dataclass(frozen=True)
@@ -93,9 +113,30 @@ class Uncertainty:
         """Plain-data form (correlation with None where undefined)."""
         corr = [[None if not np.isfinite(v) else float(v) for v in row] for row in
                 self.correlation]
+        cov = [[None if not np.isfinite(v) else float(v) for v in row] for row in
+               self.covariance]
         return {"residual_variance": self.residual_variance, "dof": self.dof,
                 "se": dict(self.se), "reason": dict(self.reason),
-                "correlation": {"names": list(self.names), "matrix": corr}}
+                "correlation": {"names": list(self.names), "matrix": corr},
+                "covariance": cov}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> Uncertainty:
+        """Inverse of :meth:`to_dict`."""
+        names = tuple(doc["correlation"]["names"])
+
+        def matrix(rows: list) -> np.ndarray:
+            return np.array([[np.nan if v is None else v for v in row] for row in rows],
+                            dtype=float).reshape(len(names), len(names))
+
+        return cls(_float(doc["residual_variance"]), doc["dof"], names, dict(doc["se"]),
+                   dict(doc["reason"]), matrix(doc["covariance"]),
+                   matrix(doc["correlation"]["matrix"]))
+
+
+def _float(value: float | None) -> float:
+    """A JSON number back to float (null was a non-finite value)."""
+    return float("nan") if value is None else float(value)
 
 
 def format_combination(coefficients: dict[str, float]) -> str:
@@ -156,13 +197,6 @@ def _groups(null_rows: np.ndarray) -> list[np.ndarray]:
     for i in involved:
         groups.setdefault(find(i), []).append(int(i))
     return [np.array(g) for g in groups.values()]
-
-
-def rank_tolerance(singular_values: np.ndarray, rows: int) -> float:
-    """Threshold below which a singular value counts as zero."""
-    if singular_values.size == 0:
-        return 0.0
-    return float(singular_values[0]) * max(rows, singular_values.size) * np.finfo(float).eps * 10
 
 
 def analyse(
@@ -268,6 +302,13 @@ class Conditioning:
         return {"condition_number": self.condition_number, "null_directions": self.deficiency,
                 "near_null": [{"direction": c.text, "coefficients": c.coefficients,
                                "relative_singular_value": s} for c, s in self.near_null]}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> Conditioning:
+        """Inverse of :meth:`to_dict`."""
+        near = tuple((Combination(dict(d["coefficients"]), d["direction"]),
+                      d["relative_singular_value"]) for d in doc["near_null"])
+        return cls(_float(doc["condition_number"]), doc["null_directions"], near)
 
 
 def conditioning(

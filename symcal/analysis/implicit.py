@@ -7,7 +7,9 @@ L ≥ 1 the unrolled steps do not converge and the model's outputs are not to be
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -45,6 +47,13 @@ class ImplicitCheck:
                 "max_derivative": self.contraction, "max_last_step": self.last_step,
                 "remaining_error_bound": None if not self.contracts else self.remaining,
                 "contracts": self.contracts}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> ImplicitCheck:
+        """Inverse of :meth:`to_dict`."""
+        contraction = doc["max_derivative"]
+        return cls(doc["name"], doc["dataset"], doc["steps"],
+                   float("inf") if contraction is None else contraction, doc["max_last_step"])
 
 
 def implicit_checks(

@@ -21,7 +21,7 @@ class Variable:
     """A candidate variable evaluated on one dataset.
 
     ``period`` is set for periodic quantities (e.g. a platen reading, period one tooth
-    pitch); ``label`` is what reports call it.
+    pitch); ``role`` is a data column's declared role (``time``, ``axis`` or "").
     """
 
     name: str
@@ -29,6 +29,7 @@ class Variable:
     unit: str = ""
     period: float | None = None
     kind: str = "column"
+    role: str = ""
 
 
 @dataclass(frozen=True)

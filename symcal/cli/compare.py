@@ -22,11 +22,18 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Solve every revision; print the ladder; write its figure when asked."""
+    """Solve every revision once on the first one's data; print the ladder; write its figure."""
+    from symcal.calibrate import solve
     from symcal.compare import compare, ladder_report, save_ladder_plot
+    from symcal.datasets import load_datasets
+    from symcal.problem import load_problem
     from symcal.report import plain_json
 
-    rungs = compare(args.problems, data_map(args), drop_invalid=args.drop_invalid)
+    problems = [load_problem(path) for path in args.problems]
+    datasets = load_datasets(problems[0], data_map(args), args.drop_invalid)
+    results = [solve(p, {k: v for k, v in datasets.items() if k in p.datasets})
+               for p in problems]
+    rungs = compare(results)
     if args.plots:
         for path in save_ladder_plot(rungs, args.plots):
             print(f"wrote {path}", file=sys.stderr)

@@ -31,9 +31,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Diagnose; print the findings; write plots and the HTML page when asked."""
+    from symcal.calibrate import solve
     from symcal.diagnose import diagnose
     from symcal.plots import FORMATS
-    from symcal.report import plain_json
+    from symcal.problem import load_problem
+    from symcal.report import diagnosis_report, plain_json, text_report
 
     if not 0 < args.alpha < 1:
         raise SymcalError(f"--alpha {args.alpha}: must lie between 0 and 1")
@@ -42,10 +44,10 @@ def run(args: argparse.Namespace) -> int:
         if fmt.lower() not in FORMATS:
             raise SymcalError(f"--format {fmt}: unknown plot format; choose from: "
                               f"{', '.join(FORMATS)}")
-    diag = diagnose(args.problem, data_map(args), alpha=args.alpha,
-                    progress=None if args.quiet else progress,
-                    drop_invalid=args.drop_invalid)
-    text = diag.report()
+    result = solve(load_problem(args.problem), data_map(args), drop_invalid=args.drop_invalid,
+                   progress=None if args.quiet else progress)
+    diag = diagnose(result, alpha=args.alpha)
+    text = diagnosis_report(diag)
     if args.plots or args.report:
         doc = diag.to_dict(series=True)
         if args.plots:
@@ -57,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
         if args.report:
             from symcal.htmlreport import write_html
 
-            path = write_html(doc, diag.result.report() + "\n" + text, args.report)
+            path = write_html(doc, text_report(result) + "\n" + text, args.report)
             print(f"wrote {path}", file=sys.stderr)
     sys.stdout.write(plain_json(diag.to_dict(series=False)) if args.json else text)
     return 0 if diag.result.success else 1

@@ -26,8 +26,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     cmd.add_argument("--weighting", choices=["equal", "estimated"],
                      help="weights of the constraints in the cost (default: the problem's; "
                           "estimated = by their residual covariance)")
-    cmd.add_argument("--max-iter", type=int, default=200, metavar="N",
-                     help="iteration limit of IPOPT stages (default 200)")
+    cmd.add_argument("--max-iter", type=int, metavar="N",
+                     help="iteration limit of IPOPT stages (default: the problem's, else "
+                          "200)")
     cmd.add_argument("--quiet", action="store_true",
                      help="no progress on stderr and no report on success")
     return cmd
@@ -37,24 +38,30 @@ def run(args: argparse.Namespace) -> int:
     """Solve; print the report or JSON; write ``--out``; return the exit code."""
     from symcal.calibrate import solve
     from symcal.files import atomic_write_text
+    from symcal.language.options import MAX_ITER_LIMIT
     from symcal.problem import load_problem
-    from symcal.report import json_report
+    from symcal.report import json_report, text_report
 
     problem = load_problem(args.problem)
     data = data_map(args)
-    if args.max_iter < 1:
-        raise SymcalError(f"--max-iter {args.max_iter}: must be at least 1")
-    result = solve(problem, data, drop_invalid=args.drop_invalid, method=args.method,
-                   progress=None if args.quiet else progress, max_iter=args.max_iter,
-                   weighting=args.weighting)
-    text, doc = result.report(), json_report(result)
+    if args.max_iter is not None and not 1 <= args.max_iter <= MAX_ITER_LIMIT:
+        raise SymcalError(f"--max-iter {args.max_iter}: must be between 1 and "
+                          f"{MAX_ITER_LIMIT}")
+    if args.weighting:
+        problem = problem.with_weighting(args.weighting)
+    options = problem.options.over(method=args.method, max_iter=args.max_iter)
+    result = solve(problem, data, options, drop_invalid=args.drop_invalid,
+                   progress=None if args.quiet else progress)
+    text, doc = text_report(result), json_report(result)
     if args.out:
         out = Path(args.out)
         inputs = inputs_of(args) | {s.path for s in problem.datasets.values() if s.path}
+        inputs |= {Path(problem.path).resolve(), *problem.model_files()}
         for target in (out / "result.json", out / "report.txt"):
             if target.resolve() in inputs:
                 raise SymcalError(f"--out {args.out}: refusing to overwrite input file {target}")
-            atomic_write_text(target, doc if target.suffix == ".json" else text)
+        result.save(out / "result.json")
+        atomic_write_text(out / "report.txt", text)
     if not args.quiet or not result.success:
         sys.stdout.write(doc if args.json else text)
         if args.out and not args.json:

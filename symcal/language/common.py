@@ -19,23 +19,7 @@ from symcal.language.fields import (
 )
 from symcal.language.yamlio import YMap
 from symcal.suggest import did_you_mean
-
-#: Display units and their size in symcal's internal units (mm, rad, s).
-DISPLAY_UNITS: dict[str, float] = {
-    "": 1.0,
-    "1": 1.0,
-    "mm": 1.0,
-    "um": 1e-3,
-    "µm": 1e-3,
-    "nm": 1e-6,
-    "m": 1e3,
-    "rad": 1.0,
-    "mrad": 1e-3,
-    "urad": 1e-6,
-    "µrad": 1e-6,
-    "deg": math.pi / 180.0,
-    "s": 1.0,
-}
+from symcal.units import DISPLAY_UNITS
 
 
 def display_unit(value: Any, where: Where) -> str:

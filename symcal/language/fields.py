@@ -12,13 +12,19 @@ from symcal.suggest import did_you_mean
 
 
 def child_where(parent: Any, where: Where, key: str | int) -> Where:
-    """Provenance of ``parent[key]``, using the key's own line when known."""
-    line = None
+    """Provenance of ``parent[key]``, using the key's own line and file when known.
+
+    A key merged from a file that another one ``extends`` names that file and line, and
+    the file that was loaded (``Where.via``).
+    """
+    line, file = None, None
     if isinstance(parent, YMap):
         line = parent.key_lines.get(key)
+        file = parent.key_files.get(key)
     elif isinstance(parent, YList) and isinstance(key, int) and key < len(parent.item_lines):
         line = parent.item_lines[key]
-    return where.child(key, line)
+        file = parent.item_files[key] if key < len(parent.item_files) else None
+    return where.child(key, line, file)
 
 
 def check_keys(

@@ -18,6 +18,7 @@ from symcal.language.common import (
     parse_parameter,
     section,
 )
+from symcal.language.courier import PRESETS
 from symcal.language.fields import (
     check_keys,
     child_where,
@@ -31,37 +32,28 @@ from symcal.language.fields import (
     expect_str,
 )
 from symcal.language.model import ImplicitSpec, ModelSpec, load_model, parse_implicit
-from symcal.language.yamlio import YMap, display_path, load_yaml
+from symcal.language.options import METHODS, SolveOptions, parse_solver
+from symcal.language.overlay import load_with_extends, merge_problem
+from symcal.language.yamlio import YMap, display_path
 from symcal.suggest import did_you_mean
 
-PROBLEM_KEYS = ["doc", "constants", "parameters", "columns", "expressions", "comparisons",
-                "stages", "weighting", "implicit"]
-METHODS = ("auto", "linear", "ipopt")
+PROBLEM_KEYS = ["doc", "extends", "constants", "parameters", "columns", "expressions",
+                "comparisons", "stages", "weighting", "implicit", "solver"]
 WEIGHTINGS = ("equal", "estimated")
-
-#: The courier data contract (DESIGN.md): column → (unit, doc).
-COURIER_COLUMNS: dict[str, tuple[str, str]] = {
-    "t": ("s", "time of the observation"),
-    "p1": ("mm", "raw reading of platen segment 1 (x)"),
-    "p2": ("mm", "raw reading of platen segment 2 (y)"),
-    "p3": ("mm", "raw reading of platen segment 3 (x)"),
-    "p4": ("mm", "raw reading of platen segment 4 (y)"),
-    "psi_x": ("rad", "coordination sensor angle to the beacon, x"),
-    "psi_y": ("rad", "coordination sensor angle to the beacon, y"),
-    "x_ref": ("mm", "interferometer x (ground truth)"),
-    "y_ref": ("mm", "interferometer y (ground truth)"),
-    "theta_ref": ("rad", "interferometer angle (ground truth)"),
-}
+#: What a column may be declared as (``role:``): the time of an observation, or a raw
+#: position reading along which residuals are plotted.
+ROLES = ("time", "axis")
 
 
 @dataclass(frozen=True)
 class ColumnSpec:
-    """A data column the problem may refer to by name."""
+    """A data column the problem may refer to by name; ``role`` is "", "time" or "axis"."""
 
     name: str
     unit: str
     doc: str
     where: Where
+    role: str = ""
 
 
 @dataclass(frozen=True)
@@ -136,24 +128,39 @@ class StageSpec:
 
 
 @dataclass(frozen=True)
-class ProblemSpec:
-    """A calibration problem as declared in YAML."""
+class SystemSpec:
+    """What is measured: the sensors, their redundancy and the reference comparisons."""
 
-    name: str
-    doc: str
-    path: Path
     constants: dict[str, ConstantSpec]
     parameters: dict[str, ParameterSpec]
     columns: dict[str, ColumnSpec]
     instances: dict[str, InstanceSpec]
     expressions: dict[str, QuantitySpec]
     constraints: dict[str, QuantitySpec]
-    datasets: dict[str, DatasetSpec]
     comparisons: dict[str, ComparisonSpec]
+    implicit: dict[str, ImplicitSpec] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """On what data, in which steps: the datasets, the stages and the weighting."""
+
+    datasets: dict[str, DatasetSpec]
     stages: tuple[StageSpec, ...]
     weighting: str
+
+
+@dataclass(frozen=True)
+class ProblemSpec:
+    """A calibration problem as declared in YAML: the system, the study, the solve options."""
+
+    name: str
+    doc: str
+    path: Path
+    system: SystemSpec
+    study: StudySpec
+    options: SolveOptions
     where: Where
-    implicit: dict[str, ImplicitSpec] = field(default_factory=dict)
 
 
 def _doc(entry: YMap, where: Where) -> str:
@@ -324,8 +331,25 @@ def _parse_stages(doc: YMap, where: Where, constraints: dict) -> tuple[StageSpec
 
 def _parse_column(name: str, value: Any, where: Where) -> ColumnSpec:
     expect_name(name, where, "a column's name")
-    entry = check_keys(value, where, optional=["unit", "doc"])
-    return ColumnSpec(name, str(entry.get("unit", "")), _doc(entry, where), where)
+    entry = check_keys(value, where, optional=["unit", "doc", "role"])
+    role = (expect_choice(entry["role"], child_where(entry, where, "role"), ROLES, "role")
+            if "role" in entry else "")
+    return ColumnSpec(name, str(entry.get("unit", "")), _doc(entry, where), where, role)
+
+
+def _parse_columns(doc: YMap, where: Where) -> dict[str, ColumnSpec]:
+    """``columns:`` as a mapping of columns, or the name of a preset (``courier``)."""
+    at = child_where(doc, where, "columns")
+    value = doc.get("columns")
+    if isinstance(value, str):
+        if value not in PRESETS:
+            raise SpecError(at, f"unknown column preset '{value}'"
+                                f"{did_you_mean(value, PRESETS)}; presets: "
+                                f"{', '.join(PRESETS)} (or a mapping of columns)")
+        return {k: ColumnSpec(k, unit, text, at, role)
+                for k, (unit, role, text) in PRESETS[value].items()}
+    mapping = expect_map(value, at)
+    return {k: _parse_column(k, v, child_where(mapping, at, k)) for k, v in mapping.items()}
 
 
 def load_problem_spec(path: str | Path) -> ProblemSpec:
@@ -346,7 +370,7 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
         Naming file, line and key path for any problem in the files.
     """
     path = Path(path).resolve() if Path(path).exists() else Path(path)
-    doc, where = load_yaml(path, "problem")
+    doc, where = load_with_extends(path, "problem", merge_problem)
     check_keys(doc, where, required=["problem", "instances", "constraints", "datasets"],
                optional=PROBLEM_KEYS)
     name = expect_name(doc["problem"], child_where(doc, where, "problem"), "the problem's name")
@@ -358,10 +382,7 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
 
     constants = entries("constants", parse_constant)
     parameters = entries("parameters", parse_parameter)
-    if "columns" in doc:
-        columns = entries("columns", _parse_column)
-    else:
-        columns = {k: ColumnSpec(k, u, d, where) for k, (u, d) in COURIER_COLUMNS.items()}
+    columns = _parse_columns(doc, where)
     instances = entries("instances", lambda k, v, at: _parse_instance(k, v, at, path, cache))
     expressions = entries("expressions", lambda k, v, at: _parse_quantity(k, v, at, False))
     constraints = entries("constraints", lambda k, v, at: _parse_quantity(k, v, at, True))
@@ -396,6 +417,9 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
             raise SpecError(item.where, f"'{key}' is not an expression of the problem"
                                         f"{did_you_mean(key, expressions)}; only problem "
                                         "expressions can be declared implicit here")
-    return ProblemSpec(name, _doc(doc, where), path, constants, parameters, columns, instances,
-                       expressions, constraints, datasets, comparisons, stages, weighting,
-                       where, implicit)
+    options = (parse_solver(doc["solver"], child_where(doc, where, "solver"))
+               if "solver" in doc else SolveOptions())
+    system = SystemSpec(constants, parameters, columns, instances, expressions, constraints,
+                        comparisons, implicit)
+    return ProblemSpec(name, _doc(doc, where), path, system,
+                       StudySpec(datasets, stages, weighting), options, where)

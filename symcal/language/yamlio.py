@@ -1,14 +1,18 @@
 """Safe YAML loading that remembers where every value came from.
 
 Mappings load as :class:`YMap` and sequences as :class:`YList`; both know the line of
-the node and of each key or item, so that validation errors can name ``file:line`` and
-the key path.  Only :class:`yaml.SafeLoader` constructors are used: no Python objects
-can be built from a file.
+the node and of each key or item, and the file that wrote each key or item, so that
+validation errors can name ``file:line`` and the key path, also after a document was
+merged with the file it ``extends`` (:mod:`symcal.language.overlay`).  Only
+:class:`yaml.SafeLoader` constructors are used: no Python objects can be built from a
+file.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import yaml
@@ -17,21 +21,32 @@ from symcal.errors import SpecError, Where
 
 
 class YMap(dict):
-    """A dict loaded from YAML, with ``line`` and per-key ``key_lines`` (1-based)."""
+    """A dict loaded from YAML, with ``line`` and per-key ``key_lines`` (1-based).
+
+    ``key_files`` names, per key, the file that wrote it (as shown in messages); a key
+    missing from it belongs to the file of the mapping's provenance.
+    """
 
     line: int | None = None
     key_lines: dict[Any, int]
+    key_files: Mapping[Any, str] = MappingProxyType({})
 
 
 class YList(list):
-    """A list loaded from YAML, with ``line`` and per-item ``item_lines`` (1-based)."""
+    """A list loaded from YAML, with ``line`` and per-item ``item_lines`` (1-based).
+
+    ``item_files`` names, per item, the file that wrote it, like :attr:`YMap.key_files`.
+    """
 
     line: int | None = None
     item_lines: list[int]
+    item_files: Sequence[str] = ()
 
 
 class _Loader(yaml.SafeLoader):
-    """SafeLoader that keeps line numbers and rejects duplicate keys."""
+    """SafeLoader that keeps line numbers and files and rejects duplicate keys."""
+
+    source: str = ""
 
 
 def _construct_map(loader: _Loader, node: yaml.MappingNode) -> YMap:
@@ -39,6 +54,7 @@ def _construct_map(loader: _Loader, node: yaml.MappingNode) -> YMap:
     out = YMap()
     out.line = node.start_mark.line + 1
     out.key_lines = {}
+    out.key_files = {}
     for key_node, value_node in node.value:
         key = loader.construct_object(key_node, deep=True)
         line = key_node.start_mark.line + 1
@@ -53,6 +69,7 @@ def _construct_map(loader: _Loader, node: yaml.MappingNode) -> YMap:
             )
         out[key] = loader.construct_object(value_node, deep=True)
         out.key_lines[key] = line
+        out.key_files[key] = loader.source
     return out
 
 
@@ -60,11 +77,22 @@ def _construct_seq(loader: _Loader, node: yaml.SequenceNode) -> YList:
     out = YList(loader.construct_object(child, deep=True) for child in node.value)
     out.line = node.start_mark.line + 1
     out.item_lines = [child.start_mark.line + 1 for child in node.value]
+    out.item_files = [loader.source] * len(node.value)
     return out
 
 
 _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_map)
 _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _construct_seq)
+
+
+def _parse(text: str, source: str) -> Any:
+    """One YAML document, its keys and items marked as written by ``source``."""
+    loader = _Loader(text)
+    loader.source = source
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
 
 
 def display_path(path: Path) -> str:
@@ -105,7 +133,7 @@ def load_yaml(path: str | Path, what: str = "file") -> tuple[YMap, Where]:
         reason = exc.__class__.__name__
         raise SpecError(Where(shown), f"cannot read {what} file ({reason})") from None
     try:
-        doc = yaml.load(text, Loader=_Loader)  # noqa: S506 - _Loader derives from SafeLoader
+        doc = _parse(text, shown)
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark is not None else None

@@ -84,7 +84,8 @@ from symcal.language.fields import (
     expect_number,
     expect_str,
 )
-from symcal.language.yamlio import YMap, load_yaml
+from symcal.language.overlay import load_with_extends, merge_scenario
+from symcal.language.yamlio import YMap
 from symcal.suggest import did_you_mean
 
 SEGMENT_NAMES: tuple[str, ...] = ("s1", "s2", "s3", "s4")
@@ -600,7 +601,7 @@ def parse_scenario(doc: YMap, where: Where) -> Scenario:
         and key path.
     """
     check_keys(doc, where, required=("scenario", "platen", "runs"),
-               optional=("doc", "coordination", "reference"))
+               optional=("doc", "extends", "coordination", "reference"))
     name = expect_name(doc["scenario"], child_where(doc, where, "scenario"), "a scenario name")
     coordination = None
     if "coordination" in doc:
@@ -639,5 +640,5 @@ def load_scenario(path: str | Path) -> Scenario:
         message names ``file:line``, the key path and, for unknown keys, the nearest
         valid key.
     """
-    doc, where = load_yaml(path, "scenario")
+    doc, where = load_with_extends(path, "scenario", merge_scenario)
     return parse_scenario(doc, where)

@@ -14,8 +14,8 @@ import time
 
 import numpy as np
 
-from symcal.analysis.identifiability import rank_tolerance
 from symcal.data import Dataset
+from symcal.linalg import rank_tolerance
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.objective import Objective
 

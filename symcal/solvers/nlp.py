@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import casadi as ca
 import numpy as np
 
 from symcal.data import Dataset
+from symcal.solvers import instrument
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.objective import Objective
 
@@ -101,7 +103,9 @@ class _Oracle:
         cost, jtg, jtj = self._terms(x)
         d = self.scales
         step = np.linalg.lstsq(d[:, None] * jtj * d[None, :], d * jtg, rcond=1e-13)[0]
-        return float((d * jtg) @ step / cost) if cost > 0 else 0.0
+        value = float((d * jtg) @ step / cost) if cost > 0 else 0.0
+        instrument.record_decrement(value)
+        return value
 
 
 class _Call(ca.Callback):
@@ -181,6 +185,8 @@ class _Progress(ca.Callback):
             cost = float(arg[1]) * self.cost_scale
             self.report(f"  {self.label}: iteration {self.iteration:3d}  cost {cost:.6e}  "
                         f"step {step:.3e} (scaled)")
+        instrument.record_iteration(self.label, self.iteration,
+                                    float(arg[1]) * self.cost_scale, x)
         self.last_x = x
         self.iteration += 1
         self.stopped = self.converged(x)
@@ -190,6 +196,7 @@ class _Progress(ca.Callback):
 def _ipopt_round(
     oracle: _Oracle, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
     progress: Callable[[str], None] | None, max_iter: int, tol: float, label: str,
+    extra: Mapping[str, Any],
 ) -> tuple[np.ndarray, dict, _Progress]:
     """One IPOPT run on the cost normalised by its value at ``x0``."""
     n = len(x0)
@@ -211,7 +218,7 @@ def _ipopt_round(
         "error_on_fail": False,
         "print_time": False,
         "ipopt": {"print_level": PRINT_LEVEL, "sb": "yes", "max_iter": max_iter, "tol": tol,
-                  "acceptable_tol": 1e-6, "acceptable_iter": 5},
+                  "acceptable_tol": 1e-6, "acceptable_iter": 5, **extra},
     }
     solver = ca.nlpsol("symcal", "ipopt", {"x": x, "p": empty, "f": calls[0](x)}, opts)
     sol = solver(x0=x0, lbx=lower, ubx=upper)
@@ -230,6 +237,7 @@ def solve_ipopt(
     tol: float = 1e-8,
     label: str = "ipopt",
     max_rounds: int = 4,
+    extra: Mapping[str, Any] | None = None,
 ) -> SolverOutput:
     """Minimise the objective with IPOPT (Gauss-Newton Hessian), from ``theta0``.
 
@@ -255,6 +263,8 @@ def solve_ipopt(
         Iteration limit over all runs, and IPOPT's tolerance.
     label
         Name shown in progress lines.
+    extra
+        Further IPOPT options by name (a problem's ``solver: {ipopt: ...}``).
 
     Returns
     -------
@@ -273,7 +283,7 @@ def solve_ipopt(
     while True:
         before = oracle.cost(x) * oracle.cost_scale
         x, stats, callback = _ipopt_round(oracle, x, lower, upper, progress,
-                                          max_iter - iterations, tol, label)
+                                          max_iter - iterations, tol, label, extra or {})
         iterations += int(stats.get("iter_count", callback.iteration))
         rounds += 1
         status = str(stats.get("return_status", "unknown"))

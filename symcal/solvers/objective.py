@@ -16,6 +16,7 @@ import scipy.linalg
 from symcal.data import Dataset
 from symcal.numeric import Mapped, chunks, mapped
 from symcal.problem import Problem
+from symcal.solvers import instrument
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,6 +98,7 @@ class Objective:
             J and g the weighted Jacobian and residual at ``theta``; ``rows`` counts the
             residual rows.  Accumulated chunk by chunk (TSQR).
         """
+        instrument.record_pass("r", "accumulate_r", dataset.n)
         fn = self._mapped("linearised", [self.g, self.jac.T])
         n, ng = int(self.free.sum()), self.g.shape[0]
         u = dataset.matrix(self.problem.columns)
@@ -120,6 +122,7 @@ class Objective:
     def residual_covariance(self, dataset: Dataset, theta: np.ndarray, rank: int) -> np.ndarray:
         """Covariance between the weighted constraints of one observation (``n_g × n_g``),
         estimated from the residuals at ``theta`` with ``rank`` degrees of freedom used."""
+        instrument.record_pass("residual", "residual_covariance", dataset.n)
         fn = self._mapped("residual", [self.g])
         g = fn(theta, dataset.matrix(self.problem.columns))[0]
         rows = g.size
@@ -127,6 +130,7 @@ class Objective:
 
     def residuals(self, dataset: Dataset, theta: np.ndarray) -> np.ndarray:
         """Weighted residuals at ``theta``, ``N × n_g``."""
+        instrument.record_pass("residual", "residuals", dataset.n)
         fn = self._mapped("residual", [self.g])
         return fn(theta, dataset.matrix(self.problem.columns))[0]
 
@@ -143,6 +147,7 @@ class Objective:
         J is evaluated by CasADi (exact AD) for one chunk of observations at a time and
         reduced with BLAS, so memory stays bounded whatever N is.
         """
+        instrument.record_pass("linearised", "normal_equations", dataset.n)
         fn = self._mapped("linearised", [self.g, self.jac.T])
         n, ng = int(self.free.sum()), self.g.shape[0]
         u = dataset.matrix(self.problem.columns)
@@ -158,6 +163,7 @@ class Objective:
 
     def cost(self, dataset: Dataset, theta: np.ndarray) -> float:
         """Σ (g/σ)² at ``theta`` (residuals only, no derivatives)."""
+        instrument.record_pass("residual", "cost", dataset.n)
         fn = self._mapped("residual", [self.g])
         u = dataset.matrix(self.problem.columns)
         return float(sum(np.sum(fn.chunk(theta, u[:, part])[0] ** 2)

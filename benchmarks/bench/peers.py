@@ -2,8 +2,8 @@
 
 Everything here is written by hand from the equations in ``models/*.yaml`` and
 ``problems/*.yaml`` (Quaid & Rizzi eq. 3, 5, 9, 10, 11); nothing comes from symcal's
-symbolic machinery.  ``benchmarks/run.py`` checks that these residuals agree with
-symcal's to 1e-12 at a test point before it times anything.
+symbolic machinery.  The harness (``bench.problems.check_residuals``) checks that these
+residuals agree with symcal's to 1e-12 at a test point before it times anything.
 
 Parameter vectors are in symcal's order:
 

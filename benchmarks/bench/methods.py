@@ -1,0 +1,120 @@
+"""The methods compared, each as ``theta0 -> Outcome`` on one problem's data.
+
+symcal's passes over the data and its IPOPT iterations are counted with
+:func:`symcal.solvers.instrument.counting`, symcal's public instrumentation hook; the
+peers count their residual evaluations themselves (``bench.peers``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import numpy as np
+
+from . import peers
+from .problems import Columns, residual, single_stage_problem
+
+
+@dataclasses.dataclass(frozen=True)
+class Outcome:
+    """What one run of a method gives.
+
+    Attributes
+    ----------
+    theta
+        The estimate (all parameters).
+    iterations
+        Solver iterations (None when the method was stopped before it could say).
+    message
+        The method's own account of how it ended.
+    evaluations
+        Passes over the data (symcal) or residual evaluations (peers).
+    passes_by
+        symcal only: passes by ``Objective`` method.
+    decrements
+        symcal's IPOPT path only: the Gauss-Newton decrements it tested.
+    """
+
+    theta: np.ndarray
+    iterations: int | None
+    message: str
+    evaluations: int
+    passes_by: dict[str, int] | None = None
+    decrements: list[float] | None = None
+
+
+Method = Callable[[np.ndarray], Outcome]
+
+
+def symcal_solver(problem: str, cols: Columns) -> Method:
+    """symcal's default path for the single stage: ``Objective`` and the closed form
+    (linear) or IPOPT (nonlinear), which is what ``solve()`` runs for a stage."""
+    from symcal.data import make_dataset
+    from symcal.datasets import needed_columns
+    from symcal.solvers.instrument import counting
+    from symcal.solvers.linear import solve_linear
+    from symcal.solvers.nlp import solve_ipopt
+    from symcal.solvers.objective import Objective
+
+    prob = single_stage_problem(problem)
+    stage = prob.stages[0]
+    data = make_dataset("calibration", "benchmark", cols, needed_columns(prob))
+    free = np.array([p.name in stage.free for p in prob.parameters])
+
+    def run(theta0: np.ndarray) -> Outcome:
+        with counting() as counts:
+            objective = Objective(prob, stage.constraints, free)
+            if objective.nonlinear():
+                out = solve_ipopt(objective, data, theta0)
+            else:
+                out = solve_linear(objective, data, theta0)
+        return Outcome(out.theta, out.iterations, f"{out.method}: {out.message}",
+                       counts.passes, dict(counts.by_method), list(counts.decrements))
+
+    return run
+
+
+def symcal_analysis(problem: str, cols: Columns) -> Method:
+    """``symcal.calibrate.run_stage``: the solve plus the stage's analysis."""
+    from symcal.calibrate import run_stage
+    from symcal.data import make_dataset
+    from symcal.datasets import needed_columns
+    from symcal.solvers.instrument import counting
+
+    prob = single_stage_problem(problem)
+    data = make_dataset("calibration", "benchmark", cols, needed_columns(prob))
+
+    def run(theta0: np.ndarray) -> Outcome:
+        with counting() as counts:
+            theta, result = run_stage(prob, prob.stages[0], data, theta0)
+        return Outcome(theta, result.iterations, f"{result.method}: {result.message}",
+                       counts.passes, dict(counts.by_method))
+
+    return run
+
+
+def peer(problem: str, method: str, cols: Columns, cap: float) -> Method:
+    """A peer of ``bench.peers``: the numpy floor, least_squares or BFGS, stopped at
+    ``cap`` seconds."""
+    fn = residual(problem)
+
+    def run(theta0: np.ndarray) -> Outcome:
+        if method == "floor":
+            res = peers.numpy_floor(theta0, cols)
+        elif method == "least_squares":
+            res = peers.least_squares(fn, theta0, cols, max_seconds=cap)
+        else:
+            res = peers.bfgs(fn, theta0, cols, max_seconds=cap)
+        return Outcome(res.theta, res.iterations, res.message, res.evaluations)
+
+    return run
+
+
+def method(problem: str, name: str, cols: Columns, cap: float) -> Method:
+    """The method ``name`` (a key of ``bench.config.LABELS``) on ``problem``'s data."""
+    if name == "symcal":
+        return symcal_solver(problem, cols)
+    if name == "symcal_analysis":
+        return symcal_analysis(problem, cols)
+    return peer(problem, name, cols, cap)

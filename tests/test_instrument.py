@@ -1,0 +1,172 @@
+"""symcal.solvers.instrument: counts of passes over the data and of solver iterations,
+checked against what each solver path is known to do."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+import symcal
+from symcal.data import make_dataset
+from symcal.simulate import load_scenario, simulate_run
+from symcal.solvers import instrument
+from symcal.solvers.instrument import Counters, counting
+from symcal.solvers.linear import solve_linear
+from symcal.solvers.nlp import solve_ipopt
+from symcal.solvers.objective import Objective
+
+PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"
+DUAL = ROOT / "problems" / "dual_sensor_calibration.yaml"
+SCENARIOS = ROOT / "problems" / "scenarios"
+N = 1_500  # not a power of two: the last chunk is padded
+
+
+@pytest.fixture(scope="module")
+def platen() -> tuple[symcal.Problem, symcal.Dataset]:
+    problem = symcal.load_problem(PLATEN)
+    cols = simulate_run(load_scenario(SCENARIOS / "courier_platen.yaml"), "calibration",
+                        seed=3, n=N)
+    return problem, make_dataset("calibration", "simulated", cols, [])
+
+
+def _objective(problem: symcal.Problem) -> Objective:
+    stage = problem.stages[0]
+    free = np.array([p.name in stage.free for p in problem.parameters])
+    return Objective(problem, stage.constraints, free)
+
+
+def _theta0(problem: symcal.Problem) -> np.ndarray:
+    return np.array([p.value for p in problem.parameters])
+
+
+def test_nothing_is_counted_outside_a_block(platen) -> None:
+    problem, data = platen
+    objective = _objective(problem)
+    assert not instrument.active()
+    objective.cost(data, _theta0(problem))  # no block: nothing to record, no error
+    with counting() as counts:
+        assert instrument.active()
+    objective.cost(data, _theta0(problem))
+    assert counts == Counters()
+    assert counts.to_dict()["passes"] == 0
+    assert not instrument.active()
+
+
+def test_closed_form_makes_exactly_one_r_pass(platen) -> None:
+    problem, data = platen
+    objective = _objective(problem)
+    assert not objective.nonlinear()
+    with counting() as counts:
+        out = solve_linear(objective, data, _theta0(problem))
+    assert out.iterations == 0
+    assert (counts.r_passes, counts.linearised_passes, counts.residual_passes) == (1, 0, 0)
+    assert counts.passes == 1
+    assert counts.observations == N
+    assert counts.iterations == 0
+    assert counts.by_method == {"accumulate_r": 1}
+
+
+def test_each_objective_method_is_one_pass_of_its_kind(platen) -> None:
+    problem, data = platen
+    objective = _objective(problem)
+    theta = _theta0(problem)
+    with counting() as counts:
+        objective.cost(data, theta)
+        objective.residuals(data, theta)
+        objective.cost_terms(data, theta)  # through residuals: one residual pass
+        objective.residual_covariance(data, theta, rank=33)
+        objective.normal_equations(data, theta)
+        objective.accumulate_r(data, theta)
+    assert counts.by_method == {"cost": 1, "residuals": 2, "residual_covariance": 1,
+                                "normal_equations": 1, "accumulate_r": 1}
+    assert (counts.residual_passes, counts.linearised_passes, counts.r_passes) == (4, 1, 1)
+    assert counts.observations == 6 * N
+
+
+def test_nested_blocks_both_count(platen) -> None:
+    problem, data = platen
+    objective = _objective(problem)
+    theta = _theta0(problem)
+    with counting() as outer:
+        objective.cost(data, theta)
+        with counting() as inner:
+            objective.normal_equations(data, theta)
+        objective.cost(data, theta)
+    assert (outer.residual_passes, outer.linearised_passes) == (2, 1)
+    assert (inner.residual_passes, inner.linearised_passes) == (0, 1)
+
+
+def test_other_threads_are_not_counted(platen) -> None:
+    """The active block is a context variable: a thread started without the context
+    does not count into it."""
+    problem, data = platen
+    objective = _objective(problem)
+    with counting() as counts:
+        worker = threading.Thread(target=objective.cost, args=(data, _theta0(problem)))
+        worker.start()
+        worker.join()
+    assert counts.passes == 0
+
+
+def test_ipopt_iterations_and_hook_match_the_solver(platen) -> None:
+    """The linear problem through IPOPT: the counted iterations are the solver's own,
+    and the hook sees the start (iteration 0) and the cost of every iterate."""
+    problem, data = platen
+    objective = _objective(problem)
+    theta0 = _theta0(problem)
+    calls: list[tuple[str, int, float, np.ndarray]] = []
+    with counting(on_iteration=lambda *args: calls.append(args)) as counts:
+        out = solve_ipopt(objective, data, theta0, label="platen")
+    assert out.success and out.iterations > 0
+    assert counts.iterations == out.iterations
+    assert sum(it > 0 for _, it, _, _ in calls) == out.iterations
+    assert {label for label, _, _, _ in calls} == {"platen"}
+    assert len(counts.decrements) == len(calls)  # the convergence test after each call
+    label, iteration, cost, x = calls[0]
+    assert iteration == 0
+    assert cost == pytest.approx(objective.cost(data, theta0), rel=1e-12)
+    *_, (label, iteration, cost, x) = calls
+    np.testing.assert_allclose(x * objective.scales, out.theta[objective.index],
+                               rtol=0, atol=1e-12 * objective.scales.max())
+    assert cost == pytest.approx(objective.cost(data, out.theta), rel=1e-9)
+    # one R pass for the R factor at the solution; residual and linearised passes drive
+    # the iterations (at least one linearised pass per iteration's gradient)
+    assert counts.r_passes == 1
+    assert counts.linearised_passes >= out.iterations
+    assert counts.observations == counts.passes * N
+
+
+def test_staged_solve_counts_every_ipopt_stage() -> None:
+    """The dual problem's stages: closed form, closed form, IPOPT.  The iterations
+    counted are those the result reports, and only the IPOPT stage reaches the hook."""
+    scenario = load_scenario(SCENARIOS / "courier_dual.yaml")
+    data = {name: make_dataset(name, "simulated", simulate_run(scenario, name, 5, 1_000), [])
+            for name in ("calibration", "flyby")}
+    labels: set[str] = set()
+    with counting(on_iteration=lambda label, *_: labels.add(label)) as counts:
+        result = symcal.solve(symcal.load_problem(DUAL), data)
+    assert result.success
+    ipopt = [st for st in result.stages if st.method == "ipopt"]
+    assert ipopt and ipopt[0].iterations > 0
+    assert counts.iterations == sum(st.iterations for st in result.stages)
+    assert labels == {st.name for st in ipopt}
+    assert counts.r_passes >= len(result.stages)
+
+
+def test_an_exception_in_the_hook_stops_the_solve(platen) -> None:
+    """Raising in the hook is how a caller stops IPOPT: the solve ends, failed, with the
+    last iterate."""
+    problem, data = platen
+
+    def hook(label: str, iteration: int, cost: float, x: np.ndarray) -> None:
+        if iteration == 1:
+            raise RuntimeError("stop here")
+
+    with counting(on_iteration=hook) as counts:
+        out = solve_ipopt(_objective(problem), data, _theta0(problem))
+    assert not out.success
+    assert out.status == "User_Requested_Stop"
+    assert out.iterations == counts.iterations == 1
