@@ -1,7 +1,7 @@
 """Datasets: CSV/NPZ reading and writing, column checks.
 
 A dataset is a table with one row per observation and named numeric columns (the data
-contract in DESIGN.md).  Loading checks what a person would otherwise discover late:
+contract in the README).  Loading checks what a person would otherwise discover late:
 missing columns (with did-you-mean), non-numeric cells and non-finite values, by row.
 """
 

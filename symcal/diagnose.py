@@ -1,5 +1,5 @@
 """`symcal diagnose`: compare the calibrated model with the measurements, show where it
-fails, and name the physical effect that is most likely missing (DESIGN.md, Diagnosis).
+fails, and name the physical effect that is most likely missing (ARCHITECTURE.md).
 
 The flow: a calibration result → evaluate every residual (constraints and reference comparisons) on
 every dataset, with its sensitivity to each sensor output (exact, through hooks) and to

@@ -11,6 +11,27 @@ import pytest
 from conftest import ROOT
 
 JOBS = ("starts", "assemble", "data", "profile", "blas", "solve")
+BENCHMARKS = ROOT / "benchmarks"
+
+
+def _bench_cli():
+    if str(BENCHMARKS) not in sys.path:
+        sys.path.insert(0, str(BENCHMARKS))
+    from bench import cli
+
+    return cli
+
+
+def test_quick_settings_and_job_order() -> None:
+    """--quick: tiny sizes, one run, nothing written unless --out; the jobs in order."""
+    cli = _bench_cli()
+    quick = cli.settings_from(cli.parse_args(["--quick"]))
+    assert (quick.sizes, quick.repeats, quick.out, quick.quick) == ((200,), 1, None, True)
+    assert cli.settings_from(cli.parse_args(["--quick", "--out", "x.md"])).out.name == "x.md"
+    full = cli.settings_from(cli.parse_args([]))
+    assert full.sizes == (1_000, 10_000, 100_000, 1_000_000)
+    assert full.out == BENCHMARKS / "RESULTS.md"
+    assert tuple(job.NAME for job in cli.JOBS) == JOBS
 
 
 @pytest.mark.slow

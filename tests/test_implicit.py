@@ -133,6 +133,7 @@ def test_implicit_dual_removes_the_mounting_bias(dual_noiseless) -> None:
         assert cost.rms_after < 0.01, cost
 
 
+@pytest.mark.slow
 def test_not_a_contraction_is_a_failed_result(tmp_path, capsys) -> None:
     base = (PROBLEMS / "platen_self_calibration_implicit.yaml").as_posix()
     path = tmp_path / "steep.yaml"

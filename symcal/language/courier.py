@@ -6,7 +6,7 @@ Nothing of the courier is a default: a problem for another system declares its o
 
 from __future__ import annotations
 
-#: The courier's columns (DESIGN.md, data contract): name → (unit, role, doc).  Role
+#: The courier's columns (the data contract of the README): name → (unit, role, doc).  Role
 #: ``time`` marks the time of an observation (a drift is a term linear in it); ``axis``
 #: marks the raw position readings along which residuals are plotted.
 COURIER_COLUMNS: dict[str, tuple[str, str, str]] = {
