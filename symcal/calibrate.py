@@ -277,9 +277,9 @@ def _result(problem: Problem, datasets: dict[str, Dataset],
                         p.lower, p.upper, p.doc)
         for i, p in enumerate(problem.parameters)
     )
-    stats, notes = series_statistics(problem, datasets, theta0, theta)
+    stats, skipped = series_statistics(problem, datasets, theta0, theta)
     checks = implicit_checks(problem, datasets, theta)
-    notes = list(notes) + [
+    notes = list(skipped) + [
         f"'{c.name}' is not a contraction on dataset '{c.dataset}': max |dF/dx| = "
         f"{c.contraction:.3g} >= 1, so its fixed-point steps do not converge and the result "
         "is not to be trusted (the errors are too large for this form of the model)"

@@ -225,7 +225,7 @@ def _load_result(result: ResultLike, problem: Problem) -> tuple[tuple[float, ...
 # --------------------------------------------------------------------------- plan
 
 def _source_files(problem: Problem) -> tuple[Path, ...]:
-    return (Path(problem.path), *problem.model_files())
+    return problem.source_files()
 
 
 def _hash(problem: Problem, files: Iterable[Path], values: tuple[float, ...] | None) -> str:
@@ -424,8 +424,9 @@ def _casadi_code(p: Plan, functions: list[ca.Function]) -> _Code:
     at least 1 each (C has no empty arrays); CasADi's own upper bounds where absent.
     """
     base = f"{p.prefix}_casadi"
-    opts = {"with_header": True, "casadi_real": "double", "casadi_int": "long long int",
-            "main": False, "mex": False, "cpp": False, "with_mem": False, "verbose": True}
+    opts: dict[str, Any] = {"with_header": True, "casadi_real": "double",
+                            "casadi_int": "long long int", "main": False, "mex": False,
+                            "cpp": False, "with_mem": False, "verbose": True}
     with tempfile.TemporaryDirectory(prefix="symcal-codegen-") as tmp:
         cg = ca.CodeGenerator(f"{base}.c", opts)
         for fn in functions:

@@ -12,6 +12,7 @@ import io
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -182,11 +183,12 @@ def write_table(path: str | Path, columns: Mapping[str, np.ndarray]) -> None:
     names = list(columns)
     table = np.column_stack([np.asarray(columns[k], dtype=float) for k in names])
     if path.suffix.lower() == ".npz":
-        buf = io.BytesIO()
-        np.savez(buf, **{k: np.asarray(columns[k], dtype=float) for k in names})
-        atomic_write_bytes(path, buf.getvalue())
+        binary = io.BytesIO()
+        arrays: dict[str, Any] = {k: np.asarray(columns[k], dtype=float) for k in names}
+        np.savez(binary, **arrays)
+        atomic_write_bytes(path, binary.getvalue())
         return
-    buf = io.StringIO()
-    buf.write(",".join(names) + "\n")
-    np.savetxt(buf, table, delimiter=",", fmt="%.15g")
-    atomic_write_text(path, buf.getvalue())
+    text = io.StringIO()
+    text.write(",".join(names) + "\n")
+    np.savetxt(text, table, delimiter=",", fmt="%.15g")
+    atomic_write_text(path, text.getvalue())

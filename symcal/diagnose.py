@@ -204,7 +204,7 @@ def _variable_specs(hp: Problem) -> list[tuple[str, ca.SX, str, float | None, st
     """
     references = _references(hp)
     hooks = ca.vertcat(*hp.hooks.values())
-    out = []
+    out: list[tuple[str, ca.SX, str, float | None, str]] = []
     for k, col in enumerate(hp.columns):
         if col not in references:
             spec = hp.column_specs.get(col)
@@ -272,13 +272,14 @@ def _library(variables: list[Variable]) -> list[tuple[Basis, Callable]]:
     periodic = [v for v in variables if v.period]
     angles = [v for v in variables if v.kind == "angle"]
     for v in periodic:
+        period = float(v.period or 1.0)
         for n in range(1, HARMONICS + 1):
-            w = 2 * np.pi * n / v.period
+            w = 2 * np.pi * n / period
             lib.append((Basis("harmonic", v.name,
-                              f"harmonic {n} of {v.name} (period {v.period:g} {v.unit})",
+                              f"harmonic {n} of {v.name} (period {period:g} {v.unit})",
                               (f"h{n}_sin", f"h{n}_cos"),
-                              (f"sin({2 * n}*pi*{{v}}/{v.period:g})",
-                               f"cos({2 * n}*pi*{{v}}/{v.period:g})")),
+                              (f"sin({2 * n}*pi*{{v}}/{period:g})",
+                               f"cos({2 * n}*pi*{{v}}/{period:g})")),
                         _harmonic(index[v.name], w)))
     for v in variables:
         if v.kind == "drift":
@@ -293,12 +294,13 @@ def _library(variables: list[Variable]) -> list[tuple[Basis, Callable]]:
                     _quadratic(index[v.name], mean)))
     for a in angles:
         for v in periodic:
-            w = 2 * np.pi / v.period
+            period = float(v.period or 1.0)
+            w = 2 * np.pi / period
             lib.append((Basis("angle_harmonic", v.name,
                               f"the angle {a.name} times harmonic 1 of {v.name}",
                               ("ah_sin", "ah_cos"),
-                              (f"{{a}}*sin(2*pi*{{v}}/{v.period:g})",
-                               f"{{a}}*cos(2*pi*{{v}}/{v.period:g})"), a.name),
+                              (f"{{a}}*sin(2*pi*{{v}}/{period:g})",
+                               f"{{a}}*cos(2*pi*{{v}}/{period:g})"), a.name),
                         _angle_harmonic(index[a.name], index[v.name], w)))
     return lib
 

@@ -11,6 +11,7 @@ vectors; each comes back as an ``N × k`` array.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -38,9 +39,9 @@ class Mapped:
 
     def __init__(self, fn: ca.Function) -> None:
         self.fn = fn
-        self._maps: dict[int, tuple[ca.Function, object, object]] = {}
+        self._maps: dict[int, tuple[ca.Function, Any, Any]] = {}
 
-    def _map(self, n: int) -> tuple[ca.Function, object, object]:
+    def _map(self, n: int) -> tuple[ca.Function, Any, Any]:
         if n not in self._maps:
             mapped_fn = self.fn.map("chunk", "serial", n, [0], [])  # θ shared, not repeated
             buf, trigger = mapped_fn.buffer()
@@ -57,10 +58,10 @@ class Mapped:
         columns[:n] = u.T
         columns[n:] = u.T[-1:] if n else 0.0           # repeat a real observation
         outs = [np.empty((size, self.fn.nnz_out(i))) for i in range(self.fn.n_out())]
-        buf.set_arg(0, memoryview(th))
-        buf.set_arg(1, memoryview(columns))
+        buf.set_arg(0, memoryview(th))  # type: ignore[arg-type]  # ndarray is a buffer
+        buf.set_arg(1, memoryview(columns))  # type: ignore[arg-type]
         for i, out in enumerate(outs):
-            buf.set_res(i, memoryview(out))
+            buf.set_res(i, memoryview(out))  # type: ignore[arg-type]
         trigger()
         return [out[:n] for out in outs]
 

@@ -231,7 +231,8 @@ class Problem:
 
     def quantity(self, name: str) -> ca.SX:
         """The SX of a named constraint, expression, signal or comparison (estimate minus
-        reference).
+        reference), looked up in that order: a comparison named like an expression is
+        reached through the expression it compares.
 
         Raises
         ------
@@ -249,6 +250,12 @@ class Problem:
         known += [c.name for c in self.comparisons]
         raise KeyError(f"problem '{self.name}' has no quantity '{name}'"
                        f"{did_you_mean(name, known)}")
+
+    def source_files(self) -> tuple[Path, ...]:
+        """Every file the problem was built from: the problem file, the files it extends,
+        and its model files (through their ``extends`` too)."""
+        own = self.spec.sources or (Path(self.path),)
+        return (*own, *(f for f in self.model_files() if f not in own))
 
     def model_files(self) -> tuple[Path, ...]:
         """Every model file the problem's instances read, through ``extends`` too."""
@@ -572,13 +579,7 @@ class _Build:
         """Placeholders and their values in this view, and the implicit checks."""
         model, top = self.model_level, self.problem_level
         if not unrolled:
-            symbols = [d.symbol for d in (*model, *top)]
-            values = _resolve_starts(symbols, [d.start for d in (*model, *top)])
-            zero = ca.SX(0)
-            checks = [ImplicitOutput(d.key, 0, zero, zero) for d in model]
-            if top:
-                checks.insert(0, ImplicitOutput(", ".join(d.key for d in top), 0, zero, zero))
-            return symbols, values, checks
+            return self._close_at_starts()
         # model level: innermost (latest opened) first, each in terms of the ones opened
         # before it; then forward, so that every value is free of model placeholders
         finals: dict[int, tuple[ca.SX, ca.SX, ca.SX]] = {}
@@ -621,13 +622,27 @@ class _Build:
             top_values = [final[k] for k in range(len(top))]
             top_symbols = [d.symbol for d in top]
             values = ca.substitute(values, top_symbols, top_values) if values else []
-            checks_pending = [(k, s, *ca.substitute([dv, ls], top_symbols, top_values))
-                              for k, s, dv, ls in checks_pending]
+            closed = []
+            for key, count, dv, ls in checks_pending:
+                dv, ls = ca.substitute([dv, ls], top_symbols, top_values)
+                closed.append((key, count, dv, ls))
+            checks_pending = closed
             checks_pending.insert(0, (", ".join(d.key for d in top), steps,
                                       ca.substitute(norm, x, final), ca.mmax(ca.fabs(last))))
             symbols += top_symbols
             values += top_values
         checks = [ImplicitOutput(k, s, dv, ls) for k, s, dv, ls in checks_pending]
+        return symbols, values, checks
+
+    def _close_at_starts(self) -> tuple[list[ca.SX], list[ca.SX], list[ImplicitOutput]]:
+        """Every placeholder at its start: the explicit model (zero fixed-point steps)."""
+        model, top = self.model_level, self.problem_level
+        symbols = [d.symbol for d in (*model, *top)]
+        values = _resolve_starts(symbols, [d.start for d in (*model, *top)])
+        zero = ca.SX(0)
+        checks = [ImplicitOutput(d.key, 0, zero, zero) for d in model]
+        if top:
+            checks.insert(0, ImplicitOutput(", ".join(d.key for d in top), 0, zero, zero))
         return symbols, values, checks
 
     def problem(self, mode: str) -> Problem:

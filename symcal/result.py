@@ -167,11 +167,12 @@ class StageResult:
 
 
 def file_hashes(problem: Problem) -> dict[str, str]:
-    """sha256 of the problem file and of every model file it reads, by path relative to
-    the problem file's folder (so that a moved project keeps its results)."""
+    """sha256 of every file the problem was built from (the problem file, the files it
+    extends, its models), by path relative to the problem file's folder (so that a moved
+    project keeps its results)."""
     home = Path(problem.path).resolve().parent
     out = {}
-    for path in (Path(problem.path), *problem.model_files()):
+    for path in problem.source_files():
         key = Path(os.path.relpath(Path(path).resolve(), home)).as_posix()
         try:
             out[key] = hashlib.sha256(Path(path).read_bytes()).hexdigest()

@@ -19,6 +19,7 @@ import symcal
 from symcal.errors import SpecError
 from symcal.language.overlay import (
     MAX_DEPTH,
+    extends_chain,
     load_with_extends,
     merge_problem,
     merge_scenario,
@@ -381,6 +382,9 @@ def test_relative_paths_stay_relative_to_the_file_that_wrote_them(toy: Path) -> 
                                "flyby": {"path": str(toy / "variants" / "flyby.csv")}}
     problem = symcal.load_problem(over)
     assert "s2.k2" in [p.name for p in problem.parameters]
+    assert extends_chain("over.yaml", "problem") == (
+        over, toy / "variants" / "mid.yaml", toy / "base" / "base.yaml")
+    assert extends_chain(toy / "base" / "base.yaml", "problem") == (toy / "base" / "base.yaml",)
 
 
 # --------------------------------------------------------------------------- errors
@@ -443,6 +447,8 @@ def test_extends_goes_at_most_max_depth_levels(toy: Path) -> None:
         "f32.yaml:2: extends: more than 32 levels of 'extends' below f0.yaml (in the base of "
         "f0.yaml)")
     assert merged(toy / "f1.yaml")["problem"] == "f1"  # 32 levels: f1 -> ... -> base
+    assert len(extends_chain(toy / "f1.yaml", "problem")) == MAX_DEPTH + 1
+    assert _message(extends_chain, toy / "f0.yaml", "problem").startswith("f32.yaml:2: ")
 
 
 def test_a_base_must_be_a_file_of_the_same_kind(toy: Path) -> None:

@@ -189,13 +189,13 @@ def _groups(null_rows: np.ndarray) -> list[np.ndarray]:
         return i
 
     for row in null_rows:
-        idx = np.flatnonzero(row)
+        idx = [int(i) for i in np.flatnonzero(row)]
         for j in idx[1:]:
             parent[find(j)] = find(idx[0])
     involved = np.flatnonzero(np.any(null_rows != 0, axis=0))
     groups: dict[int, list[int]] = {}
     for i in involved:
-        groups.setdefault(find(i), []).append(int(i))
+        groups.setdefault(find(int(i)), []).append(int(i))
     return [np.array(g) for g in groups.values()]
 
 

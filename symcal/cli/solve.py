@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         out = Path(args.out)
         inputs = inputs_of(args) | {s.path for s in problem.datasets.values() if s.path}
-        inputs |= {Path(problem.path).resolve(), *problem.model_files()}
+        inputs |= set(problem.source_files())
         for target in (out / "result.json", out / "report.txt"):
             if target.resolve() in inputs:
                 raise SymcalError(f"--out {args.out}: refusing to overwrite input file {target}")

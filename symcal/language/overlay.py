@@ -80,6 +80,37 @@ def load_with_extends(path: str | Path, what: str, merge_rule: MergeRule) -> tup
         raise _reached_through(exc, where.file) from None
 
 
+def extends_chain(path: str | Path, what: str) -> tuple[Path, ...]:
+    """The file and every file it extends, directly or not, in order (resolved paths).
+
+    What a merged document depends on, e.g. to hash the sources of a result.
+
+    Parameters
+    ----------
+    path
+        The file.
+    what
+        The kind of file (``"problem"``, ``"scenario"``).
+
+    Returns
+    -------
+    tuple of Path
+        ``path`` first, then its base, the base's base, and so on.
+
+    Raises
+    ------
+    SpecError
+        As :func:`load_with_extends` for a missing base, a cycle or too many levels.
+    """
+    chain = [Path(path).resolve()]
+    while True:
+        doc, where = load_yaml(chain[-1], what)
+        if "extends" not in doc:
+            return tuple(chain)
+        at = child_where(doc, where, "extends")
+        chain.append(_base_path(doc["extends"], at, chain[-1], what, tuple(chain)))
+
+
 def _reached_through(exc: SpecError, top: str) -> SpecError:
     """``exc`` marked as reached through ``top`` when it is about another file."""
     if exc.where.file == top or exc.where.via is not None:

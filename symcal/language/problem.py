@@ -33,7 +33,7 @@ from symcal.language.fields import (
 )
 from symcal.language.model import ImplicitSpec, ModelSpec, load_model, parse_implicit
 from symcal.language.options import METHODS, SolveOptions, parse_solver
-from symcal.language.overlay import load_with_extends, merge_problem
+from symcal.language.overlay import extends_chain, load_with_extends, merge_problem
 from symcal.language.yamlio import YMap, display_path
 from symcal.suggest import did_you_mean
 
@@ -112,6 +112,7 @@ class DatasetSpec:
         """Human-readable origin of the data."""
         if self.path is not None:
             return display_path(self.path)
+        assert self.scenario is not None  # a dataset has a path or a scenario
         return f"simulated {display_path(self.scenario)} run '{self.run}' seed {self.seed}"
 
 
@@ -161,6 +162,7 @@ class ProblemSpec:
     study: StudySpec
     options: SolveOptions
     where: Where
+    sources: tuple[Path, ...] = ()
 
 
 def _doc(entry: YMap, where: Where) -> str:
@@ -422,4 +424,5 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
     system = SystemSpec(constants, parameters, columns, instances, expressions, constraints,
                         comparisons, implicit)
     return ProblemSpec(name, _doc(doc, where), path, system,
-                       StudySpec(datasets, stages, weighting), options, where)
+                       StudySpec(datasets, stages, weighting), options, where,
+                       extends_chain(path, "problem"))

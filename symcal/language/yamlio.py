@@ -10,9 +10,7 @@ file.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any
 
 import yaml
@@ -27,9 +25,11 @@ class YMap(dict):
     missing from it belongs to the file of the mapping's provenance.
     """
 
-    line: int | None = None
-    key_lines: dict[Any, int]
-    key_files: Mapping[Any, str] = MappingProxyType({})
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.line: int | None = None
+        self.key_lines: dict[Any, int] = {}
+        self.key_files: dict[Any, str] = {}
 
 
 class YList(list):
@@ -38,9 +38,11 @@ class YList(list):
     ``item_files`` names, per item, the file that wrote it, like :attr:`YMap.key_files`.
     """
 
-    line: int | None = None
-    item_lines: list[int]
-    item_files: Sequence[str] = ()
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.line: int | None = None
+        self.item_lines: list[int] = []
+        self.item_files: list[str] = []
 
 
 class _Loader(yaml.SafeLoader):

@@ -439,7 +439,7 @@ def _effects(value: Any, where: Where) -> Effects:
         "drift": lambda v, w: _per_segment(v, w, _drift),
         "pitch_variation": _pitch_variation,
     }
-    found = {
+    found: dict[str, Any] = {
         name: parsers[name](mapping[name], child_where(mapping, where, name))
         for name in EFFECT_NAMES
         if name in mapping

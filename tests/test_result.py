@@ -1,0 +1,131 @@
+"""A Result carries its problem, estimate and data; result.json round-trips; stale files are
+refused; consumers of results never solve again."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import ROOT, courier_data, write_csv
+
+import symcal
+import symcal.codegen
+import symcal.language.yamlio
+from symcal.compare import compare
+from symcal.diagnose import diagnose
+from symcal.errors import SymcalError
+from symcal.solvers import instrument
+
+PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"
+
+
+@pytest.fixture
+def project(tmp_path: Path, true_k: np.ndarray) -> dict[str, Path]:
+    """A copy of the platen problem, its implicit overlay and models, with CSV data."""
+    for sub in ("problems", "models"):
+        shutil.copytree(ROOT / sub, tmp_path / sub)
+    cal = write_csv(tmp_path / "cal.csv", courier_data(300, true_k, 5e-4, seed=3))
+    fly = write_csv(tmp_path / "fly.csv", courier_data(200, true_k, 5e-4, seed=4))
+    return {"problem": tmp_path / "problems" / "platen_self_calibration.yaml",
+            "implicit": tmp_path / "problems" / "platen_self_calibration_implicit.yaml",
+            "cal": cal, "fly": fly}
+
+
+def _solve(path: Path, project: dict[str, Path]) -> symcal.Result:
+    return symcal.solve(path, {"calibration": project["cal"], "flyby": project["fly"]})
+
+
+def test_save_load_round_trip(project, tmp_path) -> None:
+    result = _solve(project["problem"], project)
+    path = result.save(tmp_path / "out" / "result.json")
+    loaded = symcal.Result.load(path)
+    assert loaded.problem.name == result.problem.name
+    np.testing.assert_array_equal(loaded.theta, result.theta)
+    np.testing.assert_array_equal(loaded.theta0, result.theta0)
+    assert loaded.to_dict()["parameters"] == result.to_dict()["parameters"]
+    assert loaded.to_dict()["stages"] == result.to_dict()["stages"]
+    assert loaded.identifiability.null_space == result.identifiability.null_space
+    np.testing.assert_allclose(loaded.uncertainty.covariance, result.uncertainty.covariance)
+    for a, b in zip(loaded.statistics, result.statistics, strict=True):
+        assert a.after.std == pytest.approx(b.after.std, rel=1e-12)
+    assert (loaded.aic, loaded.bic) == pytest.approx((result.aic, result.bic), rel=1e-12)
+    # the data come back from the files the result names
+    np.testing.assert_array_equal(loaded.data["flyby"].columns["p2"],
+                                  result.data["flyby"].columns["p2"])
+
+
+def test_value_agrees_with_an_independent_evaluation(project) -> None:
+    result = _solve(project["problem"], project)
+    fly = result.data["flyby"].columns
+    k = {n: v for n, v in result.params.items()}
+    rho = 1.016
+
+    def p_hat(i: int) -> np.ndarray:
+        p = fly[f"p{i}"]
+        f = 2 * np.pi / rho
+        e = k[f"s{i}.k0"]
+        for col, h in ((1, 1), (3, 2), (5, 4), (7, 6)):
+            e = e + (k[f"s{i}.k{col}"] * np.sin(h * f * p)
+                     + k[f"s{i}.k{col + 1}"] * np.cos(h * f * p))
+        return p + e
+
+    g_p = (p_hat(1) - p_hat(3)) - (p_hat(2) - p_hat(4))
+    np.testing.assert_allclose(result.value("g_p", "flyby"), g_p, rtol=0, atol=1e-12)
+    # an expression (a comparison of the same name is reached as NAME only when no
+    # constraint, expression or signal has it)
+    np.testing.assert_allclose(result.value("theta_x", "flyby"), (p_hat(1) - p_hat(3)) / 9.7,
+                               rtol=0, atol=1e-12)
+    # a comparison: estimate − reference
+    np.testing.assert_allclose(result.value("position_y", "flyby"),
+                               (p_hat(2) + p_hat(4)) / 2 - fly["y_ref"], rtol=0, atol=1e-12)
+    with pytest.raises(KeyError, match="no quantity 'g_q' \\(did you mean 'g_p'\\?\\)"):
+        result.value("g_q")
+
+
+def test_aic_bic_on_the_result_and_in_the_ladder(project) -> None:
+    results = [_solve(project["problem"], project), _solve(project["implicit"], project)]
+    rungs = compare(results)
+    for rung, res in zip(rungs, results, strict=True):
+        n, k = res.rows, res.identifiability.rank
+        assert res.aic == pytest.approx(n * np.log(res.rss / n) + 2 * k)
+        assert res.bic == pytest.approx(n * np.log(res.rss / n) + k * np.log(n))
+        assert (rung.aic, rung.bic) == (res.aic, res.bic)
+
+
+def test_a_changed_base_of_an_overlay_makes_the_result_stale(project, tmp_path) -> None:
+    result = _solve(project["implicit"], project)
+    path = result.save(tmp_path / "r.json")
+    symcal.Result.load(path)                          # unchanged: accepted
+    base = project["problem"]
+    base.write_text(base.read_text() + "\n# edited\n")
+    with pytest.raises(SymcalError) as err:
+        symcal.Result.load(path)
+    assert str(err.value) == (
+        f"result file {path} was computed from another version of "
+        f"{symcal.language.yamlio.display_path(base)} (it changed since the solve); "
+        "solve again")
+
+
+def test_a_changed_data_file_is_refused(project, tmp_path) -> None:
+    path = _solve(project["problem"], project).save(tmp_path / "r.json")
+    write_csv(project["fly"], courier_data(200, np.zeros((4, 9)), 5e-4, seed=9))
+    loaded = symcal.Result.load(path)
+    with pytest.raises(SymcalError, match="dataset 'flyby' .* changed since the result was "
+                                          "computed; solve again"):
+        loaded.data  # noqa: B018 - the data are read on first use
+
+
+def test_consumers_of_a_result_never_solve_again(project, tmp_path) -> None:
+    result = _solve(project["problem"], project)
+    loaded = symcal.Result.load(result.save(tmp_path / "r.json"))
+    with instrument.counting() as counts:
+        first = diagnose(result)
+        again = diagnose(loaded)
+        compare([result, loaded])
+        symcal.codegen.generate(result.problem, tmp_path / "c", loaded)
+    assert counts.iterations == 0 and counts.r_passes == 0
+    assert [c.label for c in first.candidates] == [c.label for c in again.candidates]
+    assert [c.f_stat for c in first.candidates] == pytest.approx(
+        [c.f_stat for c in again.candidates], rel=1e-9)
