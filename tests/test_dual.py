@@ -199,7 +199,6 @@ def test_cli_failed_solve_exits_1_and_prints_report(capsys) -> None:
     assert out.err == ""
 
 
-@pytest.mark.slow
 def test_cli_progress_on_stderr_and_json_on_stdout(capsys) -> None:
     assert main(["solve", str(DUAL), "--json"]) == 0
     out = capsys.readouterr()
@@ -213,7 +212,6 @@ def test_cli_progress_on_stderr_and_json_on_stdout(capsys) -> None:
     assert set(doc["uncertainty"]["correlation"]["names"]) >= {"cs.h", "l_x"}
 
 
-@pytest.mark.slow
 def test_parameter_at_bound_is_reported(tmp_path) -> None:
     text = DUAL.read_text().replace("parameters: {h: {value: 52.5}}",
                                     "parameters: {h: {value: 48, upper: 49.5}}")

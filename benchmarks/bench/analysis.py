@@ -31,7 +31,7 @@ def exponents(rows: list[Row]) -> dict[tuple[str, str], tuple[float | None, ...]
     """Per (problem, method): the exponent of time over all sizes, over N >= 1e4, and of
     time per pass over the data over N >= 1e4 (what is left once iteration counts that
     differ between sizes are divided out)."""
-    out = {}
+    out: dict[tuple[str, str], tuple[float | None, ...]] = {}
     for problem, info in PROBLEMS.items():
         for method in info["methods"]:
             got = measured(rows, problem, method, finished=True)

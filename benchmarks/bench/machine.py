@@ -37,7 +37,7 @@ def machine() -> dict[str, str]:
     import scipy
 
     info["software"] = (f"Python {platform.python_version()}, numpy {np.__version__}, "
-                        f"scipy {scipy.__version__}, casadi {casadi.__version__}")
+                        f"scipy {scipy.__version__}, casadi {casadi.__version__}")  # type: ignore[attr-defined]
     try:
         blas = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
         info["BLAS"] = f"{blas.get('name')} {blas.get('version', '')}".strip()

@@ -20,6 +20,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import numpy as np
 import scipy.optimize
@@ -29,6 +30,7 @@ F = 2 * np.pi / RHO    # tooth frequency (rad/mm)
 L_S = 9.7              # distance between the segments of a pair (mm)
 L_O = 4.85             # lateral offset of each segment from the centre (mm)
 HARMONICS = (1, 2, 4, 6)   # eq. (3): k1..k8 are sin/cos of these harmonics
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -127,13 +129,13 @@ def dual_residual(theta: np.ndarray, cols: Mapping[str, np.ndarray]) -> np.ndarr
 # --------------------------------------------------------------------------- solvers
 
 
-class _Counted:
-    """A residual function that counts its calls."""
+class _Counted(Generic[T]):
+    """A residual (or cost) function that counts its calls."""
 
-    def __init__(self, fn: Callable[[np.ndarray], np.ndarray]) -> None:
+    def __init__(self, fn: Callable[[np.ndarray], T]) -> None:
         self.fn, self.calls = fn, 0
 
-    def __call__(self, x: np.ndarray) -> np.ndarray:
+    def __call__(self, x: np.ndarray) -> T:
         self.calls += 1
         return self.fn(x)
 

@@ -128,7 +128,8 @@ def _method_notes(report: dict[str, Any], settings: Settings) -> list[str]:
         "`accumulate_r`, ...).",
         "- Final J = Σ g² (mm², equal weights) of every method's estimate, evaluated with the "
         "same numpy residual; 'rel.' is (J − J_best)/J_best at that N.",
-        "- The numpy residuals of `peers.py` agree with symcal's at a perturbed test point to "
+        "- The numpy residuals of `bench/peers.py` agree with symcal's at a perturbed test "
+        "point to "
         + ", ".join(f"{v:.1e} mm ({p})" for p, v in report["residual_check"].items()) + ".",
         "",
     ]

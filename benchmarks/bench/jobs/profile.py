@@ -7,6 +7,7 @@ function is taken as the first call minus a repeated call.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -66,9 +67,9 @@ def profile_problem(problem: str, data_path: str, start_path: str) -> dict[str, 
     except Exception:  # noqa: BLE001 - informative only
         rec["work_mib"] = None
     for name in ("normal_equations", "accumulate_r", "cost"):
-        other = fresh()
-        first = timed(lambda o=other, m=name: getattr(o, m)(data, theta))
-        rec[name] = best(lambda o=other, m=name: getattr(o, m)(data, theta))
+        evaluate = functools.partial(getattr(fresh(), name), data, theta)
+        first = timed(evaluate)
+        rec[name] = best(evaluate)
         rec[f"{name}_first"] = first
     return rec
 
