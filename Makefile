@@ -29,9 +29,10 @@ demo: $(VENV)/.installed
 	  --data calibration=$(DEMO_DIR)/courier.calibration.csv \
 	  --data flyby=$(DEMO_DIR)/courier.flyby.csv --out $(DEMO_DIR)/result
 
-# Static checks run by `make test` before the suite (type checking goes here too).
+# Static checks run by `make test` before the suite: style and types.
 lint: $(VENV)/.installed-test
 	$(BIN)/ruff check symcal tests benchmarks
+	$(BIN)/mypy
 
 test: lint
 	$(TEST_ENV) $(BIN)/python -m pytest

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import re
 import tempfile
 import textwrap
@@ -34,7 +35,7 @@ from typing import Any
 import casadi as ca
 
 from symcal.errors import SymcalError
-from symcal.files import atomic_write_text
+from symcal.files import STAGING_PREFIX, atomic_write_text, clean_stale
 from symcal.problem import Problem
 from symcal.result import Result, check_result_problem, read_result_document
 from symcal.units import internal_unit
@@ -159,6 +160,17 @@ def c_identifier(name: str) -> str:
     return text + "_" if text in RESERVED else text
 
 
+def c_prefix(problem: str) -> str:
+    """``symcal_<problem>``: the prefix of every C identifier of a problem's export.
+
+    Runs of underscores become one and none ends the name, as CasADi requires of the
+    function names built from it (``symcal_toy_cg_residual``): ``my__toy``, ``_toy`` and
+    ``toy_`` all give ``symcal_toy``-like prefixes, ``int`` gives ``symcal_int``.
+    """
+    core = re.sub(r"_+", "_", re.sub(r"[^A-Za-z0-9_]", "_", problem)).strip("_")
+    return f"symcal_{core}" if core else "symcal_problem"
+
+
 class _Namespace:
     """C names of one scope (a struct's fields, or a set of identifiers): no two alike."""
 
@@ -186,13 +198,22 @@ def _load_result(result: ResultLike, problem: Problem) -> tuple[tuple[float, ...
             raise SymcalError(f"the result is for problem '{result.name}', whose parameters "
                               f"are not those of '{problem.name}'")
         return tuple(float(v) for v in result.theta), f"the result of '{result.name}'"
-    doc, label = read_result_document(result)
+    try:
+        doc, label = read_result_document(result)
+    except RecursionError:
+        raise SymcalError(f"result file {result} is nested too deeply to be a symcal "
+                          "result") from None
     check_result_problem(doc, label, problem)
     solver = doc.get("solver")
-    if isinstance(solver, Mapping) and solver.get("success") is False:
+    if not isinstance(solver, Mapping) or not isinstance(solver.get("success"), bool):
+        raise SymcalError(f"{label} does not record whether its solve succeeded (no "
+                          "'solver': {'success': ...}); symcal exports only a successful "
+                          "calibration: solve again")
+    if solver["success"] is False:
         raise SymcalError(f"{label} is from a failed solve; symcal exports only a "
                           "successful calibration (or none: omit --result to pass the "
                           "parameters at run time)")
+    _check_data(doc, label)
     entries = doc.get("parameters")
     if not isinstance(entries, list):
         raise SymcalError(f"{label} has no 'parameters' list")
@@ -220,6 +241,28 @@ def _load_result(result: ResultLike, problem: Problem) -> tuple[tuple[float, ...
         raise SymcalError(f"{label} has a value for parameter '{extra}', which problem "
                           f"'{problem.name}' does not have")
     return tuple(values), label
+
+
+def _check_data(doc: Mapping[str, Any], label: str) -> None:
+    """Refuse a result whose data files changed (or vanished) since the solve."""
+    from symcal.files import display_path
+
+    entries = doc.get("datasets", [])
+    if not isinstance(entries, list):
+        raise SymcalError(f"{label} has no 'datasets' list")
+    for entry in entries:
+        if not isinstance(entry, Mapping) or not entry.get("file") or not entry.get("sha256"):
+            continue
+        path = Path(str(entry["file"]))
+        try:
+            digest = hashlib.sha256(path.read_bytes()).hexdigest()
+        except OSError as exc:
+            raise SymcalError(f"{label} was computed on {display_path(path)}, which cannot "
+                              f"be read now ({exc.strerror}); solve again") from None
+        if digest != entry["sha256"]:
+            raise SymcalError(f"{label} was computed on another version of dataset "
+                              f"'{entry.get('name')}' ({display_path(path)} changed since the "
+                              "solve); solve again")
 
 
 # --------------------------------------------------------------------------- plan
@@ -299,7 +342,7 @@ def plan(problem: Problem, result: ResultLike | None = None) -> Plan:
         if not math.isfinite(par.value):
             raise SymcalError(f"cannot export parameter '{par.name}': its initial value "
                               f"{par.value} is not finite (give a result file)")
-    prefix = f"symcal_{c_identifier(problem.name)}"
+    prefix = c_prefix(problem.name)
     symbols = [problem.theta, problem.u]
     for q in problem.constraints:
         _check_exportable(f"constraint '{q.name}'", q.sx, symbols)
@@ -427,7 +470,8 @@ def _casadi_code(p: Plan, functions: list[ca.Function]) -> _Code:
     opts: dict[str, Any] = {"with_header": True, "casadi_real": "double",
                             "casadi_int": "long long int", "main": False, "mex": False,
                             "cpp": False, "with_mem": False, "verbose": True}
-    with tempfile.TemporaryDirectory(prefix="symcal-codegen-") as tmp:
+    clean_stale(tempfile.gettempdir())
+    with tempfile.TemporaryDirectory(prefix=f"{STAGING_PREFIX}{os.getpid()}-codegen-") as tmp:
         cg = ca.CodeGenerator(f"{base}.c", opts)
         for fn in functions:
             cg.add(fn)
@@ -717,7 +761,8 @@ class _Render:
         arg = "" if p.baked else "&params, "
         lines = ["/*", *_wrap(f"Example: the calibrated outputs and the residuals of problem "
                               f"'{p.problem.name}' for one sample reading, {note}.  Build and "
-                              "run it with 'make run'."), " */",
+                              "run it with 'make run'.  Generated by symcal codegen."),
+                 " */",
                  "#include <stdio.h>", "", f'#include "{p.prefix}.h"', "",
                  "static void show(const char *kind, const char *name, double value, "
                  "const char *unit)", "{",
@@ -807,8 +852,8 @@ def _command(problem: Problem, outdir: Path, result: object) -> str:
     return text + f" -o {outdir}"
 
 
-def generate(problem: Problem, outdir: str | Path,
-             result: ResultLike | None = None) -> list[Path]:
+def generate(problem: Problem, outdir: str | Path, result: ResultLike | None = None,
+             force: bool = False, inputs: Iterable[str | Path] = ()) -> list[Path]:
     """Write the C export of ``problem`` to ``outdir``.
 
     Parameters
@@ -821,6 +866,12 @@ def generate(problem: Problem, outdir: str | Path,
         A result file written by ``symcal solve --out DIR`` (``DIR/result.json``), the
         dict of ``Result.to_dict()``, or None: the parameters are then an argument of
         every function (``symcal_<P>_params``) instead of baked in.
+    force
+        Replace files in ``outdir`` that symcal did not write (a ``Makefile`` or
+        ``main.c`` of your own); never an input file.
+    inputs
+        Further files the caller read, which must not be replaced either (the problem's
+        own files, its data and the result file always count).
 
     Returns
     -------
@@ -831,14 +882,23 @@ def generate(problem: Problem, outdir: str | Path,
     Raises
     ------
     SymcalError
-        A result for another problem or without every parameter, names that collide in
-        C, a part that cannot be written in C (the message names it and why), or an
-        output path that is one of the input files.
+        A result for another problem, from a failed solve, or computed from other files
+        or data; names that collide in C; a part that cannot be written in C (the message
+        names it and why); an output that is an input file, a file symcal did not write
+        (unless ``force``), or a folder that cannot be written.
     """
+    from symcal.files import OutputSet, check_outputs
+
     p = plan(problem, result)
     outdir = Path(outdir)
-    if outdir.exists() and not outdir.is_dir():
-        raise SymcalError(f"output directory {outdir} exists and is not a directory")
+    names = [f"{p.prefix}_casadi.c", f"{p.prefix}_casadi.h", f"{p.prefix}.h", f"{p.prefix}.c",
+             "main.c", "Makefile"]
+    reads = {Path(f).resolve() for f in (*p.files, *inputs)}
+    reads |= {Path(d.path).resolve() for d in problem.datasets.values() if d.path is not None}
+    if isinstance(result, (str, Path)):
+        reads.add(Path(result).resolve())
+    option, hint = f"-o {outdir}", " (or pass --force to replace it)"
+    check_outputs([outdir / name for name in names], reads, option, force, hint)
     residual, outputs = casadi_functions(p)
     code = _casadi_code(p, [residual, *outputs])
     render = _Render(p, code, residual, outputs, _command(problem, outdir, result))
@@ -850,14 +910,7 @@ def generate(problem: Problem, outdir: str | Path,
         "main.c": render.main(*_sample(p)),
         "Makefile": render.makefile(),
     }
-    inputs = {f.resolve() for f in p.files}
-    if isinstance(result, (str, Path)):
-        inputs.add(Path(result).resolve())
-    for name in texts:
-        if (outdir / name).resolve() in inputs:
-            raise SymcalError(f"refusing to overwrite input file {outdir / name}")
-    written = []
-    for name, text in texts.items():
-        atomic_write_text(outdir / name, text)
-        written.append(outdir / name)
-    return written
+    with OutputSet(outdir, reads, option, force, hint) as stage:
+        for name, text in texts.items():
+            atomic_write_text(stage / name, text)
+    return [outdir / name for name in texts]

@@ -34,9 +34,10 @@ def load_dataset(
     """Load the dataset ``spec`` describes, or the file ``path`` that replaces it."""
     if path is not None:
         return make_dataset(spec.name, display_path(Path(path)), read_table(path), needed,
-                            drop_invalid)
+                            drop_invalid, copy=False)
     if spec.path is not None:
-        return make_dataset(spec.name, spec.source, read_table(spec.path), needed, drop_invalid)
+        return make_dataset(spec.name, spec.source, read_table(spec.path), needed, drop_invalid,
+                            copy=False)
     from symcal.simulate import load_scenario, simulate_run
 
     assert spec.scenario is not None and spec.run is not None

@@ -1,16 +1,30 @@
 """`symcal diagnose`: compare the calibrated model with the measurements, show where it
 fails, and name the physical effect that is most likely missing (ARCHITECTURE.md).
 
-The flow: a calibration result → evaluate every residual (constraints and reference comparisons) on
-every dataset, with its sensitivity to each sensor output (exact, through hooks) and to
-the free parameters → where it fails (binned structure, periodograms) → which effect is
-missing (candidate library, projected F-tests, indistinguishable groups) → words, YAML.
+The flow: a calibration result → evaluate every residual (constraints and reference
+comparisons) on every dataset, with its sensitivity to each sensor output (exact, through
+hooks) and to the free parameters → where it fails (binned structure, periodograms) →
+which effect is missing:
+
+- **calibratable** candidates are tested on what the calibration itself uses, its last
+  stage's constraints on the calibration data, with the current parameters projected out;
+  only these are suggested, as model extensions that load;
+- a candidate that only a reference reveals (significant when the comparisons with a
+  reference sensor are included, but absorbed by the current parameters or invisible in
+  the constraints) is reported apart: real, but these constraints cannot determine it;
+- the model's own approximation is a candidate: where an implicit variant of the problem
+  or its models exists beside its files (errors evaluated at the corrected reading), the
+  difference it makes is tested like any term;
+- every prediction is what re-solving the calibration with the candidate would give
+  (a Gauss-Newton refit on the calibration's constraints), on every dataset, held-out ones
+  included.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -24,8 +38,13 @@ from symcal.numeric import mapped
 from symcal.problem import Problem
 from symcal.result import Result
 from symcal.units import ANGLE_UNITS, DISPLAY_UNITS
+from symcal.variants import Variant, implicit_variant
 
 HARMONICS = 8
+#: How many leading candidates get a prediction and a suggestion.
+TOP = 10
+#: Label of the model's own approximation as a candidate.
+APPROXIMATION = "the model's approximation: errors evaluated at the raw readings"
 
 
 @dataclass(frozen=True)
@@ -65,7 +84,14 @@ class ResidualView:
 
 @dataclass(frozen=True, eq=False)
 class Diagnosis:
-    """What `symcal diagnose` found; ``candidates`` are ranked, best first."""
+    """What `symcal diagnose` found.
+
+    ``candidates`` are ranked on the calibration's own constraints, best first (only
+    these are suggested); ``uncalibratable`` are effects that the comparisons with a
+    reference reveal but these constraints cannot determine, each with ``needs[label]``
+    saying what would (the reference, another constraint, a problem that has one).
+    ``variant`` is the implicit variant tested as the model's own approximation.
+    """
 
     result: Result
     residuals: tuple[ResidualView, ...]
@@ -73,27 +99,25 @@ class Diagnosis:
     yaml: dict[str, str]
     alpha: float
     tested: int
+    uncalibratable: tuple[Candidate, ...] = ()
+    needs: dict[str, str] = field(default_factory=dict)
+    variant: Variant | None = None
 
     @property
     def leads(self) -> tuple[Candidate, ...]:
         """Ranked candidates, one per group of indistinguishable ones, best first."""
-        seen: set[str] = set()
-        out = []
-        for c in self.candidates:
-            if c.absorbed or c.label in seen:
-                continue
-            out.append(c)
-            seen.update(c.indistinguishable)
-        return tuple(out)
+        return _leads(self.candidates)
 
     @property
     def significant(self) -> tuple[Candidate, ...]:
-        """The significant candidates (group leads), best first."""
+        """The significant calibratable candidates (group leads), best first."""
         return tuple(c for c in self.leads if c.significant)
 
     def candidate_text(self, cand: Candidate) -> str:
         """The candidate in words."""
-        return _words(cand, self.alpha, self.tested)
+        if cand in self.uncalibratable:
+            return _uncalibratable_words(cand, self.needs.get(cand.label, ""))
+        return _words(cand, self.alpha, self.tested, self.variant)
 
     def to_dict(self, series: bool = False) -> dict:
         """Plain data (``--json``; with ``series`` the plotting contract)."""
@@ -106,10 +130,20 @@ class Diagnosis:
                 {"rank": i + 1, "label": c.label, "output": c.output,
                  "basis": c.basis.description, "delta_rss_share": c.share,
                  "f_stat": c.f_stat, "p_value": c.p_value, "significant": c.significant,
+                 "calibratable": True,
+                 "coefficient": list(c.coefficient), "coefficient_se": list(c.coefficient_se),
                  "reduction": {k: list(v) for k, v in c.reduction.items()},
+                 "predicted": {k: v[1] for k, v in c.reduction.items()},
                  "indistinguishable": list(c.indistinguishable),
                  "text": self.candidate_text(c), "yaml": self.yaml.get(c.label, "")}
                 for i, c in enumerate(ranked[:20])],
+            "uncalibratable": [
+                {"label": c.label, "output": c.output, "basis": c.basis.description,
+                 "f_stat": c.f_stat, "p_value": c.p_value,
+                 "indistinguishable": list(c.indistinguishable),
+                 "needs": self.needs.get(c.label, ""), "text": self.candidate_text(c)}
+                for c in self.uncalibratable],
+            "regressions": [r.to_dict() for r in self.result.regressions],
             "absorbed": [{"label": c.label, "biases": list(c.biases)}
                          for c in self.candidates if c.absorbed and c.biases][:20],
             "singular_values": list(self.result.identifiability.singular_values),
@@ -117,10 +151,59 @@ class Diagnosis:
         }
 
 
-def _words(cand: Candidate, alpha: float, tested: int) -> str:
-    biggest = sorted(cand.reduction.items(), key=lambda kv: -(kv[1][0] - kv[1][1]))[:2]
-    falls = "; ".join(f"{k.replace('/', ' ')} std {b:.3g} → {a:.3g}" for k, (b, a) in biggest)
-    verdict = ("significant" if cand.significant else "not significant")
+def _leads(candidates: tuple[Candidate, ...]) -> tuple[Candidate, ...]:
+    seen: set[str] = set()
+    out = []
+    for c in candidates:
+        if c.absorbed or c.label in seen:
+            continue
+        out.append(c)
+        seen.update(c.indistinguishable)
+    return tuple(out)
+
+
+def _falls(cand: Candidate) -> str:
+    biggest = sorted(cand.reduction.items(), key=lambda kv: -(kv[1][0] - kv[1][1]))[:3]
+    return "; ".join(f"{k.replace('/', ' ')} std {b:.3g} → {a:.3g}" for k, (b, a) in biggest)
+
+
+def _group_words(cand: Candidate) -> str:
+    if not cand.indistinguishable:
+        return ""
+    shown = "; ".join(cand.indistinguishable[:4])
+    more = (f" and {len(cand.indistinguishable) - 4} more"
+            if len(cand.indistinguishable) > 4 else "")
+    members = [cand.label, *cand.indistinguishable]
+    outputs = sorted({m.split(" += ", 1)[0] for m in members})
+    instances = sorted({o.split(".", 1)[0] for o in outputs})
+    if len(instances) == 1 and len(outputs) > 1:
+        common = (f"they all change {instances[0]}'s outputs {', '.join(outputs)} in a way "
+                  "these data see only as one effect (the channels disagree in the same "
+                  "way)")
+    elif len(instances) == 1:
+        common = f"they all change {outputs[0]} the same way on these data"
+    else:
+        common = (f"they change {', '.join(outputs[:4])} in ways the constraints cannot "
+                  "tell apart")
+    return (f" These data cannot tell it apart from: {shown}{more}: {common}. It is "
+            "named by its simplest member; only a reference sensor or another constraint "
+            "can separate them.")
+
+
+def _words(cand: Candidate, alpha: float, tested: int, variant: Variant | None) -> str:
+    verdict = "significant" if cand.significant else "not significant"
+    stats = (f"F = {cand.f_stat:.3g}, p = {cand.p_value:.2g}: {verdict} at {alpha:g} after "
+             f"allowing for the {tested} candidates tested")
+    if cand.basis.kind == "approximation" and variant is not None:
+        coef = (f"; the data ask for {cand.coefficient[0]:.2f} ± "
+                f"{cand.coefficient_se[0]:.2f} times its effect (1 means exactly it)"
+                if cand.coefficient else "")
+        return (f"The model evaluates each sensor's error at the raw reading, an "
+                f"approximation that leaves a structured residual of order e'·e when the "
+                f"errors are not small against their period. {variant.description} explains "
+                f"{cand.share:.0%} of what the model cannot yet explain ({_falls(cand)} if "
+                f"the calibration is solved again with it){coef}; {stats}. Switch to the "
+                "implicit model rather than adding harmonics." + _group_words(cand))
     owner = cand.basis.variable.split(".", 1)[0] if "." in cand.basis.variable else None
     instance = cand.output.split(".", 1)[0]
     cross = ""
@@ -128,18 +211,17 @@ def _words(cand: Candidate, alpha: float, tested: int) -> str:
         cross = (f" {cand.basis.variable} is what another sensor ({owner}) measures: "
                  f"{instance}'s output depends on a quantity it should not see, such as a "
                  "lateral or cross-axis dependence.")
-    text = (f"{cand.output} varies with {cand.basis.description}, a term its model lacks."
-            f"{cross} "
-            f"Adding it would remove {cand.share:.0%} of what the model cannot yet explain "
-            f"({falls}); F = {cand.f_stat:.3g}, p = {cand.p_value:.2g}: {verdict} at "
-            f"{alpha:g} after allowing for the {tested} candidates tested.")
-    if cand.indistinguishable:
-        shown = "; ".join(cand.indistinguishable[:4])
-        more = f" and {len(cand.indistinguishable) - 4} more" if len(cand.indistinguishable) > 4 \
-            else ""
-        text += (f" These data cannot tell it apart from: {shown}{more}. Only a reference "
-                 "sensor or another constraint can separate them.")
-    return text
+    return (f"{cand.output} varies with {cand.basis.description}, a term its model lacks."
+            f"{cross} Adding it would remove {cand.share:.0%} of what the calibration's "
+            f"constraints cannot yet explain; solving again with it would give "
+            f"{_falls(cand)}; {stats}." + _group_words(cand))
+
+
+def _uncalibratable_words(cand: Candidate, needs: str) -> str:
+    return (f"{cand.output} varies with {cand.basis.description}: real (F = "
+            f"{cand.f_stat:.3g}, p = {cand.p_value:.2g} with the reference comparisons), but "
+            f"these constraints cannot determine it — the current parameters absorb it or it "
+            f"leaves them unchanged. {needs}" + _group_words(cand))
 
 
 @dataclass
@@ -212,7 +294,17 @@ def _variable_specs(hp: Problem) -> list[tuple[str, ca.SX, str, float | None, st
             out.append((col, hp.u[k], unit, None, _column_kind(hp, col)))
     for sig in hp.signals:
         derived = ca.depends_on(sig.sx, hooks)
-        out.append((sig.name, sig.sx, sig.unit, sig.period, "derived" if derived else "signal"))
+        period = sig.period
+        inst, _, name = sig.name.partition(".")
+        if inst in hp.instances:
+            model = hp.instances[inst].model
+            point = model.evaluation_point(name)
+            if point is not None and point in model.implicit:
+                period = None   # harmonics where the model evaluates its error, not here
+            if name in {model.evaluation_point(i) for i in model.inputs}:
+                derived = False  # its own evaluation point: a term there stays inside
+
+        out.append((sig.name, sig.sx, sig.unit, period, "derived" if derived else "signal"))
     for q in hp.expressions:
         kind = "angle" if q.unit in ANGLE_UNITS else "expression"
         out.append((q.name, q.sx, q.unit, None,
@@ -265,6 +357,12 @@ def _distinct(variables: list[Variable]) -> list[Variable]:
     return kept
 
 
+def _scale(values: np.ndarray) -> float:
+    """A coefficient that makes a term of shape ``values`` about 1 µm (internal mm)."""
+    spread = float(np.std(values))
+    return 0.001 / spread if spread > 0 else 0.001
+
+
 def _library(variables: list[Variable]) -> list[tuple[Basis, Callable]]:
     """Candidate shapes φ(v), each with a function of the variables' values → (N, m)."""
     lib: list[tuple[Basis, Callable]] = []
@@ -279,28 +377,35 @@ def _library(variables: list[Variable]) -> list[tuple[Basis, Callable]]:
                               f"harmonic {n} of {v.name} (period {period:g} {v.unit})",
                               (f"h{n}_sin", f"h{n}_cos"),
                               (f"sin({2 * n}*pi*{{v}}/{period:g})",
-                               f"cos({2 * n}*pi*{{v}}/{period:g})")),
+                               f"cos({2 * n}*pi*{{v}}/{period:g})"), order=n, unit=v.unit,
+                              scales=(0.0014, 0.0014)),
                         _harmonic(index[v.name], w)))
     for v in variables:
         if v.kind == "drift":
             lib.append((Basis("drift", v.name, f"a slow drift in time ({v.name})", ("drift",),
-                              ("{v}",)), _linear(index[v.name], 0.0)))
+                              ("{v}",), unit=v.unit, scales=(_scale(v.values),)),
+                        _linear(index[v.name], 0.0)))
             continue
         mean = float(np.mean(v.values))
+        centred = v.values - mean
         lib.append((Basis("linear", v.name, f"a term linear in {v.name}", ("lin",),
-                          (f"({{v}} - {mean:.6g})",)), _linear(index[v.name], mean)))
+                          (f"({{v}} - {mean:.6g})",), unit=v.unit,
+                          scales=(_scale(centred),)), _linear(index[v.name], mean)))
         lib.append((Basis("quadratic", v.name, f"a quadratic dependence on {v.name}",
-                          ("lin", "quad"), (f"({{v}} - {mean:.6g})", f"({{v}} - {mean:.6g})**2")),
+                          ("lin", "quad"), (f"({{v}} - {mean:.6g})", f"({{v}} - {mean:.6g})**2"),
+                          unit=v.unit, scales=(_scale(centred), _scale(centred ** 2))),
                     _quadratic(index[v.name], mean)))
     for a in angles:
         for v in periodic:
             period = float(v.period or 1.0)
             w = 2 * np.pi / period
+            scale = _scale(a.values) * 1.4
             lib.append((Basis("angle_harmonic", v.name,
                               f"the angle {a.name} times harmonic 1 of {v.name}",
                               ("ah_sin", "ah_cos"),
                               (f"{{a}}*sin(2*pi*{{v}}/{period:g})",
-                               f"{{a}}*cos(2*pi*{{v}}/{period:g})"), a.name),
+                               f"{{a}}*cos(2*pi*{{v}}/{period:g})"), a.name, unit=v.unit,
+                              angle_unit=a.unit, scales=(scale, scale)),
                         _angle_harmonic(index[a.name], index[v.name], w)))
     return lib
 
@@ -320,6 +425,9 @@ def _quadratic(i: int, centre: float) -> Callable:
 def _angle_harmonic(ia: int, iv: int, w: float) -> Callable:
     return lambda vs: vs[ia].values[:, None] * np.column_stack(
         [np.sin(w * vs[iv].values), np.cos(w * vs[iv].values)])
+
+
+Raw = Callable[[int], np.ndarray]   # block index -> unwhitened regressor (N, n_q, m)
 
 
 def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
@@ -342,41 +450,204 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
     """
     problem = result.problem
     hp = problem.diagnostic
-    datasets = result.data
-    theta, theta0 = result.theta, result.theta0
+    data = result.data
     free = np.array([n in result.stages[-1].free for n in problem.parameter_names])
-    blocks = [_evaluate(hp, ds, theta0, theta, free) for ds in datasets.values()]
-    calibration = blocks[0]
-    design, whiteners = _design(blocks, problem, free)
-    # the covariance of what the nuisance cannot explain, not of the raw residuals: the
-    # comparisons' residuals also carry the estimate's own error, which the refit removes
-    design, whiteners = _design(blocks, problem, free, _projected(design))
-    variables_by_block = [b.variables for b in blocks]
-    keep = {v.name for v in _distinct(calibration.variables) if v.kind != "derived"}
-    shapes = _library([v for v in calibration.variables if v.name in keep])
-    names = list(hp.hooks)
-    candidates, regressors = [], []
-    for h, output in enumerate(names):
+    blocks = [_evaluate(hp, ds, result.theta0, result.theta, free) for ds in data.values()]
+    cal = list(data).index("calibration")
+    own_names = [c.name for c in result.stages[-1].costs]
+    own_cols = [blocks[cal].names.index(n) for n in own_names]
+    own_blocks = [_subset(blocks[cal], own_cols)]
+    own, own_t = _whitened(own_blocks, problem, free)
+    full, full_t = _whitened(blocks, problem, free)
+    keep = {v.name for v in _distinct(blocks[cal].variables) if v.kind != "derived"}
+    raws = _library_regressors(hp, blocks, keep)
+    variant = implicit_variant(problem)
+    if variant is not None:
+        diff = _variant_differences(variant, blocks, data, result.theta)
+        raws.append((Candidate("(model)", Basis("approximation", "(model)", APPROXIMATION,
+                                                ("approximation",), ())),
+                     lambda i, d=diff: d[i]))   # type: ignore[misc]
+
+    def own_regressor(raw: Raw) -> np.ndarray:
+        return _whiten(raw(cal)[:, own_cols, :], own_t[0])
+
+    def full_regressor(raw: Raw) -> np.ndarray:
+        return np.vstack([_whiten(raw(i), t) for i, t in enumerate(full_t)])
+
+    def local(cand: Candidate) -> bool:
+        if cand.output not in hp.hooks:
+            return True
+        instance = cand.output.split(".", 1)[0]
+        bindings = problem.instances[instance].bindings
+        return cand.basis.variable.startswith(f"{instance}.") or \
+            cand.basis.variable in set(bindings.values())
+
+    candidates = [c for c, _ in raws]
+    by_label = {c.label: raw for c, raw in raws}
+    ranked = test_candidates(own, candidates, [own_regressor(r) for _, r in raws], alpha,
+                             local)
+    leads = [c for c in _leads(tuple(ranked)) if c.significant][:TOP]
+    for cand in leads:
+        _predict(cand, own, own_regressor(by_label[cand.label]), blocks, free,
+                 by_label[cand.label])
+    uncal, needs = _uncalibratable(problem, full, raws, full_regressor, leads, ranked, alpha,
+                                   local)
+    yaml = {c.label: (variant.overlay(Path(problem.path), f"{problem.name}_implicit",
+                                      Path(problem.path).parent)
+                      if c.basis.kind == "approximation" and variant is not None
+                      else effect_yaml(problem, c))
+            for c in leads}
+    return Diagnosis(result, tuple(_views(blocks)), tuple(ranked), yaml, alpha,
+                     len(candidates), tuple(uncal), needs, variant)
+
+
+def _library_regressors(hp: Problem, blocks: list[_Block], keep: set[str]
+                        ) -> list[tuple[Candidate, Raw]]:
+    """Every (sensor output × shape) candidate with its unwhitened regressor per block."""
+    cal = next(i for i, b in enumerate(blocks) if b.dataset.name == "calibration")
+    shapes = _library([v for v in blocks[cal].variables if v.name in keep])
+    out: list[tuple[Candidate, Raw]] = []
+    for h, output in enumerate(hp.hooks):
         if all(not np.any(b.hooks[:, :, h]) for b in blocks):
             continue
         for basis, phi in shapes:
-            cols = []
-            for b, t, vs in zip(blocks, whiteners, variables_by_block, strict=True):
-                f = phi([v for v in vs if v.name in keep])
-                x = b.hooks[:, :, h][:, :, None] * f[:, None, :]   # (N, n_q, m)
-                cols.append(np.einsum("ab,nbm->nam", t, x).reshape(-1, f.shape[1]))
-            candidates.append(Candidate(output, basis))
-            regressors.append(np.vstack(cols))
-    def local(cand: Candidate) -> bool:
-        instance = cand.output.split(".", 1)[0]
-        bindings = problem.instances[instance].bindings
-        own = {f"{instance}.{k}" for k in bindings} | set(bindings.values())
-        return cand.basis.variable in own
+            def raw(i: int, h: int = h, phi: Callable = phi) -> np.ndarray:
+                b = blocks[i]
+                f = phi([v for v in b.variables if v.name in keep])
+                return b.hooks[:, :, h][:, :, None] * f[:, None, :]   # (N, n_q, m)
 
-    ranked = test_candidates(design, candidates, regressors, alpha, local)
-    yaml = {c.label: effect_yaml(problem, c) for c in ranked[:10] if not c.absorbed}
-    views = tuple(_views(blocks))
-    return Diagnosis(result, views, tuple(ranked), yaml, alpha, len(candidates))
+            out.append((Candidate(output, basis), raw))
+    return out
+
+
+def _variant_differences(variant: Variant, blocks: list[_Block], data: Mapping[str, Dataset],
+                         theta: np.ndarray) -> list[np.ndarray]:
+    """What the implicit variant changes in every residual at ``theta`` (N, n_q, 1): adding
+    1 times it is exactly the switch to the variant."""
+    vp = variant.problem
+    comparisons = {c.name: c for c in vp.comparisons}
+    out = []
+    for b in blocks:
+        exprs = [vp.constraint(n).sx if kind == "constraint"
+                 else comparisons[n].estimate - comparisons[n].reference
+                 for n, kind in zip(b.names, b.kinds, strict=True)]
+        fn = mapped(vp.theta, vp.u, [ca.vertcat(*exprs)], "variant")
+        values = fn(theta, data[b.dataset.name].matrix(vp.columns))[0]
+        out.append((values - b.after)[:, :, None])
+    return out
+
+
+def _whiten(x: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Whitened rows of a regressor (N, n_q, m) → (N·rank, m)."""
+    return np.einsum("ab,nbm->nam", t, x).reshape(-1, x.shape[2])
+
+
+def _subset(block: _Block, cols: list[int]) -> _Block:
+    """A block restricted to the quantities ``cols`` (e.g. the calibration's constraints)."""
+    return replace(block, names=[block.names[k] for k in cols],
+                   kinds=[block.kinds[k] for k in cols], units=[block.units[k] for k in cols],
+                   offsets=[block.offsets[k] for k in cols], before=block.before[:, cols],
+                   after=block.after[:, cols], hooks=block.hooks[:, cols, :],
+                   jac=block.jac[:, cols, :])
+
+
+def _whitened(blocks: list[_Block], problem: Problem, free: np.ndarray
+              ) -> tuple[Design, list[np.ndarray]]:
+    """The design of ``blocks`` whitened by the covariance of what the current parameters
+    cannot explain (not of the raw residuals: comparisons also carry the estimate's own
+    error, which a refit removes)."""
+    design, _ = _design(blocks, problem, free)
+    return _design(blocks, problem, free, _projected(design))
+
+
+def _predict(cand: Candidate, own: Design, x_own: np.ndarray, blocks: list[_Block],
+             free: np.ndarray, raw: Raw) -> None:
+    """What solving the calibration again with ``cand`` would give on every dataset: a
+    Gauss-Newton refit of the current parameters and the candidate's coefficients on the
+    calibration's constraints, applied to every residual; fills ``reduction`` (std now →
+    predicted, display units) and the coefficients of the term to add (regressors are the
+    change a term of coefficient 1 makes) with standard errors."""
+    a = np.column_stack([own.nuisance, x_own])
+    delta, *_ = np.linalg.lstsq(a, own.r, rcond=None)
+    m = x_own.shape[1]
+    rows = len(own.r)
+    rank = int(np.linalg.matrix_rank(a))
+    s2 = float(np.sum((own.r - a @ delta) ** 2)) / max(rows - rank, 1)
+    cov = s2 * np.linalg.pinv(a.T @ a)
+    # the fit explains the residual as X·δ; the term to add to the model is -δ
+    cand.coefficient = tuple(-float(v) for v in delta[-m:])
+    cand.coefficient_se = tuple(float(np.sqrt(max(cov[k, k], 0.0)))
+                                for k in range(len(delta) - m, len(delta)))
+    n_params = int(free.sum())
+    out: dict[str, tuple[float, float]] = {}
+    for i, b in enumerate(blocks):
+        change = b.jac @ delta[:n_params] + raw(i) @ delta[-m:]
+        predicted = b.after - change
+        for k, name in enumerate(b.names):
+            now, new = b.after[:, k], predicted[:, k]
+            if b.offsets[k]:
+                now, new = now - now.mean(), new - new.mean()
+            scale = DISPLAY_UNITS[b.units[k]]
+            out[f"{b.dataset.name}/{name}"] = (float(np.std(now)) / scale,
+                                               float(np.std(new)) / scale)
+    cand.reduction = out
+
+
+def _uncalibratable(
+    problem: Problem, full: Design, raws: list[tuple[Candidate, Raw]],
+    full_regressor: Callable[[Raw], np.ndarray], leads: list[Candidate],
+    ranked: list[Candidate], alpha: float, local: Callable[[Candidate], bool],
+) -> tuple[list[Candidate], dict[str, str]]:
+    """Effects the comparisons with a reference reveal, once the calibratable leads are
+    allowed for, that the calibration's constraints do not: tested on every residual of
+    every dataset, reported apart with what would determine them."""
+    if not problem.comparisons:
+        return [], {}
+    own_significant = {c.label for c in ranked if c.significant}
+    for c in ranked:
+        if c.significant:
+            own_significant.update(c.indistinguishable)
+    by_label = {c.label: raw for c, raw in raws}
+    extra = [full_regressor(by_label[c.label]) for c in leads]
+    nuisance = np.column_stack([full.nuisance, *extra]) if extra else full.nuisance
+    names = tuple(f"{c.label} ({col})" for c in leads for col in c.basis.columns)
+    design = Design(full.r, nuisance, full.nuisance_names + names, full.blocks)
+    others = [Candidate(c.output, c.basis) for c, _ in raws
+              if c.label not in own_significant and c.basis.kind != "approximation"]
+    tested = test_candidates(design, others,
+                             [full_regressor(by_label[c.label]) for c in others], alpha, local)
+    found = [c for c in _leads(tuple(tested)) if c.significant][:3]
+    pointer = _better_problem(problem) if found else ""
+    needs = {c.label: ("It shows only against the reference sensor: calibrate it with the "
+                       "reference, or add a constraint that sees it"
+                       + (f"; {pointer}" if pointer else "") + ".")
+             for c in found}
+    return found, needs
+
+
+def _better_problem(problem: Problem) -> str:
+    """A problem beside this one with more constraints on the same sensors, in words."""
+    here = Path(problem.path).resolve()
+    mine = {c.name for c in problem.constraints}
+    best: tuple[int, str] | None = None
+    for path in sorted(here.parent.glob("*.yaml")):
+        if path.resolve() == here:
+            continue
+        try:
+            from symcal.problem import load_problem
+
+            other = load_problem(path)
+        except Exception:  # noqa: BLE001 - any file that does not load is not a pointer
+            continue
+        theirs = {c.name for c in other.constraints}
+        if mine < theirs and set(problem.instances) <= set(other.instances) \
+                and not other.implicit:
+            added = sorted(theirs - mine)
+            text = (f"{path.name} in the same folder adds the constraints "
+                    f"{', '.join(added)} on the same sensors and can determine it")
+            if best is None or len(added) > best[0]:
+                best = (len(added), text)
+    return best[1] if best else ""
 
 
 def _projected(design: Design) -> list[np.ndarray]:

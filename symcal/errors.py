@@ -11,6 +11,55 @@ from dataclasses import dataclass
 
 EXIT_BAD_INPUT = 2
 EXIT_FAILED = 1
+#: Exit codes of a run stopped by SIGINT (Ctrl-C) and SIGTERM: 128 + the signal number.
+EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
+#: Longest excerpt of a file's content an error message quotes.
+EXCERPT_CHARS = 40
+
+
+def escape_controls(text: str, keep: str = "") -> str:
+    """``text`` with every control character written as an escape (``\\x1b``, ``\\n``).
+
+    Parameters
+    ----------
+    text
+        Any text, e.g. a name read from a file.
+    keep
+        Control characters to leave as they are (``"\\n\\t"`` for multi-line text).
+
+    Returns
+    -------
+    str
+        Text that cannot move a terminal's cursor, change its colours or ring its bell.
+    """
+    out = []
+    for ch in text:
+        if ch in keep or ch.isprintable() or ch == " ":
+            out.append(ch)
+        else:
+            out.append(repr(ch)[1:-1] if ord(ch) < 0x10000 else f"\\U{ord(ch):08x}")
+    return "".join(out)
+
+
+def excerpt(text: object, limit: int = EXCERPT_CHARS) -> str:
+    """A short, escaped excerpt of content read from a file, for an error message.
+
+    Parameters
+    ----------
+    text
+        The content (converted with ``str``).
+    limit
+        How many characters of it to show at most; longer text ends with ``...``.
+
+    Returns
+    -------
+    str
+        At most ``limit`` characters of ``text``, control characters escaped.
+    """
+    text = str(text)
+    short = text if len(text) <= limit else text[:limit] + "..."
+    return escape_controls(short)
 
 
 class SymcalError(Exception):

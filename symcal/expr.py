@@ -22,10 +22,11 @@ AST may be at most :data:`MAX_DEPTH` operators high (which bounds ``1+1+...+1``)
 
 from __future__ import annotations
 
+import functools
 import math
 import operator
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
@@ -43,6 +44,8 @@ FUNCTIONS: dict[str, int] = {
     ),
     "atan2": 2,
 }
+#: Names a model or problem cannot declare: the constant and the functions.
+RESERVED_NAMES = frozenset({"pi", *FUNCTIONS})
 #: Longest accepted expression, in characters.
 MAX_LENGTH = 20_000
 #: Deepest accepted nesting of parentheses, calls, unary and binary operators (see above).
@@ -312,6 +315,13 @@ def parse(text: str) -> Node:
         raise ExprError(f"expression is too long ({len(text)} characters, limit {MAX_LENGTH})")
     if not text.strip():
         raise ExprError("empty expression")
+    return _parse(text)
+
+
+@functools.lru_cache(maxsize=1024)
+def _parse(text: str) -> Node:
+    """:func:`parse` of checked text, memoised: a text used many times (a YAML alias, a
+    model used by several instances) is parsed once; the AST is immutable."""
     parser = _Parser(_tokenize(text))
     node, _, _ = parser.expr(0, 0)
     if parser.peek().kind != "end":
@@ -341,6 +351,29 @@ def names(node: Node) -> list[Name]:
     if isinstance(node, Call):
         return [n for arg in node.args for n in names(arg)]
     return []
+
+
+def size(node: Node) -> int:
+    """Number of nodes of an AST (numbers, names, operators and calls)."""
+    if isinstance(node, Unary):
+        return 1 + size(node.operand)
+    if isinstance(node, Binary):
+        return 1 + size(node.left) + size(node.right)
+    if isinstance(node, Call):
+        return 1 + sum(size(arg) for arg in node.args)
+    return 1
+
+
+def total_size(nodes: Iterable[Node]) -> int:
+    """Total :func:`size` of ``nodes``, every repeat counted (each distinct AST once
+    measured): the work an expanded document asks for."""
+    sizes: dict[int, int] = {}
+    total = 0
+    for node in nodes:
+        if id(node) not in sizes:
+            sizes[id(node)] = size(node)
+        total += sizes[id(node)]
+    return total
 
 
 def rename(node: Node, new_name: Callable[[str], str]) -> Node:

@@ -3,19 +3,24 @@
 The page needs no external resource and no JavaScript: styles are inline and every figure
 is a PNG embedded as a ``data:`` URI. All text from the document is escaped. Like
 :mod:`symcal.plots`, this module only presents the document; it computes nothing.
+
+The page opens with the verdict: the lines given, else the document's ``verdict``, else
+the last ``Verdict`` block of the text report (what :func:`symcal.report.text_report` and
+:func:`symcal.report.diagnosis_report` print first).
 """
 
 from __future__ import annotations
 
 import base64
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from html import escape
 from pathlib import Path
 from typing import Any
 
 from symcal.files import atomic_write_bytes
 from symcal.plots import Doc, figure_captions, render_png
+from symcal.units import symbol
 
 TOP_DETAILED = 3
 
@@ -26,7 +31,7 @@ h1 { font-size: 1.6em; } h2 { font-size: 1.3em; margin-top: 2em; } h3 { font-siz
 table { border-collapse: collapse; margin: 0.5em 0; font-size: 0.92em; }
 th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; vertical-align: top; }
 th { background: #f0f0f0; text-align: left; }
-td.num { text-align: right; font-variant-numeric: tabular-nums; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
 tr.significant td { background: #eef5ff; }
 pre { background: #f7f7f7; border: 1px solid #ddd; padding: 0.7em; overflow-x: auto;
       font-size: 0.88em; }
@@ -34,10 +39,16 @@ figure { margin: 1.5em 0; }
 figure img { max-width: 100%; height: auto; border: 1px solid #eee; }
 figcaption { font-size: 0.9em; color: #444; }
 .meta { color: #555; }
+section.verdict { background: #f4f8ff; border: 1px solid #b9cdf0; padding: 0.4em 1em;
+                  margin: 1em 0; }
+section.verdict h2 { margin-top: 0.4em; }
+section.verdict li.bad, tr.worse td { color: #a40000; }
+section.verdict li.bad { font-weight: bold; }
 """.strip()
 
 
-def html_report(doc: Doc, text_report: str, title: str | None = None) -> str:
+def html_report(doc: Doc, text_report: str, title: str | None = None,
+                verdict: Sequence[str] | None = None) -> str:
     """Render the diagnosis as one self-contained HTML page.
 
     Parameters
@@ -48,11 +59,15 @@ def html_report(doc: Doc, text_report: str, title: str | None = None) -> str:
         The plain-text report, shown in full at the end of the page.
     title
         Page title; ``"symcal diagnosis: <problem>"`` by default.
+    verdict
+        The verdict's lines (default: the document's ``verdict``, else the last
+        ``Verdict`` block of ``text_report``).
 
     Returns
     -------
     str
-        The HTML page: residual summary, ranked candidates (with text and YAML of the top
+        The HTML page: the verdict, residual summary (with noise floors and regressions
+        where the document has them), ranked candidates (with text and YAML of the top
         three), every figure of :func:`symcal.plots.figure_names` as an embedded PNG with a
         caption, and the text report.
     """
@@ -70,6 +85,7 @@ def html_report(doc: Doc, text_report: str, title: str | None = None) -> str:
         "<body>",
         f"<h1>{escape(title)}</h1>",
         *_meta(doc, problem),
+        *_verdict(_verdict_lines(doc, text_report, verdict)),
         *_residual_table(doc),
         *_candidates(doc),
         *_figures(doc),
@@ -84,6 +100,7 @@ def html_report(doc: Doc, text_report: str, title: str | None = None) -> str:
 
 def write_html(
     doc: Doc, text_report: str, path: str | Path, title: str | None = None,
+    verdict: Sequence[str] | None = None,
 ) -> Path:
     """Write :func:`html_report` to ``path`` atomically.
 
@@ -96,7 +113,7 @@ def write_html(
     path
         Destination; its directory is created if missing. The page is written to a
         temporary file in the same directory and renamed over ``path``.
-    title
+    title, verdict
         As for :func:`html_report`.
 
     Returns
@@ -105,7 +122,7 @@ def write_html(
         ``path``.
     """
     path = Path(path)
-    page = html_report(doc, text_report, title)
+    page = html_report(doc, text_report, title, verdict)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, page.encode("utf-8"))
     return path
@@ -148,21 +165,72 @@ def _meta(doc: Doc, problem: str) -> list[str]:
     return ["".join(out)]
 
 
+def _verdict_lines(doc: Doc, text_report: str,
+                   verdict: Sequence[str] | None) -> list[str]:
+    if verdict is not None:
+        return [str(v) for v in verdict]
+    given = doc.get("verdict")
+    if isinstance(given, Sequence) and not isinstance(given, str):
+        return [str(v) for v in given]
+    blocks: list[list[str]] = []
+    inside = False
+    for line in text_report.splitlines():
+        if line.strip() == "Verdict":
+            blocks.append([])
+            inside = True
+        elif inside and line.strip():
+            blocks[-1].append(line.strip())
+        else:
+            inside = False
+    return blocks[-1] if blocks else []
+
+
+def _verdict(lines: list[str]) -> list[str]:
+    if not lines:
+        return []
+    items = []
+    for line in lines:
+        bad = line.startswith("FAILED") or " worse: " in line
+        items.append(f'<li class="bad">{escape(line)}</li>' if bad
+                     else f"<li>{escape(line)}</li>")
+    return ['<section class="verdict">', "<h2>Verdict</h2>", "<ul>", *items, "</ul>",
+            "</section>"]
+
+
+def _unit_text(unit: Any) -> str:
+    return escape(symbol(None if unit == "(internal)" else str(unit or "")))
+
+
 def _residual_table(doc: Doc) -> list[str]:
     rows = [r for r in doc.get("residuals") or [] if isinstance(r, Mapping)]
     out = ["<h2>Residuals</h2>"]
     if not rows:
         return [*out, "<p>No residuals.</p>"]
-    out += ["<table>", _head("dataset", "name", "kind", "std before", "std after", "unit")]
+    worse = {(str(g.get("dataset")), str(g.get("name")))
+             for g in doc.get("regressions") or [] if isinstance(g, Mapping)}
+    floors = any(isinstance(r.get("noise_floor"), int | float) for r in rows)
+    head = ["dataset", "name", "kind", "std before", "std after", "unit"]
+    out += ["<table>", _head(*head, *(["noise floor", "std/floor"] if floors else []),
+                             *(["after calibration"] if worse else []))]
     for r in rows:
-        out.append("<tr>" + "".join([
+        cells = [
             _cell(escape(str(r.get("dataset", "")))),
             _cell(escape(str(r.get("name", "")))),
             _cell(escape(str(r.get("kind", "")))),
             _cell(_num(r.get("std_before")), num=True),
             _cell(_num(r.get("std_after")), num=True),
-            _cell(escape(str(r.get("unit") or "(internal)"))),
-        ]) + "</tr>")
+            _cell(_unit_text(r.get("unit"))),
+        ]
+        if floors:
+            floor, after = r.get("noise_floor"), r.get("std_after")
+            ratio = (after / floor if isinstance(floor, int | float) and floor > 0
+                     and isinstance(after, int | float) else None)
+            cells += [_cell("" if floor is None else _num(floor), num=True),
+                      _cell("" if ratio is None else _num(ratio, ".3g"), num=True)]
+        bad = (str(r.get("dataset")), str(r.get("name"))) in worse
+        if worse:
+            cells.append(_cell("worse" if bad else ""))
+        out.append(('<tr class="worse">' if bad else "<tr>") + "".join(cells) + "</tr>")
     out.append("</table>")
     return out
 
@@ -212,7 +280,7 @@ def _candidate_detail(c: Mapping[str, Any], k: int, units: dict[str, str]) -> li
             before, after = (list(pair) + [None, None])[:2] if pair is not None else (None, None)
             unit = units.get(str(key), "")
             items.append(f"<li>{escape(str(key))}: RMS {_num(before)} → {_num(after)}"
-                         f"{' ' + escape(unit) if unit else ''}</li>")
+                         f"{' ' + _unit_text(unit) if unit else ''}</li>")
         out += ["<p>Residual RMS if this effect were added:</p>", "<ul>", *items, "</ul>"]
     if c.get("yaml"):
         out += ["<p>YAML to add:</p>", f"<pre>{escape(str(c['yaml']))}</pre>"]

@@ -1,9 +1,15 @@
 """Figures of a diagnosis document.
 
 The input is the plain-data diagnosis document (dicts, lists, floats, strings) that
-``symcal diagnose`` produces. Plots never solve: every number drawn here is read from the
-document; the only transforms are the ones drawing needs (``None`` to NaN, picking the top
-entries of a ranked list, locating a peak's ordinate for its annotation).
+``symcal diagnose`` produces (:func:`symcal.report.diagnosis_document`). Plots never
+solve: every number drawn here is read from the document; the only transforms are the
+ones drawing needs (``None`` to NaN, picking the top entries of a ranked list, locating a
+peak's ordinate for its annotation, and drawing a variable in its display unit: a
+variable's values are in internal units and its ``unit`` says what it was declared in, so
+an angle in rad is drawn in mrad; see :func:`symcal.units.axis_unit`).
+
+A residual is never shown to vary with a variable it contains whole (its ``contains``
+list, else its own name): a comparison ``theta_x`` against the expression ``theta_x``.
 
 matplotlib is imported lazily, inside the functions that draw, so ``import symcal.plots``
 does not import it. Figures are plain :class:`matplotlib.figure.Figure` objects drawn on an
@@ -23,6 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from symcal.files import atomic_write_bytes
+from symcal.units import DISPLAY_UNITS, axis_unit, symbol
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -34,6 +41,7 @@ MAX_CANDIDATES = 10
 MAX_NAMED_PARAMETERS = 40
 MAX_LABEL = 70
 RASTERIZE_ABOVE = 5000
+MAX_X_TICKS = 6
 BEFORE_COLOUR = "0.72"
 AFTER_COLOUR = "tab:blue"
 REFERENCE_COLOUR = "tab:red"
@@ -265,7 +273,36 @@ def _grid(fig: Figure, n: int, max_cols: int = 2) -> list[Axes]:
 
 
 def _unit(row: Mapping[str, Any]) -> str:
-    return str(row.get("unit") or "internal units")
+    unit = row.get("unit")
+    return "internal units" if not unit or unit == "(internal)" else symbol(str(unit))
+
+
+def _axis_values(values: Any, name: Any, unit: Any) -> tuple[Any, str]:
+    """A variable's values in its display unit, and the axis label that says it."""
+    xs = _floats(values)
+    shown = axis_unit(str(unit) if unit else "")
+    if shown in ("", "1"):
+        return xs, _text(name, 60)
+    return xs / DISPLAY_UNITS[shown], f"{_text(name, 60)} [{symbol(shown)}]"
+
+
+def _findings(row: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    """The row's binned structure but along variables it contains whole (and their
+    phases)."""
+    own = [str(n) for n in row.get("contains") or [row.get("name")]]
+
+    def contained(variable: str) -> bool:
+        return variable in own or any(variable.startswith(f"phase of {n} (") for n in own)
+
+    return [b for b in row.get("binned") or []
+            if isinstance(b, Mapping) and not contained(str(b.get("variable")))]
+
+
+def _few_x_ticks(ax: Axes) -> None:
+    """At most :data:`MAX_X_TICKS` ticks on the x axis, so labels never overlap."""
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=MAX_X_TICKS, steps=[1, 2, 2.5, 5, 10]))
 
 
 def _where(row: Mapping[str, Any]) -> str:
@@ -303,6 +340,8 @@ def _specs(doc: Doc) -> list[_Spec]:
     specs: list[_Spec] = []
     taken: set[str] = set()
     residuals = [r for r in doc.get("residuals") or [] if isinstance(r, Mapping)]
+    worse = frozenset((str(g.get("dataset")), str(g.get("name")))
+                      for g in doc.get("regressions") or [] if isinstance(g, Mapping))
     for ds in _datasets(doc):
         mine = [r for r in residuals if str(r.get("dataset")) == ds and _has_series(r)]
         cons = [r for r in mine if r.get("kind", "constraint") != "comparison"]
@@ -312,19 +351,20 @@ def _specs(doc: Doc) -> list[_Spec]:
                 _unique(f"residuals_{ds}", taken),
                 f"Dataset {ds}: constraint residuals before (grey) and after (colour) "
                 "calibration along the variable each moves along most.",
-                partial(_residuals_figure, ds, cons)))
+                partial(_residuals_figure, ds, cons, worse)))
         if comp:
             specs.append(_Spec(
                 _unique(f"reference_{ds}", taken),
                 f"Dataset {ds}: error against the reference sensor before (grey) and after "
                 "(colour) calibration.",
-                partial(_reference_figure, ds, comp)))
-    binned = [r for r in residuals if r.get("binned")]
+                partial(_reference_figure, ds, comp, worse)))
+    binned = [r for r in residuals if _findings(r)]
     if binned:
         specs.append(_Spec(
             _unique("structure", taken),
             "Mean residual (± standard error) in bins of the variable along which each "
-            "residual shows most structure; η² is the share of variance the bin means explain.",
+            "residual shows most structure (never a variable the residual contains whole); "
+            "η² is the share of variance the bin means explain.",
             partial(_structure_figure, binned)))
     periodic = [r for r in residuals if isinstance(r.get("periodogram"), Mapping)
                 and r["periodogram"].get("frequency")]
@@ -358,9 +398,11 @@ def _specs(doc: Doc) -> list[_Spec]:
 # ----------------------------------------------------------------------------- figures
 
 
-def _series_axes(ax: Axes, row: Mapping[str, Any], after_colour: str, legend: str) -> None:
+def _series_axes(ax: Axes, row: Mapping[str, Any], after_colour: str, legend: str,
+                 worse: bool = False) -> None:
     series = row["series"]
-    x = _floats(series["x"].get("values"))
+    x, xlabel = _axis_values(series["x"].get("values"), series["x"].get("name", "x"),
+                             series["x"].get("unit"))
     raster = len(x) > RASTERIZE_ABOVE
     unit = _unit(row)
     for key, colour, std in (("before", BEFORE_COLOUR, row.get("std_before")),
@@ -368,29 +410,40 @@ def _series_axes(ax: Axes, row: Mapping[str, Any], after_colour: str, legend: st
         y = _floats(series.get(key))
         if len(y) != len(x) or not len(y):
             continue
+        note = "; worse than before" if worse and key == "after" else ""
         ax.plot(x, y, ".", ms=2.5, color=colour, rasterized=raster,
-                label=f"{key} (std {_num(std)} {_text(unit)})")
+                label=f"{key} (std {_num(std)} {_text(unit)}{note})")
     ax.axhline(0.0, color="0.3", lw=0.6)
-    ax.set_xlabel(_text(series["x"].get("name", "x")))
+    ax.set_xlabel(xlabel)
+    _few_x_ticks(ax)
     ax.set_ylabel(f"{_text(legend)} [{_text(unit)}]")
-    ax.legend(loc="upper right", fontsize="small", markerscale=3, framealpha=0.8)
+    # above the axes, not over the points
+    ax.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=2, fontsize="small",
+              markerscale=3, frameon=False, borderaxespad=0.1)
     ax.grid(True, alpha=0.3)
 
 
-def _residuals_figure(ds: str, rows: list[Mapping[str, Any]]) -> Figure:
+def _worse(row: Mapping[str, Any], worse: frozenset[tuple[str, str]]) -> bool:
+    return (str(row.get("dataset")), str(row.get("name"))) in worse
+
+
+def _residuals_figure(ds: str, rows: list[Mapping[str, Any]],
+                      worse: frozenset[tuple[str, str]] = frozenset()) -> Figure:
     fig = _new_figure(7.5, 0.8 + 2.3 * len(rows))
     axes = fig.subplots(len(rows), 1, squeeze=False)[:, 0]
     for ax, row in zip(axes, rows, strict=True):
-        _series_axes(ax, row, AFTER_COLOUR, str(row.get("name", "?")))
+        _series_axes(ax, row, AFTER_COLOUR, str(row.get("name", "?")), _worse(row, worse))
     fig.suptitle(_text(f"Dataset {ds}: constraint residuals before and after calibration"))
     return fig
 
 
-def _reference_figure(ds: str, rows: list[Mapping[str, Any]]) -> Figure:
+def _reference_figure(ds: str, rows: list[Mapping[str, Any]],
+                      worse: frozenset[tuple[str, str]] = frozenset()) -> Figure:
     fig = _new_figure(7.5, 0.8 + 2.3 * len(rows))
     axes = fig.subplots(len(rows), 1, squeeze=False)[:, 0]
     for ax, row in zip(axes, rows, strict=True):
-        _series_axes(ax, row, REFERENCE_COLOUR, f"{row.get('name', '?')} − reference")
+        _series_axes(ax, row, REFERENCE_COLOUR, f"{row.get('name', '?')} − reference",
+                     _worse(row, worse))
     fig.suptitle(_text(f"Dataset {ds}: error against the reference"))
     return fig
 
@@ -399,15 +452,18 @@ def _structure_figure(rows: list[Mapping[str, Any]]) -> Figure:
     ncols = 1 if len(rows) <= 3 else 2
     fig = _new_figure(6.5 if ncols == 1 else 10.0, 0.6 + 2.5 * math.ceil(len(rows) / ncols))
     for ax, row in zip(_grid(fig, len(rows)), rows, strict=True):
-        top = row["binned"][0]
-        centers, mean, sem = (_floats(top.get(k)) for k in ("centers", "mean", "sem"))
+        top = _findings(row)[0]
+        centers, xlabel = _axis_values(top.get("centers"), top.get("variable", "?"),
+                                       top.get("unit"))
+        mean, sem = (_floats(top.get(k)) for k in ("mean", "sem"))
         yerr = sem if len(sem) == len(mean) else None
         ax.errorbar(centers, mean, yerr=yerr, fmt="o-", ms=3.5, lw=1, capsize=2,
                     color=AFTER_COLOUR)
         ax.axhline(0.0, color="0.3", lw=0.6)
-        ax.set_title(_text(f"{_where(row)}: {top.get('variable', '?')} "
-                           f"(η² = {_num(top.get('eta2'), '.2f')})", 90), fontsize="medium")
-        ax.set_xlabel(_text(top.get("variable", "?"), 60))
+        ax.set_title(_text(f"{_where(row)} (η² = {_num(top.get('eta2'), '.2f')})", 60),
+                     fontsize="medium")
+        ax.set_xlabel(xlabel)
+        _few_x_ticks(ax)
         ax.set_ylabel(f"mean residual [{_text(_unit(row))}]")
         ax.grid(True, alpha=0.3)
     fig.suptitle("Structure left in the residuals")
@@ -430,12 +486,17 @@ def _periodogram_figure(rows: list[Mapping[str, Any]]) -> Figure:
             i = int(np.nanargmin(np.abs(f - fp))) if np.isfinite(f).any() else 0
             yp = p[i] if np.isfinite(p[i]) else 0.0
             ax.axvline(fp, color="tab:red", lw=0.8, ls="--")
+            finite = f[np.isfinite(f)]
+            right = bool(len(finite)) and fp > 0.5 * (float(finite.min()) + float(finite.max()))
             ax.annotate(_text(peak.get("text", f"peak at {fp:g}"), 60), xy=(fp, yp),
-                        xytext=(8, -4), textcoords="offset points", va="top",
-                        fontsize="small", color="tab:red")
+                        xytext=(-8 if right else 8, -4), textcoords="offset points",
+                        va="top", ha="right" if right else "left", fontsize="small",
+                        color="tab:red")
         ax.set_title(_text(f"{_where(row)} along {pg.get('variable', '?')}", 90),
                      fontsize="medium")
-        ax.set_xlabel(_text(pg.get("unit_text") or "frequency", 70))
+        unit_text = str(pg.get("unit_text") or "")
+        ax.set_xlabel(_text(f"cycles {unit_text}" if unit_text.startswith("per ")
+                            else unit_text or "frequency", 70))
         ax.set_ylabel("normalised power")
         ax.set_ylim(bottom=0.0)
         ax.grid(True, alpha=0.3)

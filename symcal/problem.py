@@ -12,9 +12,11 @@ substitution, never by building again:
 - every implicit definition (``x = F(x)``) is a placeholder symbol with its start and its
   map; the problem in use unrolls the maps (fixed-point steps), the explicit twin
   (:attr:`Problem.explicit`) takes every start (zero steps: the explicit model);
-- every instance output carries a *hook*, a symbol added to it; the problem in use sets
-  the hooks to zero, the diagnostic view (:attr:`Problem.diagnostic`) keeps them, so that
-  the derivative of any residual with respect to any sensor output is exact.
+- every instance output carries a *hook*, a symbol added to its error expression when
+  the output is ``reading + error`` (inside an implicit definition when there is one) and
+  to the output otherwise; the problem in use sets the hooks to zero, the diagnostic view
+  (:attr:`Problem.diagnostic`) keeps them, so that the derivative of any residual with
+  respect to a term added where it belongs is exact.
 """
 
 from __future__ import annotations
@@ -290,7 +292,7 @@ class Problem:
         if mode not in cache:
             assert self._build is not None
             cache[mode] = self._build.problem(mode)
-        return cache[mode]  # type: ignore[no-any-return]
+        return cache[mode]
 
     def with_instance(self, name: str, model: ModelSpec,
                       bindings: Mapping[str, str] | None = None) -> Problem:
@@ -338,7 +340,7 @@ class _Scope:
     ``values`` are ready symbols; ``defs`` are expressions resolved on first use;
     ``fallback`` resolves other names (columns, dotted signals) or returns None.  A name in
     ``implicit`` resolves to a placeholder symbol whose start and map are recorded in
-    ``opened``.
+    ``opened``; a name in ``hooked`` gets its hook symbol added to its definition.
     """
 
     def __init__(
@@ -351,6 +353,7 @@ class _Scope:
         stack: list[str],
         implicit: Mapping[str, ImplicitSpec],
         opened: list[_Implicit],
+        hooked: Mapping[str, ca.SX] | None = None,
     ) -> None:
         self.label = label
         self.values = dict(values)
@@ -360,6 +363,7 @@ class _Scope:
         self.stack = stack
         self.implicit = implicit
         self.opened = opened
+        self.hooked = dict(hooked or {})
 
     def build(self, spec: ExprSpec) -> ca.SX:
         """Build one expression, reporting errors at its provenance."""
@@ -376,6 +380,8 @@ class _Scope:
                 value = self.build(self.defs[name])
             finally:
                 self.stack.pop()
+            if name in self.hooked:
+                value = value + self.hooked[name]
             self.values[name] = value
             return value
         found = self.fallback(name, where, self.stack)
@@ -409,7 +415,7 @@ class _Scope:
 
 def _instance_scope(
     inst: InstanceSpec, inputs: dict[str, ca.SX], params: dict[str, ca.SX], stack: list[str],
-    opened: list[_Implicit],
+    opened: list[_Implicit], hooked: Mapping[str, ca.SX],
 ) -> _Scope:
     model = inst.model
     values: dict[str, ca.SX] = {k: ca.SX(c.value) for k, c in model.constants.items()}
@@ -429,7 +435,7 @@ def _instance_scope(
         return None
 
     return _Scope(f"{inst.name}.", values, defs, fallback,
-                  lambda: [*values, *defs], stack, model.implicit, opened)
+                  lambda: [*values, *defs], stack, model.implicit, opened, hooked)
 
 
 def _unroll(fmap: ca.SX, x: ca.SX, start: ca.SX, steps: int) -> tuple[ca.SX, ca.SX]:
@@ -489,8 +495,13 @@ class _Build:
                 *self._signal_names(), *self.symbols]
 
     def _signal_names(self) -> list[str]:
-        return [f"{i}.{n}" for i, inst in self.spec.system.instances.items()
-                for n in (*inst.model.outputs, *inst.model.inputs)]
+        names = []
+        for i, inst in self.spec.system.instances.items():
+            model = inst.model
+            points = [model.evaluation_point(n) for n in model.inputs]
+            names += [f"{i}.{n}" for n in (*model.outputs, *model.inputs,
+                                           *(p for p in points if p and p not in model.outputs))]
+        return names
 
     def _fallback(self, name: str, where: Where, stack: list[str]) -> ca.SX | None:
         system = self.spec.system
@@ -524,12 +535,26 @@ class _Build:
         finally:
             self.stack.pop()
         params = {k: self.symbols[f"{inst.name}.{k}"] for k in inst.model.parameters}
-        scope = _instance_scope(inst, inputs, params, self.stack, self.model_level)
         model = inst.model
-        for name, out in model.outputs.items():
+        # an output `reading + error` is hooked on its error, where a missing term goes
+        # (inside an implicit definition when there is one); any other on itself
+        on_error: dict[str, ca.SX] = {}
+        for name in model.outputs:
             full = f"{inst.name}.{name}"
             self.hooks[full] = ca.SX.sym(f"hook:{full}")
-            sx = scope.lookup(name, out.where) + self.hooks[full]
+            error = model.error_expression(name)
+            if error is not None and error not in on_error:
+                on_error[error] = self.hooks[full]
+        scope = _instance_scope(inst, inputs, params, self.stack, self.model_level, on_error)
+        hooked_outputs = {f"{inst.name}.{n}" for n in model.outputs
+                          if model.error_expression(n) in on_error
+                          and on_error[model.error_expression(n) or ""] is
+                          self.hooks[f"{inst.name}.{n}"]}
+        for name, out in model.outputs.items():
+            full = f"{inst.name}.{name}"
+            sx = scope.lookup(name, out.where)
+            if full not in hooked_outputs:
+                sx = sx + self.hooks[full]
             self.signals[full] = Quantity(full, sx, out.unit, doc=out.doc)
         for name in model.implicit:
             scope.lookup(name, model.implicit[name].where)
@@ -542,6 +567,11 @@ class _Build:
                 period = float(ca.evalf(value))
             self.signals[f"{inst.name}.{name}"] = Quantity(
                 f"{inst.name}.{name}", inputs[name], inp.unit, doc=inp.doc, period=period)
+            point = model.evaluation_point(name)
+            if point is not None and point not in model.outputs:
+                self.signals[f"{inst.name}.{point}"] = Quantity(
+                    f"{inst.name}.{point}", scope.lookup(point, inp.where), inp.unit,
+                    doc=f"where the model evaluates its error in {name}", period=period)
         self.built.add(inst.name)
 
     def _build_all(self) -> None:
@@ -650,7 +680,13 @@ class _Build:
         symbols, values, checks = self._close(unrolled=mode != "explicit")
         hooks = list(self.hooks.values())
         if mode != "diagnostic" and hooks:
-            symbols, values = symbols + hooks, values + [ca.SX(0)] * len(hooks)
+            zeros = [ca.SX(0)] * len(hooks)
+            if values:   # the implicit values and checks hold hooks too: close them first
+                values = ca.substitute(values, hooks, zeros)
+                checks = [replace(c, derivative=ca.substitute([c.derivative], hooks, zeros)[0],
+                                  last_step=ca.substitute([c.last_step], hooks, zeros)[0])
+                          for c in checks]
+            symbols, values = symbols + hooks, values + zeros
         groups: list[list[ca.SX]] = [
             [q.sx for q in self.constraints], [q.sx for q in self.expressions],
             [q.sx for q in self.signals.values()],

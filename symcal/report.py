@@ -1,17 +1,32 @@
-"""Text and JSON reports of a :class:`~symcal.result.Result`."""
+"""Text and JSON reports of a :class:`~symcal.result.Result` and of a diagnosis.
+
+Human-facing text writes units as symbols (µm, µrad; :func:`symcal.units.symbol`); the
+JSON documents keep the declared unit strings.  Each report opens with a verdict a person
+reads at a glance.
+"""
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from collections.abc import Iterable, Mapping
+from typing import TYPE_CHECKING, Any
 
+import casadi as ca
 import numpy as np
 
+from symcal.errors import SymcalError
 from symcal.files import json_text as plain_json
-from symcal.result import Result
+from symcal.result import REGRESSION_TOLERANCE, Regression, Result
+from symcal.units import DISPLAY_UNITS, symbol
 
 if TYPE_CHECKING:
+    from symcal.analysis.fit import SeriesStats
     from symcal.diagnose import Diagnosis
+
+#: At most this many regressions are listed in a verdict (all are in the tables).
+VERDICT_REGRESSIONS = 4
+#: A residual's binned structure counts as a finding above this share of its variance.
+STRUCTURE_ETA2 = 0.1
 
 
 def _num(x: float | None, fmt: str = ".6g") -> str:
@@ -30,20 +45,172 @@ def _table(rows: list[list[str]], align: str) -> list[str]:
     return out
 
 
-def _fit_lines(result: Result) -> list[str]:
+def noise_floors(result: Result) -> dict[tuple[str, str], float]:
+    """The known noise floor of each residual and comparison, where the data were
+    simulated.
+
+    A dataset simulated from a scenario (a problem's ``simulate:`` dataset, not replaced
+    by other data) has the floors the simulator states
+    (:func:`symcal.simulate.noise_floor`); a residual or comparison ``NAME`` has one when
+    they include ``NAME_std``.  Elsewhere the floor is unknown and absent.
+
+    Parameters
+    ----------
+    result
+        A calibration result.
+
+    Returns
+    -------
+    dict
+        ``(dataset, name)`` → the standard deviation noise alone leaves, internal units.
+    """
+    from symcal.simulate import load_scenario, noise_floor
+
+    names = {s.name for s in result.statistics}
+    by_scenario: dict[str, dict[str, float]] = {}
+    out: dict[tuple[str, str], float] = {}
+    for info in result.datasets:
+        spec = result.problem.datasets.get(info.name)
+        if (spec is None or spec.scenario is None or info.file is not None
+                or info.source != spec.source):
+            continue
+        key = str(spec.scenario)
+        if key not in by_scenario:
+            try:
+                by_scenario[key] = noise_floor(load_scenario(spec.scenario))
+            except (SymcalError, OSError):
+                by_scenario[key] = {}
+        for name in names:
+            floor = by_scenario[key].get(f"{name}_std")
+            if floor is not None and math.isfinite(floor) and floor > 0:
+                out[(info.name, name)] = float(floor)
+    return out
+
+
+def _what(s: Any) -> str:
+    """A residual's name; a comparison's as ``NAME vs reference``."""
+    return s.name if s.kind == "constraint" else f"{s.name} vs reference"
+
+
+def _spread_text(value: float, unit: str) -> str:
+    return f"{value:.4g} {symbol(unit)}"
+
+
+def _regression_text(r: Regression) -> str:
+    """E.g. ``calibration made flyby position_y vs reference worse: std 2.94 → 10.55 µm``."""
+    return (f"calibration made {r.dataset} {_what(r)} worse: {r.measure} {r.before:.4g} → "
+            f"{r.after:.4g} {symbol(r.unit)}")
+
+
+def _fit_lines(result: Result, floors: Mapping[tuple[str, str], float]) -> list[str]:
+    worse = {(r.dataset, r.name) for r in result.regressions}
     rows = [["dataset", "quantity", "std before", "std after", "mean before", "mean after",
-             "unit"]]
+             "unit", "noise floor", "std/floor", ""]]
     last = None
     for s in result.statistics:
         before, after = s.shown("before"), s.shown("after")
-        what = s.name if s.kind == "constraint" else f"{s.name} vs reference"
         tiny = 1e-9 * max(before.std, after.std, 1e-300)
         means = (["(arbitrary zero)", ""] if s.remove_mean
                  else [f"{m:.4g}" if abs(m) > tiny else "0" for m in (before.mean, after.mean)])
-        rows.append([s.dataset if s.dataset != last else "", what, f"{before.std:.4g}",
-                     f"{after.std:.4g}", *means, s.unit or "(internal)"])
+        floor = floors.get((s.dataset, s.name))
+        shown = floor / DISPLAY_UNITS[s.unit] if floor is not None else None
+        rows.append([s.dataset if s.dataset != last else "", _what(s), f"{before.std:.4g}",
+                     f"{after.std:.4g}", *means, symbol(s.unit),
+                     "" if shown is None else f"{shown:.4g}",
+                     "" if shown is None else f"{after.std / shown:.3g}",
+                     "WORSE" if (s.dataset, s.name) in worse else ""])
         last = s.dataset
-    return _table(rows, "llrrrrl")
+    if not floors:       # no floor known anywhere: no empty columns
+        rows = [r[:7] + r[9:] for r in rows]
+        return _table(rows, "llrrrrll")
+    return _table(rows, "llrrrrlrrl")
+
+
+def _worst_against_floor(result: Result, floors: Mapping[tuple[str, str], float]
+                         ) -> tuple[SeriesStats, float, float] | None:
+    """The residual or comparison farthest above its known floor: (stats, std after in
+    the display unit, ratio)."""
+    best: tuple[SeriesStats, float, float] | None = None
+    for s in result.statistics:
+        floor = floors.get((s.dataset, s.name))
+        if floor is None:
+            continue
+        ratio = s.after.std / floor
+        if best is None or ratio > best[2]:
+            best = (s, s.shown("after").std, ratio)
+    return best
+
+
+def _failure_text(result: Result) -> str | None:
+    for st in result.stages:
+        if not st.success:
+            return f"FAILED: stage '{st.name}' ({st.method}): {st.message}"
+    for c in result.implicit:
+        if not c.contracts:
+            return (f"FAILED: implicit definition '{c.name}' does not converge on "
+                    f"'{c.dataset}' (max |dF/dx| {c.contraction:.3g}, not a contraction)")
+    return None
+
+
+def _null_space_text(result: Result) -> str:
+    ident = result.identifiability
+    if not ident.deficiency:
+        return (f"every free parameter is determined by the data (rank {ident.rank} of "
+                f"{ident.n_free})")
+    return (f"{ident.deficiency} parameter direction(s) the data cannot determine (their "
+            "initial values are kept; see Identifiability)")
+
+
+def _regression_lines(found: tuple[Regression, ...], indent: str) -> list[str]:
+    lines = [indent + _regression_text(r) for r in found[:VERDICT_REGRESSIONS]]
+    if len(found) > VERDICT_REGRESSIONS:
+        lines.append(f"{indent}... and {len(found) - VERDICT_REGRESSIONS} more (marked WORSE "
+                     "in the fit table)")
+    return lines
+
+
+def verdict_lines(result: Result,
+                  floors: Mapping[tuple[str, str], float] | None = None) -> list[str]:
+    """The verdict at the top of :func:`text_report`, one finding per line.
+
+    Success or failure; the residual farthest above its noise floor, where floors are
+    known (:func:`noise_floors`); every residual or comparison calibration made worse
+    (:attr:`~symcal.result.Result.regressions`); how many parameter directions the data
+    cannot determine.
+
+    Parameters
+    ----------
+    result
+        A calibration result.
+    floors
+        Known noise floors (default: :func:`noise_floors` of ``result``).
+
+    Returns
+    -------
+    list of str
+        The lines, without indentation.
+    """
+    floors = noise_floors(result) if floors is None else floors
+    n = len(result.stages)
+    lines = [_failure_text(result)
+             or f"solved: {n} stage{'s' if n > 1 else ''} converged ({result.method})"]
+    worst = _worst_against_floor(result, floors)
+    if worst is not None:
+        s, after, ratio = worst
+        floor = floors[(s.dataset, s.name)] / DISPLAY_UNITS[s.unit]
+        lines.append(f"worst against its noise floor: {s.dataset} {_what(s)} std "
+                     f"{_spread_text(after, s.unit)} = {ratio:.2f} × the floor "
+                     f"{_spread_text(floor, s.unit)}")
+    else:
+        lines.append("noise floors unknown (the data were not simulated from a scenario)")
+    found = result.regressions
+    if found:
+        lines += _regression_lines(found, "")
+    else:
+        lines.append(f"no residual or comparison is worse after calibration (by more than "
+                     f"{REGRESSION_TOLERANCE:.0%})")
+    lines.append(_null_space_text(result))
+    return lines
 
 
 def _names(names: tuple[str, ...], limit: int = 8) -> str:
@@ -61,7 +228,7 @@ def _stage_lines(result: Result) -> list[str]:
         lines.append(f"     cost Σ(g/σ)²: {st.cost_before:.6g} → {st.cost_after:.6g}")
         for c in st.costs:
             lines.append(f"       {c.name}: RMS {c.rms_before:.4g} → {c.rms_after:.4g} "
-                         f"{c.unit or '(internal)'}")
+                         f"{symbol(c.unit)}")
         before, after = st.conditioning_before, st.conditioning_after
         lines.append(f"     condition number of the cost's Hessian (identifiable part, "
                      f"parameters in their scales): {before.condition_number:.3g} at the "
@@ -94,7 +261,7 @@ def _identifiability_lines(result: Result) -> list[str]:
         units = {p.name: p.unit for p in result.parameters}
         for c in ident.identifiable_combinations:
             unit = {units[n] for n in c.coefficients}
-            shown = f" {unit.pop()}" if len(unit) == 1 else ""
+            shown = f" {symbol(unit.pop())}" if len(unit) == 1 else ""
             lines.append(f"    {c.text} = {_num(c.value)} ± {_num(c.se, '.2g')}{shown}")
     return lines
 
@@ -123,7 +290,8 @@ def _parameter_lines(result: Result) -> list[str]:
                 p.se_reason or "")
         if p.at_bound:
             note = (note + "; " if note else "") + f"at {p.at_bound} bound"
-        rows.append([p.name, _num(p.value), _num(p.se, ".2g"), _num(p.initial), p.unit, note])
+        rows.append([p.name, _num(p.value), _num(p.se, ".2g"), _num(p.initial),
+                     symbol(p.unit) if p.unit else "", note])
     return _table(rows, "lrrrll")
 
 
@@ -138,9 +306,13 @@ def _implicit_lines(result: Result) -> list[str]:
 
 
 def text_report(result: Result) -> str:
-    """The report a person reads: data, solver, identifiability, fit, parameters."""
+    """The report a person reads: the verdict, then data, solver, identifiability, fit,
+    parameters."""
     state = "" if result.success else "  *** FAILED ***"
-    lines = [f"symcal: {result.name} ({result.problem_path}){state}", "", "Data"]
+    floors = noise_floors(result)
+    lines = [f"symcal: {result.name} ({result.problem_path}){state}", "", "Verdict"]
+    lines += [f"  {ln}" for ln in verdict_lines(result, floors)]
+    lines += ["", "Data"]
     lines += _table([[d.name, f"{d.n} observations", d.source
                       + (f" ({d.dropped} invalid rows dropped)" if d.dropped else "")]
                      for d in result.datasets], "lrl")
@@ -149,8 +321,9 @@ def text_report(result: Result) -> str:
     lines += ["", f"Identifiability (last stage, '{result.stages[-1].name}')"]
     lines += _identifiability_lines(result)
     lines += ["", "Fit: standard deviation and mean of each residual with the initial "
-              "parameters (before) and the estimate (after)"]
-    lines += _fit_lines(result)
+              "parameters (before) and the estimate (after)"
+              + ("; the noise floor where the data were simulated" if floors else "")]
+    lines += _fit_lines(result, floors)
     lines += ["", "Parameters (standard errors from the Jacobian at the estimate, scaled by "
               "the residual variance)"]
     lines += _parameter_lines(result)
@@ -169,20 +342,138 @@ def json_report(result: Result) -> str:
     return plain_json(result.to_dict())
 
 
+#: A residual within this factor of its noise floor is at the floor.
+AT_FLOOR = 1.2
+
+
+def self_referential(result: Result) -> dict[str, frozenset[str]]:
+    """For each residual and comparison, the variables it contains whole.
+
+    A residual binned against such a variable "varies with" it trivially: a comparison
+    ``theta_x`` (estimate minus reference) against the expression ``theta_x`` whose error
+    it is.  These are the residual's own name and, for a comparison, every named
+    expression or sensor signal that is its estimate.
+
+    Parameters
+    ----------
+    result
+        A calibration result.
+
+    Returns
+    -------
+    dict
+        Residual or comparison name → names of the variables to leave out.
+    """
+    problem = result.problem
+    named = [(q.name, q.sx) for q in problem.expressions]
+    named += [(sig.name, sig.sx) for sig in problem.signals]
+    out = {c.name: frozenset({c.name}) for c in problem.constraints}
+    for comp in problem.comparisons:
+        out[comp.name] = frozenset({comp.name} | {n for n, sx in named
+                                                  if ca.is_equal(sx, comp.estimate, 64)})
+    return out
+
+
+def _findings(binned: Iterable[Any], skip: frozenset[str] | set[str]) -> list[Any]:
+    """Binned structure but along variables the residual contains whole (also along their
+    phase)."""
+    def own(variable: str) -> bool:
+        return variable in skip or any(variable.startswith(f"phase of {n} (")
+                                       for n in skip)
+    return [b for b in binned if not own(str(b.variable))]
+
+
+def _floor_note(value: float, floor: float | None, unit: str) -> str:
+    if floor is None:
+        return ""
+    shown = floor / DISPLAY_UNITS[unit]
+    return f" (noise floor {_spread_text(shown, unit)}; {value / shown:.2f} ×)"
+
+
+def diagnosis_verdict(diag: Diagnosis) -> list[str]:
+    """The verdict at the top of :func:`diagnosis_report`: where it fails, what to add,
+    what cannot be calibrated.
+
+    Uses only the diagnosis' result (success, its noise floors where known, its
+    regressions and its null space), its significant candidates, and its
+    ``uncalibratable`` candidates (real effects the constraints cannot determine) when it
+    has them.
+
+    Parameters
+    ----------
+    diag
+        A diagnosis.
+
+    Returns
+    -------
+    list of str
+        The lines, without indentation: success or failure first.
+    """
+    result = diag.result
+    floors = noise_floors(result)
+    lines = [verdict_lines(result, floors)[0]]
+    where = []
+    worst = _worst_against_floor(result, floors)
+    if worst is not None:
+        s, after, ratio = worst
+        state = "at" if ratio <= AT_FLOOR else f"{ratio:.2f} ×"
+        where.append(f"{s.dataset} {_what(s)} std {_spread_text(after, s.unit)} is {state} "
+                     "its noise floor" + (" (the worst)" if ratio <= AT_FLOOR else ""))
+    where += [_regression_text(r) for r in result.regressions[:VERDICT_REGRESSIONS]]
+    if len(result.regressions) > VERDICT_REGRESSIONS:
+        where.append(f"{len(result.regressions) - VERDICT_REGRESSIONS} more got worse (below)")
+    if not where:
+        where.append("the residuals carry structure the model lacks (below)"
+                     if diag.significant else
+                     "nowhere these tests can see (noise floors unknown)")
+    lines.append(f"where it fails: {where[0]}")
+    lines += where[1:]
+    significant = diag.significant
+    if significant:
+        more = (f" (and {len(significant) - 1} more significant, below)"
+                if len(significant) > 1 else "")
+        lines.append(f"what to add: {significant[0].label}{more}")
+    else:
+        lines.append("what to add: nothing significant (no candidate effect passes the test)")
+    cannot = []
+    uncalibratable = tuple(getattr(diag, "uncalibratable", ()) or ())
+    if uncalibratable:
+        shown = ", ".join(c.label for c in uncalibratable[:3])
+        more = f" and {len(uncalibratable) - 3} more" if len(uncalibratable) > 3 else ""
+        cannot.append(f"{shown}{more} (real, but these constraints cannot determine it)")
+    if result.identifiability.deficiency:
+        cannot.append(f"{result.identifiability.deficiency} parameter direction(s) the data "
+                      "cannot determine")
+    lines.append("what cannot be calibrated: " + ("; ".join(cannot) if cannot else
+                                                  "nothing found"))
+    return lines
+
+
 def diagnosis_report(diag: Diagnosis) -> str:
-    """What `symcal diagnose` prints: where the model fails, which effect is missing."""
-    lines = [f"symcal diagnose: {diag.result.name} ({diag.result.problem_path})", "",
-             "Where the model fails (after calibration; std of each residual, the variables "
-             "along which it varies most, and its dominant period)"]
+    """What `symcal diagnose` prints: the verdict, where the model fails, what got worse,
+    which effect is missing."""
+    result = diag.result
+    floors = noise_floors(result)
+    skip = self_referential(result)
+    state = "" if result.success else "  *** FAILED ***"
+    lines = [f"symcal diagnose: {result.name} ({result.problem_path}){state}", "", "Verdict"]
+    lines += [f"  {ln}" for ln in diagnosis_verdict(diag)]
+    lines += ["", "Where the model fails (after calibration; std of each residual and its "
+              "noise floor where known, the variables along which it varies most, and its "
+              "dominant period)"]
     for v in diag.residuals:
-        what = v.name if v.kind == "constraint" else f"{v.name} vs reference"
         std = float(np.std(v.after)) / v.scale
-        lines.append(f"  {v.dataset} {what}: std {std:.4g} {v.unit or '(internal)'}")
-        for b in v.binned[:2]:
+        floor = _floor_note(std, floors.get((v.dataset, v.name)), v.unit)
+        lines.append(f"  {v.dataset} {_what(v)}: std {_spread_text(std, v.unit)}{floor}")
+        for b in _findings(v.binned, skip.get(v.name, frozenset({v.name})))[:2]:
             lines.append(f"      varies with {b.variable}: η² = {b.eta2:.2f}")
         if v.periodogram is not None and float(np.max(v.periodogram.power)) > 0.1:
             lines.append(f"      dominant frequency: {v.periodogram.peak_text} "
                          f"(power {float(np.max(v.periodogram.power)):.2f})")
+    if result.regressions:
+        lines += ["", f"Worse after calibration (a spread more than {REGRESSION_TOLERANCE:.0%} "
+                  "larger with the estimate than with the initial parameters)"]
+        lines += [f"  {_regression_text(r)} ({r.ratio:.2f} ×)" for r in result.regressions]
     ranked = list(diag.leads)
     lines += ["", f"Which effect is missing ({diag.tested} candidate terms tested; family-wise "
               f"level {diag.alpha:g}, Bonferroni; indistinguishable candidates grouped)"]
@@ -201,9 +492,80 @@ def diagnosis_report(diag: Diagnosis) -> str:
         if diag.yaml.get(c.label):
             lines += ["     To add it:"] + [f"       {ln}" if ln else ""
                                             for ln in diag.yaml[c.label].splitlines()]
+    uncalibratable = tuple(getattr(diag, "uncalibratable", ()) or ())
+    if uncalibratable:
+        lines += ["", "Real, but these constraints cannot determine them (a reference or "
+                  "another constraint can):"]
+        for c in uncalibratable:
+            lines += [f"  {c.label}", "     " + diag.candidate_text(c)]
     absorbed = [c for c in diag.candidates if c.absorbed and c.biases][:5]
     if absorbed:
         lines += ["", "Absorbed by the current parameters (invisible in these residuals; if "
                   "present, such an effect biases the parameters named):"]
         lines += [f"  {c.label}: would bias {', '.join(c.biases)}" for c in absorbed]
     return "\n".join(lines) + "\n"
+
+
+def variable_units(result: Result) -> dict[str, str]:
+    """The declared unit of every variable a residual may be binned along or drawn
+    against: data columns, sensor signals and named expressions (values are in internal
+    units; see :func:`symcal.units.axis_unit`)."""
+    problem = result.problem
+    units = {col: spec.unit for col, spec in problem.column_specs.items()}
+    units.update({sig.name: sig.unit for sig in problem.signals})
+    units.update({q.name: q.unit for q in problem.expressions})
+    return units
+
+
+def _unit_of(units: Mapping[str, str], name: Any) -> str:
+    name = str(name)
+    if name in units:
+        return units[name]
+    if name.startswith("phase of ") and " (mod " in name:
+        return units.get(name[len("phase of "):].split(" (mod ", 1)[0], "")
+    return ""
+
+
+def diagnosis_document(diag: Diagnosis, series: bool = False) -> dict[str, Any]:
+    """The diagnosis as plain data for ``--json``, the figures and the HTML page.
+
+    :meth:`Diagnosis.to_dict <symcal.diagnose.Diagnosis.to_dict>` with, where it lacks
+    them: ``regressions`` (:attr:`Result.regressions <symcal.result.Result.regressions>`),
+    ``verdict`` (:func:`diagnosis_verdict`), and per residual its ``noise_floor`` (display
+    unit, None where unknown), the variables it ``contains`` whole
+    (:func:`self_referential`, left out of its findings and figures) and the ``unit`` of
+    each variable its structure and series are drawn along.
+
+    Parameters
+    ----------
+    diag
+        A diagnosis.
+    series
+        Include every residual's series (the plotting contract).
+
+    Returns
+    -------
+    dict
+        JSON-ready; unit strings as declared.
+    """
+    doc = diag.to_dict(series=series)
+    result = diag.result
+    floors = noise_floors(result)
+    skip = self_referential(result)
+    units = variable_units(result)
+    doc.setdefault("regressions", [r.to_dict() for r in result.regressions])
+    doc.setdefault("verdict", diagnosis_verdict(diag))
+    for row in doc.get("residuals") or []:
+        name = str(row.get("name"))
+        unit = "" if row.get("unit") in (None, "(internal)") else str(row.get("unit"))
+        floor = floors.get((str(row.get("dataset")), name))
+        row.setdefault("noise_floor",
+                       None if floor is None or unit not in DISPLAY_UNITS
+                       else floor / DISPLAY_UNITS[unit])
+        row.setdefault("contains", sorted(skip.get(name, frozenset({name}))))
+        for b in row.get("binned") or []:
+            b.setdefault("unit", _unit_of(units, b.get("variable")))
+        x = (row.get("series") or {}).get("x")
+        if isinstance(x, dict):
+            x.setdefault("unit", _unit_of(units, x.get("name")))
+    return doc

@@ -33,6 +33,13 @@ from symcal.problem import Problem
 #: Version of the ``result.json`` layout.
 FORMAT = 1
 
+#: How much larger a spread must be after calibration than before to count as a
+#: regression (relative).  On clean simulated data, where the model is exact, a calibrated
+#: sensor passes its reading noise through the slope of its error model, which raised an
+#: already noise-limited spread by up to 11 % (the courier's fly-by angle, seeds 1-8, both
+#: platen models); 20 % leaves that margin so noise does not flag.
+REGRESSION_TOLERANCE = 0.2
+
 
 @dataclass(frozen=True)
 class ParameterResult:
@@ -75,6 +82,68 @@ class ParameterResult:
         upper = math.inf if doc.get("upper") is None else doc["upper"]
         return cls(doc["name"], doc["value"], doc["initial"], doc["unit"], doc["fixed"],
                    doc["se"], doc["se_reason"], lower, upper, doc.get("doc", ""))
+
+
+@dataclass(frozen=True)
+class Regression:
+    """A residual or reference comparison that calibration made worse on one dataset.
+
+    ``measure`` is ``"std"`` for a comparison whose mean is an arbitrary zero
+    (``remove_mean``) and ``"rms"`` otherwise (an offset is an error too); ``before`` and
+    ``after`` are that measure with the initial parameters and with the estimate, in the
+    display unit ``unit`` (``""``: internal units).
+    """
+
+    dataset: str
+    name: str
+    kind: str
+    measure: str
+    before: float
+    after: float
+    unit: str
+
+    @property
+    def ratio(self) -> float:
+        """``after / before`` (inf when ``before`` is 0)."""
+        return self.after / self.before if self.before > 0 else math.inf
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form (the unit string as in ``statistics``)."""
+        return {"dataset": self.dataset, "name": self.name, "kind": self.kind,
+                "measure": self.measure, "before": self.before, "after": self.after,
+                "ratio": None if math.isinf(self.ratio) else self.ratio,
+                "unit": self.unit or "(internal)"}
+
+
+def regressions(statistics: tuple[SeriesStats, ...],
+                tolerance: float = REGRESSION_TOLERANCE) -> tuple[Regression, ...]:
+    """The residuals and comparisons whose spread calibration made worse.
+
+    A spread counts as worse when it grew by more than ``tolerance`` (relative) from the
+    initial parameters to the estimate; the spread is the standard deviation for a
+    comparison whose mean carries no information (``remove_mean``), the RMS otherwise.
+
+    Parameters
+    ----------
+    statistics
+        Before/after statistics (:attr:`Result.statistics`).
+    tolerance
+        Relative growth allowed before a spread counts as worse (default
+        :data:`REGRESSION_TOLERANCE`).
+
+    Returns
+    -------
+    tuple of Regression
+        In the order of ``statistics``.
+    """
+    out = []
+    for s in statistics:
+        measure = "std" if s.remove_mean else "rms"
+        before = getattr(s.shown("before"), measure)
+        after = getattr(s.shown("after"), measure)
+        if after > (1.0 + tolerance) * before and after > 0:
+            out.append(Regression(s.dataset, s.name, s.kind, measure, before, after, s.unit))
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -267,6 +336,13 @@ class Result:
                              names=[d.name for d in self.datasets])
 
     @property
+    def regressions(self) -> tuple[Regression, ...]:
+        """Residuals and reference comparisons that calibration made worse, on any
+        dataset (more than :data:`REGRESSION_TOLERANCE` larger after than before; see
+        :func:`regressions`)."""
+        return regressions(self.statistics)
+
+    @property
     def rows(self) -> int:
         """Residual rows of the last stage's fit (observations × constraints)."""
         return int(self.uncertainty.dof + self.identifiability.rank)
@@ -326,6 +402,7 @@ class Result:
             "identifiability": self.identifiability.to_dict(),
             "uncertainty": self.uncertainty.to_dict(),
             "statistics": [s.to_dict() for s in self.statistics],
+            "regressions": [r.to_dict() for r in self.regressions],
             "implicit": [c.to_dict() for c in self.implicit],
             "information_criteria": {"aic": self.aic, "bic": self.bic, "rows": self.rows,
                                      "rss": self.rss},

@@ -5,6 +5,8 @@ from __future__ import annotations
 import difflib
 from collections.abc import Iterable
 
+from symcal.errors import excerpt
+
 CUTOFF = 0.5
 
 
@@ -23,8 +25,8 @@ def did_you_mean(name: str, candidates: Iterable[str]) -> str:
     best, best_score = None, CUTOFF
     for cand in pool:
         if cand.lower() == name.lower():
-            return f" (did you mean '{cand}'?)"
+            return f" (did you mean '{excerpt(cand)}'?)"
         score = difflib.SequenceMatcher(None, name, cand).ratio()
         if score > best_score or (best is None and score >= best_score):
             best, best_score = cand, score
-    return f" (did you mean '{best}'?)" if best is not None else ""
+    return f" (did you mean '{excerpt(best)}'?)" if best is not None else ""

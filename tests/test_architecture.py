@@ -10,8 +10,8 @@ from conftest import ROOT
 
 #: The layers of ARCHITECTURE.md, lowest first; a package stands for all its modules.
 LAYERS: list[list[str]] = [
-    ["symcal.errors", "symcal.suggest", "symcal.units", "symcal.files", "symcal.linalg",
-     "symcal.numeric"],
+    ["symcal.errors"],
+    ["symcal.suggest", "symcal.units", "symcal.files", "symcal.linalg", "symcal.numeric"],
     ["symcal.expr"],
     ["symcal.language"],
     ["symcal.simulate"],
@@ -21,8 +21,9 @@ LAYERS: list[list[str]] = [
     ["symcal.solvers"],
     ["symcal.analysis"],
     ["symcal.result"],
-    ["symcal.calibrate", "symcal.effects"],
+    ["symcal.calibrate", "symcal.effects", "symcal.variants"],
     ["symcal.diagnose", "symcal.compare", "symcal.codegen"],
+    ["symcal.improve"],
     ["symcal.report", "symcal.plots"],
     ["symcal.htmlreport"],
     ["symcal.cli"],

@@ -8,6 +8,7 @@ instead (failed solves print their report there).
 
 from __future__ import annotations
 
+import hashlib
 import shlex
 from pathlib import Path
 
@@ -20,7 +21,13 @@ CASES = sorted(p.name for p in CORPUS.iterdir() if p.is_dir())
 
 
 def test_corpus_is_large_enough() -> None:
-    assert len(CASES) >= 40
+    assert len(CASES) >= 100
+
+
+def _snapshot(folder: Path) -> dict[str, str]:
+    """Every file below ``folder`` (hidden ones too) and the sha256 of its content."""
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -32,6 +39,7 @@ def test_bad_input(case: str, monkeypatch, capsys) -> None:
     code = int(lines[0].split()[1])
     want_stdout = [ln[len("stdout: "):] for ln in lines[1:] if ln.startswith("stdout: ")]
     want_stderr = [ln for ln in lines[1:] if not ln.startswith("stdout: ")]
+    before = _snapshot(folder)
     try:
         got = main(args)
     except SystemExit as exc:  # argparse usage errors
@@ -42,6 +50,8 @@ def test_bad_input(case: str, monkeypatch, capsys) -> None:
     assert out.err.splitlines() == want_stderr
     for line in want_stdout:
         assert line in out.out.splitlines()
+    if code == 2:  # refused: not a file of the case was written, changed or left behind
+        assert _snapshot(folder) == before
 
 
 def test_drop_invalid_drops_and_reports(monkeypatch, capsys) -> None:

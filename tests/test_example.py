@@ -36,8 +36,9 @@ def test_walkthrough(capsys, tmp_path, monkeypatch) -> None:
     suggested = out.split("To add it:\n", 1)[1].split("\n\n", 1)[0]
     suggested_lines = [ln[7:] for ln in suggested.splitlines()[1:]]
     assert "\n".join(suggested_lines) + "\n" == shipped
-    assert "  s2: {model: models/platen_segment_h3_p.yaml, inputs: {p: p2}}" in out
-    assert "  s2: {model: models/platen_segment_h3_p.yaml, inputs: {p: p2}}" in (
+    overlay = out.split("# basic_s2_h3.yaml (beside problem.yaml): the problem with it\n",
+                        1)[1].split("\n\n", 1)[0]
+    assert "\n".join(ln[7:] for ln in overlay.splitlines()) + "\n" == (
         EXAMPLE / "problem_revised.yaml").read_text()
     assert (plots / "candidates.png").stat().st_size > 0
     assert "<img" in (tmp_path / "report.html").read_text()
@@ -51,8 +52,8 @@ def test_walkthrough(capsys, tmp_path, monkeypatch) -> None:
     fly_basic, fly_revised = map(float, rows["flyby g_p std"])
     assert fly_revised < 0.6 * fly_basic
     assert float(rows["BIC"][1]) < float(rows["BIC"][0]) - 100
-    for line in ("calibration g_p std (um)           1.926    0.9606",
-                 "flyby g_p std (um)                 2.081     1.033"):
+    for line in ("calibration g_p std (µm)               1.926                0.9606",
+                 "flyby g_p std (µm)                     2.081                 1.033"):
         assert line in out and line in readme
     # and nothing significant is left
     out = _run(capsys, "diagnose", "examples/hidden_effect/problem_revised.yaml", "--quiet")

@@ -239,7 +239,9 @@ def test_hidden_effect_revision_swaps_one_model() -> None:
     assert revised["instances"].pop("s2") == {
         "model": "models/platen_segment_h3_p.yaml", "inputs": {"p": "p2"}, "doc": "y segment"}
     basic["instances"].pop("s2")
-    assert _absolute_paths(revised, home) == _absolute_paths(basic, home) | {"problem": "revised"}
+    assert _absolute_paths(revised, home) == _absolute_paths(basic, home) | {
+        "problem": "basic_s2_h3",
+        "doc": "basic plus s2.p_hat += harmonic 3 of s2.p (period 1.016 mm)"}
 
 
 # --------------------------------------------------------------------------- merge rules

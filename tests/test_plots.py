@@ -208,7 +208,7 @@ def test_series_figures(doc: dict) -> None:
     np.testing.assert_allclose(after.get_xdata(), series["x"]["values"])
     np.testing.assert_allclose(after.get_ydata(), series["after"])
     np.testing.assert_allclose(before.get_ydata(), series["before"])
-    assert ax.get_ylabel() == "g_p [um]" and ax.get_xlabel() == "y_ref"
+    assert ax.get_ylabel() == "g_p [µm]" and ax.get_xlabel() == "y_ref"
     assert "29.3" in before.get_label() and "4.1" in after.get_label()
 
     ref = plots.build_figure(doc, "reference_calibration")

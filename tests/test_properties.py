@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
 
 from hypothesis import HealthCheck, given, settings
@@ -71,3 +73,165 @@ def test_random_text_as_csv(tmp_path: Path, text: str) -> None:
         return
     lengths = {len(v) for v in columns.values()}
     assert len(lengths) <= 1
+
+
+# --------------------------------------------------------------------------- every command
+# Random bytes, random YAML and random CSV/NPZ through every command of the command line,
+# each run under a time limit (SIGALRM) and a memory limit (tracemalloc's peak): the
+# answer is an exit code of 0, 1 or 2 and, on failure, one escaped line on stderr.
+
+BASE = Path(__file__).parent / "bad_inputs" / "bad_max_iter"
+SCENARIO = Path(__file__).resolve().parent.parent / "problems" / "scenarios" / "courier_platen.yaml"
+#: Seconds and bytes (of Python and NumPy allocations) one command may take.
+TIME_LIMIT = 60
+MEMORY_LIMIT = 512 << 20
+#: Examples per command-line property (``SYMCAL_PROPERTY_EXAMPLES`` for a longer run).
+CLI_EXAMPLES = int(os.environ.get("SYMCAL_PROPERTY_EXAMPLES", "30"))
+CLI_SETTINGS = settings(max_examples=CLI_EXAMPLES, deadline=None,
+                        suppress_health_check=[HealthCheck.function_scoped_fixture,
+                                               HealthCheck.too_slow])
+#: Where a hostile file goes, and the command lines that read it there.
+TARGETS = {
+    "prob.yaml": [["solve", "prob.yaml", "--quiet"], ["diagnose", "prob.yaml", "--quiet"],
+                  ["compare", "prob.yaml", "prob.yaml"], ["codegen", "prob.yaml", "-o", "c"]],
+    "seg.yaml": [["solve", "prob.yaml", "--quiet", "--json"], ["codegen", "prob.yaml", "-o", "c"]],
+    "data.csv": [["solve", "prob.yaml", "--quiet"], ["diagnose", "prob.yaml", "--quiet"],
+                 ["compare", "prob.yaml", "prob.yaml"],
+                 ["solve", "prob.yaml", "--data", "calibration=data.csv", "--out", "r"]],
+    "data.npz": [["solve", "prob.yaml", "--quiet", "--data", "calibration=data.npz"],
+                 ["diagnose", "prob.yaml", "--quiet", "--data", "calibration=data.npz"]],
+    "s.yaml": [["simulate", "s.yaml", "-o", "sim.csv", "-n", "50"]],
+    "result.json": [["codegen", "prob.yaml", "--result", "result.json", "-o", "c"]],
+}
+
+
+class _TooSlowError(Exception):
+    pass
+
+
+def _alarm(signum: int, frame: object) -> None:
+    raise _TooSlowError(f"a command took more than {TIME_LIMIT} s")
+
+
+def _run_hostile(name: str, content: bytes, args: list[str], capsys) -> None:
+    """Run ``args`` in a fresh copy of the corpus's toy problem with ``name`` replaced by
+    ``content``; check the exit code, stderr, time and memory."""
+    import signal
+    import tempfile
+    import tracemalloc
+
+    from symcal.cli import main
+
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        for base in ("prob.yaml", "seg.yaml", "data.csv"):
+            (folder / base).write_bytes((BASE / base).read_bytes())
+        (folder / "s.yaml").write_bytes(SCENARIO.read_bytes())
+        (folder / name).write_bytes(content)
+        old_dir = os.getcwd()
+        old_alarm = signal.signal(signal.SIGALRM, _alarm)
+        tracemalloc.start()
+        try:
+            os.chdir(folder)
+            signal.alarm(TIME_LIMIT)
+            try:
+                code = main(args)
+            except SystemExit as exc:
+                code = exc.code
+        finally:
+            signal.alarm(0)
+            signal.signal(signal.SIGALRM, old_alarm)
+            peak = tracemalloc.get_traced_memory()[1]
+            tracemalloc.stop()
+            os.chdir(old_dir)
+    out = capsys.readouterr()
+    assert code in (0, 1, 2), (code, out.err)
+    assert "Traceback" not in out.err and "internal error" not in out.err, out.err
+    assert all(ch == "\n" or ch.isprintable() for ch in out.err), repr(out.err)
+    if code == 2:
+        assert out.err.splitlines()[-1].startswith("symcal: error: ")
+    if "--json" in args:
+        json.loads(out.out)  # a document, also for errors
+    assert peak < MEMORY_LIMIT, f"{peak >> 20} MiB"
+
+
+magics = st.sampled_from([b"", b"\x1f\x8b", b"PK\x03\x04", b"\x93NUMPY", b"\xef\xbb\xbf",
+                          b"problem: toy\n", b"t,p1,p2\n", b"\x00"])
+hostile_bytes = st.builds(lambda a, b: a + b, magics, st.binary(max_size=600))
+
+
+@CLI_SETTINGS
+@given(target=st.sampled_from(sorted(TARGETS)), pick=st.integers(0, 3), content=hostile_bytes)
+def test_random_bytes_through_every_command(capsys, target: str, pick: int,
+                                            content: bytes) -> None:
+    commands = TARGETS[target]
+    _run_hostile(target, content, commands[pick % len(commands)], capsys)
+
+
+yaml_text = st.lists(st.sampled_from(list("ab01:-[]{}&*!|>#'\", \n\t.e~%@")
+                                     + ["problem: ", "model: ", "extends: ", "*a", "&a ",
+                                        "<<: ", "\x1b", "\u202e", "!!float ", "!!binary "]),
+                     max_size=80).map("".join)
+
+
+@CLI_SETTINGS
+@given(target=st.sampled_from(["prob.yaml", "seg.yaml", "s.yaml"]), pick=st.integers(0, 3),
+       doc=st.one_of(documents.map(_yaml), yaml_text))
+def test_random_yaml_through_every_command(capsys, target: str, pick: int, doc: str) -> None:
+    commands = TARGETS[target]
+    _run_hostile(target, doc.encode("utf-8", "surrogatepass"), commands[pick % len(commands)],
+                 capsys)
+
+
+cells = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr),
+                  st.sampled_from(["", "nan", "inf", "-inf", "1e999", "#", "x", "\x1b[2J", "1_0",
+                                   '"1.5"', "0x10", " 2 ", "1,2"]))
+headers = st.lists(st.sampled_from(["t", "p1", "p2", "p3", "", "#t", "p1 ", "\x1b[31mp1", "t"]),
+                   min_size=1, max_size=5)
+
+
+@st.composite
+def csv_tables(draw: st.DrawFn) -> bytes:
+    header = draw(headers)
+    rows = draw(st.lists(st.lists(cells, min_size=len(header) - 1, max_size=len(header) + 1),
+                         max_size=25))
+    newline = draw(st.sampled_from(["\n", "\r\n"]))
+    return (",".join(header) + newline + newline.join(",".join(r) for r in rows)).encode()
+
+
+@CLI_SETTINGS
+@given(table=csv_tables(), pick=st.integers(0, 3))
+def test_random_csv_through_every_command(capsys, table: bytes, pick: int) -> None:
+    commands = TARGETS["data.csv"]
+    _run_hostile("data.csv", table, commands[pick % len(commands)], capsys)
+
+
+@st.composite
+def npz_files(draw: st.DrawFn) -> bytes:
+    import io
+
+    import numpy as np
+
+    n = draw(st.integers(0, 40))
+    arrays = {}
+    for name in draw(st.lists(st.sampled_from(["t", "p1", "p2", "x", "\x1b"]), min_size=1,
+                              max_size=4, unique=True)):
+        kind = draw(st.sampled_from(["float", "int", "complex", "bool", "datetime", "text",
+                                     "2d", "scalar", "short", "object"]))
+        values = np.linspace(0.0, 3.0, n) + draw(st.floats(-1, 1))
+        arrays[name] = {
+            "float": values, "int": np.arange(n, dtype=np.int32), "complex": values + 1j,
+            "bool": values > 1, "datetime": np.arange(n).astype("datetime64[s]"),
+            "text": values.astype(str), "2d": np.vstack([values, values]),
+            "scalar": np.float64(1.0), "short": values[: n // 2],
+            "object": np.array([None] * n, dtype=object),
+        }[kind]
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+@CLI_SETTINGS
+@given(data=npz_files(), pick=st.integers(0, 1))
+def test_random_npz_through_every_command(capsys, data: bytes, pick: int) -> None:
+    _run_hostile("data.npz", data, TARGETS["data.npz"][pick], capsys)

@@ -6,8 +6,11 @@ symbolically.  Residuals and regressors are whitened per observation (constraint
 comparisons of one observation are correlated and have different noise), then the
 nuisance — what the current parameters and the comparisons' arbitrary offsets can
 already absorb — is projected out.  A candidate is ranked by the residual sum of squares
-it removes, tested with an F-test at a Bonferroni-corrected level, and grouped with the
-candidates whose projected regressors it cannot be told apart from.
+it removes, tested with an F-test at a Bonferroni-corrected level, ranked by its
+significance (the F-test's log p-value: a one-column term that removes a little less than
+a two-column one can still be the stronger evidence), and grouped with the candidates
+whose projected regressors it cannot be told apart from; a group is led by its simplest
+member (a term in the sensor's own input first, lower order before higher).
 """
 
 from __future__ import annotations
@@ -21,19 +24,33 @@ import scipy.stats
 
 ABSORBED = 1e-3         # projected norm below this share of the raw norm: absorbed
 INDISTINGUISHABLE = 0.98  # canonical correlation above which candidates are one group
+EQUAL = 0.95              # a simpler member leads a group if it explains this much as well
 
 
 @dataclass(frozen=True)
 class Basis:
     """φ(v): the shape of a candidate term, with what it takes to write it in YAML."""
 
-    kind: str                  # harmonic | linear | quadratic | angle_harmonic | drift
+    kind: str                  # harmonic | linear | quadratic | angle_harmonic | drift |
+                               # approximation
     variable: str              # the variable's name in the problem (column, signal, expr)
     description: str           # e.g. "harmonic 3 of s2.p (period 1.016 mm)"
     columns: tuple[str, ...]   # coefficient names, e.g. ("h3_sin", "h3_cos")
     terms: tuple[str, ...]     # YAML expressions of each column in the model's symbols,
                                # with {v} (and {a} for an angle) placeholders
     angle: str | None = None   # the angle variable of an angle product
+    order: int = 1             # the harmonic number (1 for other kinds)
+    unit: str = ""             # display unit of the variable
+    angle_unit: str = ""       # display unit of the angle of an angle product
+    scales: tuple[float, ...] = ()  # coefficients giving terms of about 1 µm (internal)
+
+    @property
+    def complexity(self) -> tuple[int, int]:
+        """How simple the shape is: linear and drift before harmonics (by number) before
+        quadratic before angle products."""
+        rank = {"approximation": 0, "linear": 1, "drift": 1, "harmonic": 2, "quadratic": 3,
+                "angle_harmonic": 4}
+        return rank.get(self.kind, 5), self.order
 
 
 @dataclass
@@ -46,16 +63,22 @@ class Candidate:
     share: float = 0.0
     f_stat: float = 0.0
     p_value: float = 1.0
+    log_p: float = 0.0
     significant: bool = False
     absorbed: bool = False
     biases: tuple[str, ...] = ()
     reduction: dict[str, tuple[float, float]] = field(default_factory=dict)
+    coefficient: tuple[float, ...] = ()
+    coefficient_se: tuple[float, ...] = ()
     indistinguishable: list[str] = field(default_factory=list)
     q: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def label(self) -> str:
-        """E.g. ``"s1.p_hat += harmonic 1 of s2.p"``."""
+        """E.g. ``"s1.p_hat += harmonic 1 of s2.p"`` (the description alone for the model's
+        own approximation)."""
+        if self.basis.kind == "approximation":
+            return self.basis.description
         return f"{self.output} += {self.basis.description}"
 
 
@@ -114,9 +137,11 @@ def test_candidates(
         denom = (rss0 - delta) / max(dof - m, 1)
         cand.f_stat = (delta / m) / denom if denom > 0 else float("inf")
         cand.p_value = float(scipy.stats.f.sf(cand.f_stat, m, max(dof - m, 1)))
+        cand.log_p = float(scipy.stats.f.logsf(cand.f_stat, m, max(dof - m, 1)))
         cand.significant = cand.p_value < level
         cand.reduction = _reduction(design, r, r - q @ proj)
-    ranked = sorted([c for c in candidates if not c.absorbed], key=lambda c: -c.delta_rss)
+    ranked = sorted([c for c in candidates if not c.absorbed],
+                    key=lambda c: (c.log_p, -c.delta_rss))
     _group(ranked, local)
     return ranked + [c for c in candidates if c.absorbed]
 
@@ -143,15 +168,20 @@ def _same(a: Candidate, b: Candidate) -> bool:
 
 def _group(ranked: list[Candidate], local: Callable[[Candidate], bool] | None,
            top: int = 8) -> None:
-    """Fill ``indistinguishable`` for the leading candidates (canonical correlation);
-    a ``local`` member of a group moves up to lead it."""
+    """Fill ``indistinguishable`` for the leading candidates (canonical correlation); the
+    simplest member of a group that explains as much (:data:`EQUAL`) moves up to lead it:
+    a term in the sensor's own input (``local``) first, then the simpler shape
+    (:attr:`Basis.complexity`)."""
+    def simplicity(c: Candidate) -> tuple[bool, tuple[int, int]]:
+        return (local is not None and not local(c)), c.basis.complexity
+
     for i in range(min(top, len(ranked))):
         lead = ranked[i]
         members = [j for j in range(i + 1, len(ranked)) if _same(lead, ranked[j])]
-        if local is not None and not local(lead):
-            better = next((j for j in members if local(ranked[j])), None)
-            if better is not None:
-                ranked[i], ranked[better] = ranked[better], ranked[i]
-                lead = ranked[i]
-                members = [j for j in range(i + 1, len(ranked)) if _same(lead, ranked[j])]
+        equal = [j for j in members if ranked[j].delta_rss >= EQUAL * lead.delta_rss]
+        best = min(equal, key=lambda j: simplicity(ranked[j]), default=None)
+        if best is not None and simplicity(ranked[best]) < simplicity(lead):
+            ranked[i], ranked[best] = ranked[best], ranked[i]
+            lead = ranked[i]
+            members = [j for j in range(i + 1, len(ranked)) if _same(lead, ranked[j])]
         lead.indistinguishable = [ranked[j].label for j in members]

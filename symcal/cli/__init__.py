@@ -12,13 +12,12 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from symcal.cli import codegen, compare, diagnose, simulate, solve
-from symcal.cli.common import Parser
-from symcal.errors import SymcalError
+from symcal.cli import codegen, compare, diagnose, improve, simulate, solve
+from symcal.cli.common import Parser, run_guarded
 
 #: The commands, in the order ``symcal --help`` lists them.
-COMMANDS = {"solve": solve, "diagnose": diagnose, "compare": compare, "codegen": codegen,
-            "simulate": simulate}
+COMMANDS = {"solve": solve, "diagnose": diagnose, "improve": improve, "compare": compare,
+            "codegen": codegen, "simulate": simulate}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -32,15 +31,20 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; return the exit code."""
-    args = _parser().parse_args(argv)
-    try:
+    """Run the command line; return the exit code.
+
+    Every failure is one message on stderr (and, with ``--json``, the document
+    ``{"error": {"message": ..., "exit_code": N}}`` on stdout): 1 for a failed solve, 2 for
+    bad input (files that cannot be read or written included), 130 after Ctrl-C and 143
+    after SIGTERM.  A traceback is shown only with ``--debug``.
+    """
+    words = list(sys.argv[1:] if argv is None else argv)
+
+    def command() -> int:
+        args = _parser().parse_args(words)
         return int(COMMANDS[args.command].run(args))
-    except SymcalError as exc:
-        if args.debug:
-            raise
-        print(f"symcal: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+
+    return run_guarded(command, words)
 
 
 if __name__ == "__main__":  # pragma: no cover

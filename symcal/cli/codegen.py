@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from symcal.cli.common import debug_option
+from symcal.cli.common import debug_option, inputs_of
+from symcal.errors import SymcalError
 
 HELP = "export the calibrated model as C99 (residuals, Jacobian, sensor outputs)"
 
@@ -24,6 +25,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                           "argument of every function")
     cmd.add_argument("-o", "--output", required=True, metavar="DIR",
                      help="output directory (created if absent)")
+    cmd.add_argument("--force", action="store_true",
+                     help="replace files in DIR that symcal did not write (e.g. your own "
+                          "Makefile or main.c); input files are never replaced")
     debug_option(cmd)
     return cmd
 
@@ -31,9 +35,20 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Generate the code; print one ``wrote PATH`` line per file; return the exit code."""
     from symcal.codegen import generate
+    from symcal.files import input_refusal
     from symcal.problem import load_problem
 
     problem = load_problem(args.problem)
-    for path in generate(problem, args.output, args.result):
+    if args.result:
+        reason = input_refusal(args.result, MAX_RESULT_BYTES)
+        if reason is not None:
+            raise SymcalError(f"--result {args.result}: cannot read the result file: it "
+                              f"{reason}")
+    inputs = inputs_of(args, [problem])
+    for path in generate(problem, args.output, args.result, args.force, inputs):
         print(f"wrote {path}")
     return 0
+
+
+#: Largest result file read, in bytes.
+MAX_RESULT_BYTES = 1 << 28

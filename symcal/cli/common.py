@@ -1,20 +1,50 @@
-"""What every command of the command line shares: the parser class, data options, progress."""
+"""What every command of the command line shares: the parser class, data options, progress,
+the inputs and outputs of a command, and how any failure becomes one message and an exit
+code."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import sys
+import threading
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
+from types import FrameType
+from typing import TYPE_CHECKING
 
-from symcal.errors import EXIT_BAD_INPUT, SymcalError
+from symcal.errors import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+    SymcalError,
+    escape_controls,
+    excerpt,
+)
+
+if TYPE_CHECKING:
+    from symcal.problem import Problem
+
+
+class UsageError(SymcalError):
+    """A command line that argparse cannot parse, with the usage of the parser that failed."""
+
+    def __init__(self, message: str, usage: str) -> None:
+        super().__init__(message)
+        self.usage = usage
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that a solve stops the same way (see solvers/nlp.py)."""
 
 
 class Parser(argparse.ArgumentParser):
-    """ArgumentParser whose usage errors exit with symcal's bad-input code."""
+    """ArgumentParser whose usage errors become :class:`UsageError` (exit 2)."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
-        self.print_usage(sys.stderr)
-        self.exit(EXIT_BAD_INPUT, f"symcal: error: {message}\n")
+        raise UsageError(message, self.format_usage())
 
 
 def _data_option(text: str) -> tuple[str, str]:
@@ -51,12 +81,133 @@ def data_map(args: argparse.Namespace) -> dict[str, str]:
 
 def progress(line: str) -> None:
     """Print one progress line on stderr."""
-    print(line, file=sys.stderr, flush=True)
+    print(escape_controls(line), file=sys.stderr, flush=True)
 
 
-def inputs_of(args: argparse.Namespace) -> set[Path]:
-    """The files a command reads that its outputs must never replace."""
+def write_stdout(text: str) -> None:
+    """Write a report to stdout, control characters (other than newline and tab) escaped."""
+    sys.stdout.write(escape_controls(text, keep="\n\t"))
+
+
+def inputs_of(args: argparse.Namespace, problems: Iterable[Problem] = ()) -> set[Path]:
+    """The files a command reads that its outputs must never replace.
+
+    Parameters
+    ----------
+    args
+        The parsed command line: its problem files, ``--data`` files, ``--result`` and
+        scenario.
+    problems
+        The loaded problems: every file each was built from (the files it extends, its
+        models through their ``extends``), its data files, and the scenario files of its
+        simulated datasets with the files they extend.
+    """
+    from symcal.language.overlay import extends_chain
+
     paths = {Path(args.problem).resolve()} if getattr(args, "problem", None) else set()
     paths |= {Path(p).resolve() for p in getattr(args, "problems", []) or []}
     paths |= {Path(p).resolve() for _, p in getattr(args, "data", [])}
+    for key in ("result", "scenario"):
+        if getattr(args, key, None):
+            paths.add(Path(getattr(args, key)).resolve())
+    if getattr(args, "scenario", None) and Path(args.scenario).is_file():
+        paths |= set(extends_chain(args.scenario, "scenario"))
+    for problem in problems:
+        paths |= {Path(f).resolve() for f in problem.source_files()}
+        for spec in problem.datasets.values():
+            if spec.path is not None:
+                paths.add(Path(spec.path).resolve())
+            if spec.scenario is not None and spec.scenario.is_file():
+                paths |= set(extends_chain(spec.scenario, "scenario"))
     return paths
+
+
+# ----------------------------------------------------------------------- failures
+
+def wants_json(argv: Sequence[str]) -> bool:
+    """Whether the command line asks for JSON on stdout (``--json``)."""
+    return "--json" in argv
+
+
+@contextlib.contextmanager
+def signals_handled() -> Iterator[None]:
+    """Make SIGTERM raise :class:`Terminated` while the command runs (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminate(signum: int, frame: FrameType | None) -> None:
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupted(exc: KeyboardInterrupt) -> tuple[str, int]:
+    from symcal.files import committed
+
+    what = ("terminated by SIGTERM" if isinstance(exc, Terminated)
+            else "interrupted by SIGINT (Ctrl-C)")
+    code = EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
+    done = committed()
+    if not done:
+        return f"{what}; no output was written or changed", code
+    return (f"{what}; only these outputs were written, each whole: "
+            f"{', '.join(str(p) for p in done)}", code)
+
+
+def failure(exc: BaseException) -> tuple[str, int]:
+    """The one message and the exit code for any exception a command raised."""
+    if isinstance(exc, SymcalError):
+        return str(exc), exc.exit_code
+    if isinstance(exc, KeyboardInterrupt):
+        return _interrupted(exc)
+    if isinstance(exc, MemoryError):
+        return ("out of memory: the input is too large for this machine", EXIT_BAD_INPUT)
+    if isinstance(exc, RecursionError):
+        return "the input is nested too deeply to be read", EXIT_BAD_INPUT
+    if isinstance(exc, OSError):
+        where = f"{excerpt(exc.filename, 200)}: " if exc.filename else ""
+        return (f"{where}{exc.strerror or exc.__class__.__name__}", EXIT_BAD_INPUT)
+    if isinstance(exc, UnicodeError):
+        return f"text that is not valid UTF-8 ({excerpt(exc, 120)})", EXIT_BAD_INPUT
+    return (f"internal error ({exc.__class__.__name__}: {excerpt(exc, 200)}); please report "
+            "it with the output of 'symcal --debug ...'", EXIT_FAILED)
+
+
+def report_failure(exc: BaseException, as_json: bool) -> int:
+    """Print the message of ``exc`` on stderr (and a JSON error document on stdout when
+    ``as_json``); return the exit code."""
+    from symcal.files import json_text
+
+    message, code = failure(exc)
+    if isinstance(exc, UsageError):
+        sys.stderr.write(exc.usage)
+    print(f"symcal: error: {escape_controls(message)}", file=sys.stderr)
+    if as_json:
+        sys.stdout.write(json_text({"error": {"message": message, "exit_code": code}}))
+    return code
+
+
+def run_guarded(command: Callable[[], int], argv: Sequence[str]) -> int:
+    """Run ``command()`` with SIGTERM handled; turn any failure into one message and an
+    exit code (0 success, 1 failed solve, 2 bad input, 130 SIGINT, 143 SIGTERM), with a
+    traceback only under ``--debug``.  A usage error raises ``SystemExit(2)``, as
+    argparse does."""
+    from symcal.files import forget_committed
+
+    forget_committed()
+    try:
+        with signals_handled():
+            return command()
+    except SystemExit:
+        raise
+    except UsageError as exc:  # argparse's convention: usage errors exit
+        raise SystemExit(report_failure(exc, wants_json(argv))) from None
+    except BaseException as exc:
+        if "--debug" in argv:
+            raise
+        return report_failure(exc, wants_json(argv))

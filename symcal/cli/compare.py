@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any
 
-from symcal.cli.common import data_map, data_options
+from symcal.cli.common import data_map, data_options, inputs_of, write_stdout
 
 HELP = "model revisions on the same data: the ladder"
 
@@ -26,19 +27,27 @@ def run(args: argparse.Namespace) -> int:
     from symcal.calibrate import solve
     from symcal.compare import compare, ladder_report, save_ladder_plot
     from symcal.datasets import load_datasets
+    from symcal.files import OutputSet, check_output_folder
     from symcal.problem import load_problem
     from symcal.report import plain_json
 
     problems = [load_problem(path) for path in args.problems]
-    datasets = load_datasets(problems[0], data_map(args), args.drop_invalid)
+    data = data_map(args)
+    inputs = inputs_of(args, problems)
+    option = f"--plots {args.plots}"
+    if args.plots:
+        check_output_folder(args.plots, option)
+    datasets = load_datasets(problems[0], data, args.drop_invalid)
     results = [solve(p, {k: v for k, v in datasets.items() if k in p.datasets})
                for p in problems]
     rungs = compare(results)
+    if not args.json:
+        write_stdout(ladder_report(rungs))
     if args.plots:
-        for path in save_ladder_plot(rungs, args.plots):
-            print(f"wrote {path}", file=sys.stderr)
+        with OutputSet(args.plots, inputs, option) as stage:
+            written = save_ladder_plot(rungs, stage)
+        for path in written:
+            print(f"wrote {Path(args.plots) / path.name}", file=sys.stderr)
     if args.json:
-        sys.stdout.write(plain_json([r.to_dict() for r in rungs]))
-    else:
-        sys.stdout.write(ladder_report(rungs))
+        write_stdout(plain_json([r.to_dict() for r in rungs]))
     return 0 if all(r.success for r in rungs) else 1

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any
 
-from symcal.cli.common import data_map, data_options, progress
+from symcal.cli.common import data_map, data_options, inputs_of, progress, write_stdout
 from symcal.errors import SymcalError
 
 HELP = "solve, then show where the model fails and which effect is missing"
@@ -33,9 +34,10 @@ def run(args: argparse.Namespace) -> int:
     """Diagnose; print the findings; write plots and the HTML page when asked."""
     from symcal.calibrate import solve
     from symcal.diagnose import diagnose
+    from symcal.files import check_output_folder, check_outputs
     from symcal.plots import FORMATS
     from symcal.problem import load_problem
-    from symcal.report import diagnosis_report, plain_json, text_report
+    from symcal.report import diagnosis_document, diagnosis_report, plain_json, text_report
 
     if not 0 < args.alpha < 1:
         raise SymcalError(f"--alpha {args.alpha}: must lie between 0 and 1")
@@ -44,22 +46,43 @@ def run(args: argparse.Namespace) -> int:
         if fmt.lower() not in FORMATS:
             raise SymcalError(f"--format {fmt}: unknown plot format; choose from: "
                               f"{', '.join(FORMATS)}")
-    result = solve(load_problem(args.problem), data_map(args), drop_invalid=args.drop_invalid,
+    problem = load_problem(args.problem)
+    data = data_map(args)
+    inputs = inputs_of(args, [problem])
+    if args.plots:
+        check_output_folder(args.plots, f"--plots {args.plots}")
+    if args.report:
+        check_outputs([args.report], inputs, f"--report {args.report}")
+    result = solve(problem, data, drop_invalid=args.drop_invalid,
                    progress=None if args.quiet else progress)
     diag = diagnose(result, alpha=args.alpha)
     text = diagnosis_report(diag)
+    if not args.json:
+        write_stdout(text)
     if args.plots or args.report:
-        doc = diag.to_dict(series=True)
-        if args.plots:
-            from symcal.plots import save_figures
-
-            written = save_figures(doc, args.plots, formats)
-            print(f"wrote {sum(len(v) for v in written.values())} figure files to "
-                  f"{args.plots}", file=sys.stderr)
-        if args.report:
-            from symcal.htmlreport import write_html
-
-            path = write_html(doc, text_report(result) + "\n" + text, args.report)
-            print(f"wrote {path}", file=sys.stderr)
-    sys.stdout.write(plain_json(diag.to_dict(series=False)) if args.json else text)
+        _write(args, diagnosis_document(diag, series=True), text_report(result) + "\n" + text, formats,
+               inputs)
+    if args.json:
+        write_stdout(plain_json(diagnosis_document(diag)))
     return 0 if diag.result.success else 1
+
+
+def _write(args: argparse.Namespace, doc: dict, text: str, formats: list[str],
+           inputs: set[Path]) -> None:
+    """Write the figures (one output set in ``--plots``) and the HTML page."""
+    from symcal.files import OutputSet
+
+    if args.plots:
+        from symcal.plots import save_figures
+
+        with OutputSet(args.plots, inputs, f"--plots {args.plots}") as stage:
+            written = save_figures(doc, stage, formats)
+        print(f"wrote {sum(len(v) for v in written.values())} figure files to "
+              f"{args.plots}", file=sys.stderr)
+    if args.report:
+        from symcal.htmlreport import write_html
+
+        page = Path(args.report)
+        with OutputSet(page.parent, inputs, f"--report {args.report}") as stage:
+            write_html(doc, text, stage / page.name)
+        print(f"wrote {page}", file=sys.stderr)

@@ -8,7 +8,7 @@ from typing import Any
 
 import yaml
 
-from symcal.cli.common import debug_option
+from symcal.cli.common import debug_option, inputs_of
 from symcal.errors import SymcalError
 
 HELP = "simulate a courier scenario to CSV"
@@ -28,36 +28,46 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Simulate every run (or ``--run``), write the tables and the truth file."""
+    """Simulate every run (or ``--run``), write the tables and the truth file.
+
+    The outputs are checked before anything is simulated (none may be an input, such as
+    the scenario or a file it extends, or a file symcal did not write) and are written as
+    one output set.
+    """
     from symcal.data import write_table
-    from symcal.files import atomic_write_text
+    from symcal.files import OutputSet, atomic_write_text, check_outputs
+    from symcal.language.fields import MAX_SAMPLES
     from symcal.simulate import load_scenario, simulate_run, truth
 
-    if args.n is not None and args.n < 1:
-        raise SymcalError(f"-n {args.n}: the number of samples must be at least 1")
+    if args.n is not None and not 1 <= args.n <= MAX_SAMPLES:
+        raise SymcalError(f"-n {args.n}: the number of samples must be between 1 and "
+                          f"{MAX_SAMPLES}")
     if args.seed < 0:
         raise SymcalError(f"--seed {args.seed}: the seed must not be negative")
+    out = Path(args.output)
+    if out.suffix.lower() not in (".csv", ".npz"):
+        raise SymcalError(f"-o {args.output}: the output must end in .csv or .npz")
     scenario = load_scenario(args.scenario)
     runs = list(scenario.run_names)
     if args.run is not None:
         scenario.run_index(args.run)  # raises with a did-you-mean for an unknown run
         runs = [args.run]
-    out = Path(args.output)
-    if out.suffix.lower() not in (".csv", ".npz"):
-        raise SymcalError(f"-o {args.output}: the output must end in .csv or .npz")
-    if out.resolve() == Path(args.scenario).resolve():
-        raise SymcalError(f"-o {args.output}: refusing to overwrite the scenario file")
     stem = out.with_suffix("")
-    written = []
-    for name in runs:
-        target = out if len(runs) == 1 else stem.with_name(f"{stem.name}.{name}{out.suffix}")
-        write_table(target, simulate_run(scenario, name, seed=args.seed, n=args.n))
-        written.append(target)
+    targets = {name: out if len(runs) == 1 else stem.with_name(f"{stem.name}.{name}"
+                                                                f"{out.suffix}")
+               for name in runs}
     truth_path = stem.with_name(f"{stem.name}.truth.yaml")
-    doc = truth(scenario)
-    doc["seed"] = args.seed
-    atomic_write_text(truth_path, yaml.safe_dump(doc, sort_keys=False))
-    for target in written:
+    option = f"-o {args.output}"
+    inputs = inputs_of(args)
+    check_outputs([*targets.values(), truth_path], inputs, option)
+    with OutputSet(out.parent, inputs, option) as stage:
+        for name, target in targets.items():
+            write_table(stage / target.name, simulate_run(scenario, name, seed=args.seed,
+                                                          n=args.n))
+        doc = truth(scenario)
+        doc["seed"] = args.seed
+        atomic_write_text(stage / truth_path.name, yaml.safe_dump(doc, sort_keys=False))
+    for target in targets.values():
         print(f"wrote {target}")
     print(f"wrote {truth_path}")
     return 0

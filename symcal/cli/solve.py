@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from symcal.cli.common import data_map, data_options, inputs_of, progress
+from symcal.cli.common import data_map, data_options, inputs_of, progress, write_stdout
 from symcal.errors import SymcalError
+
+if TYPE_CHECKING:
+    from symcal.result import Result
 
 HELP = "calibrate a problem and print the report"
 
@@ -35,36 +37,60 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Solve; print the report or JSON; write ``--out``; return the exit code."""
+    """Solve; print the report or JSON; write ``--out``; return the exit code.
+
+    ``--out`` is checked before the solve (a folder that can be written, no input and no
+    file symcal did not write replaced); ``result.json`` and ``report.txt`` then replace
+    their predecessors together (:class:`symcal.files.OutputSet`).  Text reports are
+    printed before they are written, so a failed write never loses them.
+    """
     from symcal.calibrate import solve
-    from symcal.files import atomic_write_text
+    from symcal.files import check_outputs
     from symcal.language.options import MAX_ITER_LIMIT
     from symcal.problem import load_problem
     from symcal.report import json_report, text_report
 
-    problem = load_problem(args.problem)
-    data = data_map(args)
     if args.max_iter is not None and not 1 <= args.max_iter <= MAX_ITER_LIMIT:
         raise SymcalError(f"--max-iter {args.max_iter}: must be between 1 and "
                           f"{MAX_ITER_LIMIT}")
+    problem = load_problem(args.problem)
+    data = data_map(args)
+    inputs = inputs_of(args, [problem])
+    option = f"--out {args.out}"
+    if args.out:
+        check_outputs([Path(args.out) / name for name in OUTPUTS], inputs, option)
     if args.weighting:
         problem = problem.with_weighting(args.weighting)
     options = problem.options.over(method=args.method, max_iter=args.max_iter)
     result = solve(problem, data, options, drop_invalid=args.drop_invalid,
                    progress=None if args.quiet else progress)
-    text, doc = text_report(result), json_report(result)
+    text = text_report(result)
+    show = not args.quiet or not result.success
+    if args.json:
+        doc = json_report(result)
+        if args.out:
+            _write(args.out, result, text, inputs, option)
+        if show:
+            write_stdout(doc)
+        return 0 if result.success else 1
+    if show:
+        write_stdout(text)
     if args.out:
-        out = Path(args.out)
-        inputs = inputs_of(args) | {s.path for s in problem.datasets.values() if s.path}
-        inputs |= set(problem.source_files())
-        for target in (out / "result.json", out / "report.txt"):
-            if target.resolve() in inputs:
-                raise SymcalError(f"--out {args.out}: refusing to overwrite input file {target}")
-        result.save(out / "result.json")
-        atomic_write_text(out / "report.txt", text)
-    if not args.quiet or not result.success:
-        sys.stdout.write(doc if args.json else text)
-        if args.out and not args.json:
-            sys.stdout.write(f"\nwrote {Path(args.out) / 'result.json'} and "
-                             f"{Path(args.out) / 'report.txt'}\n")
+        _write(args.out, result, text, inputs, option)
+        if show:
+            write_stdout(f"\nwrote {Path(args.out) / 'result.json'} and "
+                         f"{Path(args.out) / 'report.txt'}\n")
     return 0 if result.success else 1
+
+
+#: The result set ``--out`` writes.
+OUTPUTS = ("result.json", "report.txt")
+
+
+def _write(out: str, result: Result, text: str, inputs: set[Path], option: str) -> None:
+    """Write ``result.json`` and ``report.txt`` to ``out`` as one output set."""
+    from symcal.files import OutputSet, atomic_write_text
+
+    with OutputSet(out, inputs, option) as stage:
+        result.save(stage / "result.json")
+        atomic_write_text(stage / "report.txt", text)

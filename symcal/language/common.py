@@ -13,9 +13,9 @@ from symcal.language.fields import (
     child_where,
     expect_bool,
     expect_map,
-    expect_name,
     expect_number,
     expect_str,
+    expect_symbol,
 )
 from symcal.language.yamlio import YMap
 from symcal.suggest import did_you_mean
@@ -102,7 +102,7 @@ def _unit(entry: YMap, where: Where) -> str:
 
 def parse_constant(name: str, value: Any, where: Where) -> ConstantSpec:
     """Parse ``name: 1.5`` or ``name: {value, unit, doc}``."""
-    expect_name(name, where, "a constant's name")
+    expect_symbol(name, where, "a constant's name")
     if not isinstance(value, dict):
         return ConstantSpec(name, expect_number(value, where), "", "", where)
     entry = check_keys(value, where, required=["value"], optional=["unit", "doc"])
@@ -111,14 +111,21 @@ def parse_constant(name: str, value: Any, where: Where) -> ConstantSpec:
 
 
 PARAMETER_KEYS = ["value", "unit", "lower", "upper", "fixed", "scale", "doc"]
+#: Widest range of magnitudes a parameter may span, in internal units (mm, rad, s): its
+#: scale lies within [1/MAGNITUDE, MAGNITUDE] and its value within MAGNITUDE scales.
+MAGNITUDE = 1e9
+_WHY = ("the solver and the identifiability analysis work in units of the scale, and double "
+        "precision cannot resolve a parameter across a wider range of magnitudes")
 
 
 def parse_parameter(name: str, value: Any, where: Where) -> ParameterSpec:
     """Parse ``name: 0.1`` or ``name: {value, unit, lower, upper, fixed, scale, doc}``."""
-    expect_name(name, where, "a parameter's name")
+    expect_symbol(name, where, "a parameter's name")
     if not isinstance(value, dict):
         number = expect_number(value, where)
-        return ParameterSpec(name, number, "", -math.inf, math.inf, False, None, "", where)
+        spec = ParameterSpec(name, number, "", -math.inf, math.inf, False, None, "", where)
+        _check_magnitude(spec, where)
+        return spec
     entry = check_keys(value, where, optional=PARAMETER_KEYS)
     return apply_parameter_overrides(
         ParameterSpec(name, 0.0, "", -math.inf, math.inf, False, None, "", where), entry, where
@@ -143,6 +150,7 @@ def apply_parameter_overrides(base: ParameterSpec, entry: YMap, where: Where) ->
         elif key == "doc":
             fields[key] = _doc(entry, where)
     spec = ParameterSpec(**{**fields, "where": where})
+    _check_magnitude(spec, where)
     if spec.lower > spec.upper:
         raise SpecError(where, f"lower bound {spec.lower:g} is above upper bound {spec.upper:g}")
     if not spec.lower <= spec.value <= spec.upper:
@@ -151,6 +159,21 @@ def apply_parameter_overrides(base: ParameterSpec, entry: YMap, where: Where) ->
             f"initial value {spec.value:g} is outside its bounds [{spec.lower:g}, {spec.upper:g}]",
         )
     return spec
+
+
+def _check_magnitude(spec: ParameterSpec, where: Where) -> None:
+    """Refuse a scale or value whose magnitude would make the solve meaningless."""
+    if spec.scale is not None and not 1 / MAGNITUDE <= spec.scale <= MAGNITUDE:
+        raise SpecError(where, f"scale {spec.scale:g} is outside [{1 / MAGNITUDE:g}, "
+                               f"{MAGNITUDE:g}] (internal units mm, rad, s): {_WHY}")
+    scale = spec.scale if spec.scale is not None else 1.0
+    if abs(spec.value) > MAGNITUDE * scale:
+        raise SpecError(where, f"initial value {spec.value:g} is more than {MAGNITUDE:g} times "
+                               f"its scale {scale:g}: {_WHY}; give a scale near the value")
+    if spec.scale is None and 0 < abs(spec.value) < 1 / MAGNITUDE:
+        raise SpecError(where, f"initial value {spec.value:g} is below {1 / MAGNITUDE:g} and "
+                               "no scale is given (the scale would be the value): give a scale "
+                               "(its nominal magnitude)")
 
 
 def section(doc: YMap, where: Where, key: str) -> tuple[YMap, Where]:

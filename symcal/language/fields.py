@@ -6,7 +6,8 @@ import math
 from collections.abc import Iterable
 from typing import Any
 
-from symcal.errors import SpecError, Where
+from symcal.errors import SpecError, Where, excerpt
+from symcal.expr import RESERVED_NAMES
 from symcal.language.yamlio import YList, YMap
 from symcal.suggest import did_you_mean
 
@@ -44,7 +45,7 @@ def check_keys(
         if key not in allowed:
             raise SpecError(
                 child_where(mapping, where, key),
-                f"unknown key '{key}'{did_you_mean(str(key), allowed)}"
+                f"unknown key '{excerpt(key)}'{did_you_mean(str(key), allowed)}"
                 f"; allowed keys: {', '.join(allowed)}",
             )
     for key in required:
@@ -58,10 +59,12 @@ def _type_name(value: Any) -> str:
         return "nothing (null)"
     if isinstance(value, bool):
         return f"a boolean ({value})"
+    if isinstance(value, int) and abs(value) > 10**15:
+        return f"a number with {len(str(abs(value)))} digits"
     if isinstance(value, (int, float)):
         return f"a number ({value})"
     if isinstance(value, str):
-        return f"text ('{value}')"
+        return f"text ('{excerpt(value)}')"
     if isinstance(value, dict):
         return "a mapping"
     if isinstance(value, list):
@@ -99,17 +102,30 @@ def expect_number(value: Any, where: Where) -> float:
     """Return ``value`` as a finite float if it is a number, else raise."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise SpecError(where, f"expected a number, found {_type_name(value)}")
-    if not math.isfinite(value):
+    try:
+        number = float(value)
+    except OverflowError:
+        raise SpecError(where, f"expected a finite number, found {_type_name(value)}, beyond "
+                               "the range of a double (about 1.8e308)") from None
+    if not math.isfinite(number):
         raise SpecError(where, f"expected a finite number, found {value}")
-    return float(value)
+    return number
 
 
-def expect_int(value: Any, where: Where, minimum: int | None = None) -> int:
-    """Return ``value`` if it is an integer (at least ``minimum``), else raise."""
+#: Most observations a simulated run or dataset may have.
+MAX_SAMPLES = 100_000_000
+
+
+def expect_int(value: Any, where: Where, minimum: int | None = None,
+               maximum: int | None = None) -> int:
+    """Return ``value`` if it is an integer (within ``minimum``..``maximum``), else raise."""
     if isinstance(value, bool) or not isinstance(value, int):
         raise SpecError(where, f"expected a whole number, found {_type_name(value)}")
+    shown = value if abs(value) <= 10**15 else _type_name(value)
     if minimum is not None and value < minimum:
-        raise SpecError(where, f"expected a whole number of at least {minimum}, found {value}")
+        raise SpecError(where, f"expected a whole number of at least {minimum}, found {shown}")
+    if maximum is not None and value > maximum:
+        raise SpecError(where, f"expected a whole number of at most {maximum}, found {shown}")
     return value
 
 
@@ -129,9 +145,21 @@ def expect_name(value: Any, where: Where, what: str = "name") -> str:
     """Return ``value`` if it is a plain identifier, else raise."""
     if not isinstance(value, str) or not is_name(value):
         raise SpecError(
-            where, f"{what} must be a plain name (letters, digits, underscore), found {value!r}"
+            where, f"{what} must be a plain name (letters, digits, underscore), found "
+                   f"{excerpt(repr(value))}"
         )
     return value
+
+
+def expect_symbol(value: Any, where: Where, what: str = "name") -> str:
+    """Return ``value`` if it can name a symbol: a plain name that the expression language
+    does not reserve (``pi``, the function names), else raise."""
+    name = expect_name(value, where, what)
+    if name in RESERVED_NAMES:
+        meaning = "the constant π" if name == "pi" else "a function"
+        raise SpecError(where, f"'{name}' cannot be declared: expressions reserve it for "
+                               f"{meaning}; choose another name")
+    return name
 
 
 def expect_choice(value: Any, where: Where, choices: tuple[str, ...], what: str) -> str:

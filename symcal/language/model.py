@@ -8,6 +8,7 @@ from typing import Any
 
 from symcal import expr
 from symcal.errors import SpecError, Where
+from symcal.files import input_refusal
 from symcal.language.common import (
     ConstantSpec,
     ExprSpec,
@@ -18,8 +19,16 @@ from symcal.language.common import (
     parse_parameter,
     section,
 )
-from symcal.language.fields import check_keys, child_where, expect_int, expect_name, expect_str
-from symcal.language.yamlio import display_path, load_yaml
+from symcal.language.fields import (
+    check_keys,
+    child_where,
+    expect_int,
+    expect_name,
+    expect_str,
+    expect_symbol,
+)
+from symcal.language.overlay import MAX_DEPTH
+from symcal.language.yamlio import MAX_BYTES, display_path, load_yaml
 from symcal.suggest import did_you_mean
 
 MODEL_KEYS = ["doc", "extends", "constants", "inputs", "parameters", "expressions", "outputs",
@@ -81,9 +90,35 @@ class ModelSpec:
     extends: ModelSpec | None = None
     implicit: dict[str, ImplicitSpec] = field(default_factory=dict)
 
+    def error_expression(self, output: str) -> str | None:
+        """The expression E when ``output`` is ``input + E`` (or ``E + input``): the
+        sensor's error, where a missing term belongs."""
+        spec = self.outputs.get(output)
+        if spec is None:
+            return None
+        node = spec.expr.node
+        if isinstance(node, expr.Binary) and node.op == "+":
+            for a, b in ((node.left, node.right), (node.right, node.left)):
+                if isinstance(a, expr.Name) and a.name in self.inputs and \
+                        isinstance(b, expr.Name) and b.name in self.expressions:
+                    return b.name
+        return None
+
+    def evaluation_point(self, name: str) -> str | None:
+        """Where the model evaluates its error for input ``name``: an expression solved
+        from it (``implicit: {u: {start: p}}``) or defined as the input itself (``u: p``,
+        the explicit model); None when there is no such expression."""
+        for key, spec in self.implicit.items():
+            if isinstance(spec.start.node, expr.Name) and spec.start.node.name == name:
+                return key
+        for key, value in self.expressions.items():
+            if isinstance(value.node, expr.Name) and value.node.name == name:
+                return key
+        return None
+
 
 def _parse_input(name: str, value: Any, where: Where) -> InputSpec:
-    expect_name(name, where, "an input's name")
+    expect_symbol(name, where, "an input's name")
     entry = check_keys(value, where, optional=["unit", "doc", "period"])
     unit = str(entry.get("unit", ""))
     doc = expect_str(entry["doc"], child_where(entry, where, "doc")) if "doc" in entry else ""
@@ -95,7 +130,7 @@ def _parse_input(name: str, value: Any, where: Where) -> InputSpec:
 
 
 def _parse_output(name: str, value: Any, where: Where) -> OutputSpec:
-    expect_name(name, where, "an output's name")
+    expect_symbol(name, where, "an output's name")
     if not isinstance(value, dict):
         return OutputSpec(name, parse_expr(value, where), "", "", where)
     entry = check_keys(value, where, required=["expr"], optional=["unit", "doc"])
@@ -120,6 +155,15 @@ def parse_implicit(name: str, value: Any, where: Where) -> ImplicitSpec:
             raise SpecError(at, f"at most {MAX_STEPS} fixed-point steps, found {steps}")
     return ImplicitSpec(name, parse_expr(entry["start"], child_where(entry, where, "start")),
                         steps, where)
+
+
+def expression_nodes(model: ModelSpec) -> list[expr.Node]:
+    """The AST of every expression a model declares or inherits (outputs, expressions,
+    periods of inputs, starts of implicit definitions)."""
+    specs = [*model.expressions.values(), *(o.expr for o in model.outputs.values()),
+             *(i.period for i in model.inputs.values() if i.period is not None),
+             *(d.start for d in model.implicit.values())]
+    return [spec.node for spec in specs]
 
 
 def _check_implicit(model: ModelSpec) -> None:
@@ -229,7 +273,7 @@ def load_model(path: str | Path, _chain: tuple[Path, ...] = ()) -> ModelSpec:
     parameters = entries("parameters", parse_parameter)
     expressions = entries("expressions", lambda k, v, at: parse_expr(v, at))
     for key in expressions:
-        expect_name(key, expressions[key].where, "an expression's name")
+        expect_symbol(key, expressions[key].where, "an expression's name")
     outputs = entries("outputs", _parse_output)
     for key in expressions:
         if key.startswith(BASE):
@@ -247,6 +291,12 @@ def load_model(path: str | Path, _chain: tuple[Path, ...] = ()) -> ModelSpec:
     if parent_path in chain:
         names = " -> ".join(display_path(p) for p in (*chain, parent_path))
         raise SpecError(at, f"models extend each other in a cycle: {names}")
+    if len(chain) > MAX_DEPTH:
+        raise SpecError(at, f"more than {MAX_DEPTH} levels of 'extends' below "
+                            f"{display_path(chain[0])}")
     if not parent_path.exists():
         raise SpecError(at, f"model file not found: {display_path(parent_path)}")
+    reason = input_refusal(parent_path, MAX_BYTES)
+    if reason is not None:
+        raise SpecError(at, f"cannot read model file {display_path(parent_path)}: it {reason}")
     return _extend(load_model(parent_path, chain), model)

@@ -18,8 +18,9 @@ from pathlib import Path
 from typing import Any
 
 from symcal.errors import SpecError, Where
+from symcal.files import input_refusal
 from symcal.language.fields import child_where, expect_str
-from symcal.language.yamlio import YList, YMap, display_path, load_yaml
+from symcal.language.yamlio import MAX_BYTES, YList, YMap, display_path, load_yaml
 from symcal.suggest import did_you_mean
 
 #: How many files deep ``extends`` may go (a file and at most this many bases).
@@ -145,6 +146,9 @@ def _base_path(value: Any, at: Where, path: Path, what: str, chain: tuple[Path, 
                             f"{display_path(chain[0])}")
     if not base_path.exists():
         raise SpecError(at, f"{what} file not found: {display_path(base_path)}")
+    reason = input_refusal(base_path, MAX_BYTES)
+    if reason is not None:
+        raise SpecError(at, f"cannot read {what} file {display_path(base_path)}: it {reason}")
     return base_path
 
 

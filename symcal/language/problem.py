@@ -6,7 +6,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from symcal import expr
 from symcal.errors import SpecError, Where
+from symcal.files import input_refusal
 from symcal.language.common import (
     ConstantSpec,
     ExprSpec,
@@ -20,6 +22,7 @@ from symcal.language.common import (
 )
 from symcal.language.courier import PRESETS
 from symcal.language.fields import (
+    MAX_SAMPLES,
     check_keys,
     child_where,
     expect_bool,
@@ -30,11 +33,18 @@ from symcal.language.fields import (
     expect_name,
     expect_number,
     expect_str,
+    expect_symbol,
 )
-from symcal.language.model import ImplicitSpec, ModelSpec, load_model, parse_implicit
+from symcal.language.model import (
+    ImplicitSpec,
+    ModelSpec,
+    expression_nodes,
+    load_model,
+    parse_implicit,
+)
 from symcal.language.options import METHODS, SolveOptions, parse_solver
 from symcal.language.overlay import extends_chain, load_with_extends, merge_problem
-from symcal.language.yamlio import YMap, display_path
+from symcal.language.yamlio import MAX_BYTES, YMap, display_path
 from symcal.suggest import did_you_mean
 
 PROBLEM_KEYS = ["doc", "extends", "constants", "parameters", "columns", "expressions",
@@ -182,6 +192,10 @@ class _ModelCache:
         if path not in self.models:
             if not path.exists():
                 raise SpecError(where, f"model file not found: {display_path(path)}")
+            reason = input_refusal(path, MAX_BYTES)
+            if reason is not None:
+                raise SpecError(where, f"cannot read model file {display_path(path)}: it "
+                                       f"{reason}")
             self.models[path] = load_model(path)
         return self.models[path]
 
@@ -189,7 +203,7 @@ class _ModelCache:
 def _parse_instance(
     name: str, value: Any, where: Where, base: Path, cache: _ModelCache
 ) -> InstanceSpec:
-    expect_name(name, where, "an instance's name")
+    expect_symbol(name, where, "an instance's name")
     entry = check_keys(value, where, required=["model", "inputs"],
                        optional=["parameters", "doc"])
     model_at = child_where(entry, where, "model")
@@ -224,7 +238,7 @@ def _not_in(key: str, what: str, model: str, names: list[str]) -> str:
 
 
 def _parse_quantity(name: str, value: Any, where: Where, weighted: bool) -> QuantitySpec:
-    expect_name(name, where)
+    expect_symbol(name, where)
     if not isinstance(value, dict):
         return QuantitySpec(name, parse_expr(value, where), "", 1.0, "", where)
     optional = ["unit", "doc"] + (["sigma"] if weighted else [])
@@ -283,7 +297,8 @@ def _parse_dataset(name: str, value: Any, where: Where, base: Path) -> DatasetSp
            if "run" in entry else name)
     seed = (expect_int(entry["seed"], child_where(entry, where, "seed"), 0)
             if "seed" in entry else 0)
-    n = expect_int(entry["n"], child_where(entry, where, "n"), 1) if "n" in entry else None
+    n = (expect_int(entry["n"], child_where(entry, where, "n"), 1, MAX_SAMPLES)
+         if "n" in entry else None)
     return DatasetSpec(name, None, scenario, run, seed, n, _doc(entry, where), where)
 
 
@@ -332,7 +347,7 @@ def _parse_stages(doc: YMap, where: Where, constraints: dict) -> tuple[StageSpec
 
 
 def _parse_column(name: str, value: Any, where: Where) -> ColumnSpec:
-    expect_name(name, where, "a column's name")
+    expect_symbol(name, where, "a column's name")
     entry = check_keys(value, where, optional=["unit", "doc", "role"])
     role = (expect_choice(entry["role"], child_where(entry, where, "role"), ROLES, "role")
             if "role" in entry else "")
@@ -352,6 +367,24 @@ def _parse_columns(doc: YMap, where: Where) -> dict[str, ColumnSpec]:
                 for k, (unit, role, text) in PRESETS[value].items()}
     mapping = expect_map(value, at)
     return {k: _parse_column(k, v, child_where(mapping, at, k)) for k, v in mapping.items()}
+
+
+#: Most expression nodes a problem may expand to: every expression of every instance's
+#: model, every binding and the problem's own expressions, each use of a YAML alias counted.
+MAX_EXPRESSION_NODES = 100_000
+
+
+def _check_size(name: str, where: Where, instances: dict[str, InstanceSpec],
+                groups: list[list[ExprSpec]]) -> None:
+    """Refuse a problem whose expressions, expanded, are too large to build in bounded time."""
+    nodes = [n for inst in instances.values() for n in expression_nodes(inst.model)]
+    nodes += [b.node for inst in instances.values() for b in inst.bindings.values()]
+    nodes += [spec.node for group in groups for spec in group]
+    total = expr.total_size(nodes)
+    if total > MAX_EXPRESSION_NODES:
+        raise SpecError(where, f"the expressions of problem '{name}' expand to {total} nodes, "
+                               f"more than the limit of {MAX_EXPRESSION_NODES} (a model counts "
+                               "once per instance, an alias once per use)")
 
 
 def load_problem_spec(path: str | Path) -> ProblemSpec:
@@ -408,6 +441,10 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
                             ("parameters", parameters), ("instances", instances),
                             ("expressions", expressions), ("constraints", constraints))
     })
+    _check_size(name, where, instances, [
+        [q.expr for q in expressions.values()], [q.expr for q in constraints.values()],
+        [c.estimate for c in comparisons.values()], [c.reference for c in comparisons.values()],
+    ])
     stages = _parse_stages(doc, where, constraints)
     weighting = "equal"
     if "weighting" in doc:

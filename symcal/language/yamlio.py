@@ -6,16 +6,36 @@ validation errors can name ``file:line`` and the key path, also after a document
 merged with the file it ``extends`` (:mod:`symcal.language.overlay`).  Only
 :class:`yaml.SafeLoader` constructors are used: no Python objects can be built from a
 file.
+
+Scalars resolve by the YAML 1.2 core schema, not PyYAML's YAML 1.1 rules: ``010`` is 10,
+``1:30`` and ``yes`` are text, ``1e-3`` and ``-.5`` are numbers, ``0x1F`` and ``0o17`` are
+integers.  Files are bounded before they are trusted: at most :data:`MAX_BYTES` bytes of
+UTF-8 in a regular file, nested at most :data:`MAX_NESTING` levels, and at most
+:data:`MAX_NODES` nodes once every alias is expanded (an alias counts as what it repeats).
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from symcal.errors import SpecError, Where
+from symcal.errors import SpecError, Where, excerpt
+from symcal.files import display_path, read_input_bytes
+
+#: Largest YAML file accepted, in bytes.
+MAX_BYTES = 1 << 20
+#: Deepest nesting of mappings and lists accepted.
+MAX_NESTING = 64
+#: Most nodes a document may hold with every alias expanded.
+MAX_NODES = 200_000
+#: Most digits of an integer (a double holds at most 309 before the point).
+MAX_DIGITS = 1000
+
+__all__ = ["MAX_BYTES", "MAX_NESTING", "MAX_NODES", "YList", "YMap", "display_path",
+           "load_yaml"]
 
 
 class YMap(dict):
@@ -46,9 +66,86 @@ class YList(list):
 
 
 class _Loader(yaml.SafeLoader):
-    """SafeLoader that keeps line numbers and files and rejects duplicate keys."""
+    """SafeLoader that keeps line numbers and files and rejects duplicate keys.
+
+    It resolves scalars by the YAML 1.2 core schema and bounds nesting and the expanded
+    size of the document while composing it.
+    """
 
     source: str = ""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self.depth = 0
+        self.sizes: dict[int, int] = {}
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        """Compose one node, refusing deep nesting and documents that expand too far."""
+        self.depth += 1
+        if self.depth > MAX_NESTING:
+            raise yaml.composer.ComposerError(
+                None, None, f"nested more than {MAX_NESTING} levels deep",
+                self.peek_event().start_mark)
+        try:
+            node = super().compose_node(parent, index)
+        finally:
+            self.depth -= 1
+        size = self.sizes.get(id(node))
+        if size is None:
+            size = 1
+            if isinstance(node, yaml.SequenceNode):
+                size += sum(self.sizes.get(id(child), 1) for child in node.value)
+            elif isinstance(node, yaml.MappingNode):
+                size += sum(self.sizes.get(id(k), 1) + self.sizes.get(id(v), 1)
+                            for k, v in node.value)
+            self.sizes[id(node)] = size
+        if size > MAX_NODES:
+            raise yaml.composer.ComposerError(
+                None, None, f"the document expands to more than {MAX_NODES} nodes (an alias "
+                            "counts as what it repeats)", node.start_mark)
+        return node
+
+
+def _core_schema() -> None:
+    """Resolve plain scalars by the YAML 1.2 core schema (and keep ``<<`` merge keys)."""
+    _Loader.yaml_implicit_resolvers = {}
+    rules = [
+        ("tag:yaml.org,2002:null", r"~|null|Null|NULL|", "~nN"),
+        ("tag:yaml.org,2002:bool", r"true|True|TRUE|false|False|FALSE", "tTfF"),
+        ("tag:yaml.org,2002:int", r"[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+", "-+0123456789"),
+        ("tag:yaml.org,2002:float",
+         r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
+         r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)", "-+.0123456789"),
+        ("tag:yaml.org,2002:merge", r"<<", "<"),
+    ]
+    for tag, pattern, first in rules:
+        _Loader.add_implicit_resolver(tag, re.compile(f"^(?:{pattern})$"), list(first))
+    _Loader.add_implicit_resolver("tag:yaml.org,2002:null", re.compile("^$"), [""])
+
+
+def _construct_int(loader: _Loader, node: yaml.ScalarNode) -> int:
+    text = str(loader.construct_scalar(node))
+    try:
+        if text[:2] in ("0o", "0x"):
+            return int(text[2:], 8 if text[1] == "o" else 16)
+        if len(text) > MAX_DIGITS:
+            raise ValueError(f"more than {MAX_DIGITS} digits")
+        return int(text, 10)
+    except ValueError:
+        what = (f"has more than {MAX_DIGITS} digits" if len(text) > MAX_DIGITS
+                else "is not an integer")
+        raise yaml.constructor.ConstructorError(
+            None, None, f"'{excerpt(text)}' {what}", node.start_mark) from None
+
+
+def _construct_float(loader: _Loader, node: yaml.ScalarNode) -> float:
+    text = str(loader.construct_scalar(node))
+    special = {".inf": "inf", "+.inf": "inf", "-.inf": "-inf", ".nan": "nan"}
+    try:
+        return float(special.get(text.lower(), text))
+    except ValueError:
+        raise yaml.constructor.ConstructorError(
+            None, None, f"'{excerpt(text)}' is not a number", node.start_mark) from None
 
 
 def _construct_map(loader: _Loader, node: yaml.MappingNode) -> YMap:
@@ -62,11 +159,13 @@ def _construct_map(loader: _Loader, node: yaml.MappingNode) -> YMap:
         line = key_node.start_mark.line + 1
         if not isinstance(key, (str, int, float, bool)) or key is None:
             raise yaml.constructor.ConstructorError(
-                None, None, f"keys must be plain names, found {key!r}", key_node.start_mark
+                None, None, f"keys must be plain names, found {excerpt(repr(key))}",
+                key_node.start_mark
             )
         if key in out:
             raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key '{key}' (first at line {out.key_lines[key]})",
+                None, None, f"duplicate key '{excerpt(key)}' (first at line "
+                            f"{out.key_lines[key]})",
                 key_node.start_mark,
             )
         out[key] = loader.construct_object(value_node, deep=True)
@@ -85,6 +184,9 @@ def _construct_seq(loader: _Loader, node: yaml.SequenceNode) -> YList:
 
 _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_map)
 _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _construct_seq)
+_Loader.add_constructor("tag:yaml.org,2002:int", _construct_int)
+_Loader.add_constructor("tag:yaml.org,2002:float", _construct_float)
+_core_schema()
 
 
 def _parse(text: str, source: str) -> Any:
@@ -95,14 +197,6 @@ def _parse(text: str, source: str) -> Any:
         return loader.get_single_data()
     finally:
         loader.dispose()
-
-
-def display_path(path: Path) -> str:
-    """Path as shown in messages: relative to the working directory when below it."""
-    try:
-        return str(path.resolve().relative_to(Path.cwd().resolve()))
-    except ValueError:
-        return str(path)
 
 
 def load_yaml(path: str | Path, what: str = "file") -> tuple[YMap, Where]:
@@ -127,13 +221,7 @@ def load_yaml(path: str | Path, what: str = "file") -> tuple[YMap, Where]:
     """
     path = Path(path)
     shown = display_path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SpecError(Where(shown), f"{what} file not found") from None
-    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as exc:
-        reason = exc.__class__.__name__
-        raise SpecError(Where(shown), f"cannot read {what} file ({reason})") from None
+    text = _read_text(path, shown, what)
     try:
         doc = _parse(text, shown)
     except yaml.MarkedYAMLError as exc:
@@ -141,9 +229,36 @@ def load_yaml(path: str | Path, what: str = "file") -> tuple[YMap, Where]:
         line = mark.line + 1 if mark is not None else None
         problem = exc.problem or str(exc)
         raise SpecError(Where(shown, line), f"invalid YAML: {problem}") from None
+    except yaml.reader.ReaderError as exc:
+        line = text.count("\n", 0, exc.position) + 1
+        raise SpecError(Where(shown, line), f"invalid YAML: unacceptable character "
+                                            f"#x{exc.character:04x}: {exc.reason}") from None
     except yaml.YAMLError as exc:
-        raise SpecError(Where(shown), f"invalid YAML: {exc}") from None
+        raise SpecError(Where(shown), f"invalid YAML: {excerpt(exc, 200)}") from None
+    except RecursionError:
+        raise SpecError(Where(shown), "invalid YAML: nested too deeply") from None
     if not isinstance(doc, YMap):
         kind = "empty" if doc is None else f"a {type(doc).__name__}"
         raise SpecError(Where(shown, 1), f"a {what} file must be a mapping of keys, found {kind}")
     return doc, Where(shown, doc.line)
+
+
+def _read_text(path: Path, shown: str, what: str) -> str:
+    """The UTF-8 text of a YAML file, refusing what is not a bounded regular file."""
+    label = what if what == "file" else f"{what} file"
+    try:
+        data = read_input_bytes(path, MAX_BYTES)
+    except FileNotFoundError:
+        raise SpecError(Where(shown), f"{label} not found") from None
+    except OSError as exc:
+        raise SpecError(Where(shown), f"cannot read {label}: "
+                                      f"{exc.strerror or exc.__class__.__name__}") from None
+    except ValueError as exc:
+        raise SpecError(Where(shown), f"cannot read {label}: it {exc}") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise SpecError(Where(shown, line), f"cannot read {label}: not UTF-8 text (byte "
+                                            f"0x{data[exc.start]:02x} at offset {exc.start})"
+                        ) from None

@@ -75,6 +75,7 @@ from typing import Any
 
 from symcal.errors import SpecError, Where
 from symcal.language.fields import (
+    MAX_SAMPLES,
     check_keys,
     child_where,
     expect_int,
@@ -521,7 +522,8 @@ def _scatter(value: Any, where: Where, has_coordination: bool) -> Scatter:
     mapping = check_keys(value, where, required=("n", "x", "y", "theta_deg"),
                          optional=("rotate_about",))
     return Scatter(
-        n=expect_int(mapping["n"], child_where(mapping, where, "n"), minimum=1),
+        n=expect_int(mapping["n"], child_where(mapping, where, "n"), minimum=1,
+                     maximum=MAX_SAMPLES),
         x=_range(mapping, where, "x"),
         y=_range(mapping, where, "y"),
         theta=_range(mapping, where, "theta_deg", math.pi / 180.0),
@@ -534,7 +536,8 @@ def _line(value: Any, where: Where, has_coordination: bool) -> Line:
                          optional=("theta_deg", "theta_jitter_deg", "rotate_about"))
     deg = math.pi / 180.0
     return Line(
-        n=expect_int(mapping["n"], child_where(mapping, where, "n"), minimum=1),
+        n=expect_int(mapping["n"], child_where(mapping, where, "n"), minimum=1,
+                     maximum=MAX_SAMPLES),
         start=_point(mapping, where, "from"),
         end=_point(mapping, where, "to"),
         theta=_number(mapping, where, "theta_deg", 0.0) * deg,

@@ -9,13 +9,21 @@
   evaluation per iterate; line-search trials evaluate residuals only.
 * IPOPT works on x = θ_free / scale (each parameter's nominal magnitude), with bounds.
 * A failed solve returns its last iterate, marked failed; it is never a silent success.
+* Ctrl-C (KeyboardInterrupt, or the command line's SIGTERM, a subclass of it) inside a
+  callback would be swallowed by CasADi and reported as a failed evaluation: the callbacks
+  catch it, answer with zeros so that IPOPT ends its iteration at once, stop IPOPT through
+  the iteration callback, and the interrupt is raised again when IPOPT returns.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
+import signal
+import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from types import FrameType
 from typing import Any
 
 import casadi as ca
@@ -51,6 +59,64 @@ STATUS_WORDS: dict[str, tuple[bool, str]] = {
 }
 
 
+class _Stop:
+    """Ctrl-C and SIGTERM while IPOPT runs: raised only inside symcal's own evaluations
+    (where they are caught), recorded anywhere else (in IPOPT or CasADi's glue code, which
+    would swallow them), and raised again once IPOPT has stopped."""
+
+    def __init__(self) -> None:
+        self.interrupt: KeyboardInterrupt | None = None
+        self.inside = False
+
+    def call(self, fn: Callable[[Any], Any], arg: Any, default: Any) -> Any:
+        """``fn(arg)``, or ``default`` once interrupted (zeros: IPOPT sees a stationary
+        point and ends its iteration at once)."""
+        if self.interrupt is None:
+            try:
+                self.inside = True
+                value = fn(arg)
+                self.inside = False
+                return value
+            except KeyboardInterrupt as exc:
+                self.inside = False
+                self.interrupt = self.interrupt or exc
+        return default
+
+    @contextlib.contextmanager
+    def deferred(self) -> Iterator[None]:
+        """While IPOPT runs, record SIGINT and SIGTERM (when Python handles them) and
+        raise them only inside an evaluation; main thread only."""
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        previous: dict[int, Any] = {}
+
+        def handler(signum: int, frame: FrameType | None) -> None:
+            try:
+                previous[signum](signum, frame)
+            except KeyboardInterrupt as exc:
+                self.interrupt = self.interrupt or exc
+                if self.inside:
+                    self.inside = False
+                    raise
+
+        for sig in (int(signal.SIGINT), int(signal.SIGTERM)):
+            handler_before = signal.getsignal(sig)
+            if callable(handler_before):
+                previous[sig] = handler_before
+                signal.signal(sig, handler)
+        try:
+            yield
+        finally:
+            for sig, handler_before in previous.items():
+                signal.signal(sig, handler_before)
+
+    def reraise(self) -> None:
+        """Raise the recorded interrupt, if any."""
+        if self.interrupt is not None:
+            raise self.interrupt
+
+
 class _Oracle:
     """Cost, gradient and Gauss-Newton Hessian of the scaled problem, cached per iterate."""
 
@@ -65,6 +131,7 @@ class _Oracle:
         self.costs: dict[bytes, float] = {}
         self.cost_scale = 1.0
         self.evaluations = 0
+        self.stop = _Stop()
 
     def theta(self, x: np.ndarray) -> np.ndarray:
         theta = self.base.copy()
@@ -112,19 +179,22 @@ class _Call(ca.Callback):
     """A CasADi function of x (n) evaluated by a Python method of the oracle."""
 
     def __init__(self, name: str, n: int, shape: tuple[int, int],
-                 fn: Callable[[np.ndarray], float | np.ndarray],
+                 fn: Callable[[np.ndarray], float | np.ndarray], stop: _Stop,
                  gradient: _Call | None = None) -> None:
         ca.Callback.__init__(self)
         self.n, self.shape, self.fn, self.gradient = n, shape, fn, gradient
+        self.stop = stop
         self.construct(name, {"enable_fd": False})
 
     def has_jacobian(self) -> bool:
         return self.gradient is not None
 
-    def get_jacobian(self, name: str, inames: list, onames: list, opts: dict) -> ca.Function:
+    def get_jacobian(self, name: str, inames: Sequence[str], onames: Sequence[str],
+                     opts: Mapping[str, Any]) -> ca.Function:
         x, out = ca.MX.sym("x", self.n), ca.MX.sym("out", *self.shape)
         assert self.gradient is not None
-        return ca.Function(name, [x, out], [self.gradient(x).T], inames, onames, opts)
+        return ca.Function(name, [x, out], [self.gradient(x).T], list(inames), list(onames),
+                           dict(opts))
 
     def get_n_in(self) -> int:
         return 1
@@ -138,17 +208,19 @@ class _Call(ca.Callback):
     def get_sparsity_out(self, i: int) -> ca.Sparsity:
         return ca.Sparsity.dense(*self.shape)
 
-    def eval(self, arg: list) -> list:
-        return [ca.DM(np.reshape(self.fn(np.array(arg[0]).ravel()), self.shape))]
+    def eval(self, arg: Sequence[Any]) -> list:
+        value = self.stop.call(self.fn, np.array(arg[0]).ravel(), np.zeros(self.shape))
+        return [ca.DM(np.reshape(value, self.shape))]
 
 
 class _Progress(ca.Callback):
     """IPOPT iteration callback: reports progress and keeps the last iterate."""
 
     def __init__(self, n: int, report: Callable[[str], None] | None, cost_scale: float,
-                 label: str, converged: Callable[[np.ndarray], bool]) -> None:
+                 label: str, converged: Callable[[np.ndarray], bool], stop: _Stop) -> None:
         ca.Callback.__init__(self)
         self.converged = converged
+        self.stop = stop
         self.stopped = False
         self.n = n
         self.report = report
@@ -178,7 +250,11 @@ class _Progress(ca.Callback):
             return ca.Sparsity.dense(self.n)
         return ca.Sparsity(0, 0)
 
-    def eval(self, arg: list) -> list:
+    def eval(self, arg: Sequence[Any]) -> list:
+        return [1 if self.stop.call(self._iteration, arg, True) else 0]
+
+    def _iteration(self, arg: Sequence[Any]) -> bool:
+        """Report one iteration; whether the solve has converged."""
         x = np.array(arg[0]).ravel()
         step = float("nan") if self.last_x is None else float(np.linalg.norm(x - self.last_x))
         if self.report is not None:
@@ -190,7 +266,7 @@ class _Progress(ca.Callback):
         self.last_x = x
         self.iteration += 1
         self.stopped = self.converged(x)
-        return [1 if self.stopped else 0]
+        return self.stopped
 
 
 def _ipopt_round(
@@ -202,15 +278,16 @@ def _ipopt_round(
     n = len(x0)
     cost0 = oracle.cost(x0) * oracle.cost_scale
     oracle.cost_scale = cost0 if cost0 > 0 and math.isfinite(cost0) else 1.0
-    gradient = _Call("ls_gradient", n, (n, 1), oracle.gradient)
-    calls = [_Call("ls_cost", n, (1, 1), oracle.cost, gradient), gradient,
-             _Call("ls_gauss_newton", n, (n, n), oracle.hessian)]
+    stop = oracle.stop
+    gradient = _Call("ls_gradient", n, (n, 1), oracle.gradient, stop)
+    calls = [_Call("ls_cost", n, (1, 1), oracle.cost, stop, gradient), gradient,
+             _Call("ls_gauss_newton", n, (n, n), oracle.hessian, stop)]
     x = ca.MX.sym("x", n)
     lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", 0, 1)
     empty = ca.MX.sym("p", 0, 1)
     callback = _Progress(n, progress, oracle.cost_scale, label,
-                         lambda z: oracle.decrement(z) < GN_DECREMENT)
-    opts = {
+                         lambda z: oracle.decrement(z) < GN_DECREMENT, stop)
+    opts: dict[str, Any] = {
         "grad_f": ca.Function("grad_f", [x, empty], [calls[0](x), calls[1](x)]),
         "hess_lag": ca.Function("hess_lag", [x, empty, lam_f, lam_g],
                                 [ca.triu(lam_f * calls[2](x))]),
@@ -220,8 +297,11 @@ def _ipopt_round(
         "ipopt": {"print_level": PRINT_LEVEL, "sb": "yes", "max_iter": max_iter, "tol": tol,
                   "acceptable_tol": 1e-6, "acceptable_iter": 5, **extra},
     }
-    solver = ca.nlpsol("symcal", "ipopt", {"x": x, "p": empty, "f": calls[0](x)}, opts)
-    sol = solver(x0=x0, lbx=lower, ubx=upper)
+    nlp: dict[str, Any] = {"x": x, "p": empty, "f": calls[0](x)}
+    solver = ca.nlpsol("symcal", "ipopt", nlp, opts)
+    with stop.deferred():
+        sol = solver(x0=x0, lbx=lower, ubx=upper)
+    stop.reraise()
     x_opt = np.array(sol["x"]).ravel()
     if not np.all(np.isfinite(x_opt)) and callback.last_x is not None:
         x_opt = callback.last_x

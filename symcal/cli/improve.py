@@ -1,0 +1,73 @@
+"""``symcal improve``: diagnose → add the top calibratable effect → re-solve → keep it if
+the held-out residuals and BIC improve → repeat; every revision an overlay in ``--out``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from symcal.cli.common import data_map, data_options, inputs_of, progress
+from symcal.errors import SymcalError
+
+HELP = "improve the model round by round until the diagnosis is quiet"
+#: The most rounds one run may take.
+MAX_ROUNDS = 20
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add the ``improve`` command to ``subparsers``."""
+    cmd = subparsers.add_parser("improve", help=HELP, description=__doc__)
+    cmd.add_argument("problem", help="problem YAML file (the starting model)")
+    data_options(cmd)
+    cmd.add_argument("--out", required=True, metavar="DIR",
+                     help="folder for the revisions, final.yaml and the ladder")
+    cmd.add_argument("--max-rounds", type=int, default=5, metavar="N",
+                     help="keep at most N revisions (default 5)")
+    cmd.add_argument("--alpha", type=float, default=0.01,
+                     help="family-wise significance level of each diagnosis (default 0.01)")
+    cmd.add_argument("--json", action="store_true", help="print the rounds as JSON")
+    cmd.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    return cmd
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the loop; write the ladder; print the rounds; exit 0 when the model is quiet."""
+    from symcal.compare import compare, ladder_report, save_ladder_plot
+    from symcal.files import atomic_write_text
+    from symcal.improve import improve
+    from symcal.report import plain_json
+
+    if not 1 <= args.max_rounds <= MAX_ROUNDS:
+        raise SymcalError(f"--max-rounds {args.max_rounds}: must be between 1 and "
+                          f"{MAX_ROUNDS}")
+    if not 0 < args.alpha < 1:
+        raise SymcalError(f"--alpha {args.alpha}: must lie between 0 and 1")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise SymcalError(f"--out {args.out}: exists and is not a folder")
+    if any(p == out.resolve() or out.resolve() in p.parents for p in inputs_of(args)):
+        raise SymcalError(f"--out {args.out}: an input file lies in it; choose a new folder")
+    result = improve(args.problem, out, data_map(args), args.max_rounds, args.alpha,
+                     args.drop_invalid, None if args.quiet else progress)
+    rungs = compare([r.result for r in result.rounds])
+    atomic_write_text(out / "ladder.txt", ladder_report(rungs))
+    atomic_write_text(out / "ladder.json", plain_json([r.to_dict() for r in rungs]))
+    save_ladder_plot(rungs, out)
+    if args.json:
+        sys.stdout.write(plain_json(result.to_dict()))
+    else:
+        lines = [f"symcal improve: {len(result.rounds) - 1} round(s) kept; "
+                 + ("the diagnosis is quiet" if result.quiet
+                    else "the diagnosis is not quiet (nothing else pays)"), ""]
+        for r in result.rounds:
+            what = r.added or "(the starting problem)"
+            lines.append(f"  round {r.index}: {what}  [{r.problem_file}]")
+        for label, why in result.rejected:
+            lines.append(f"  not kept: {label}: {why}")
+        lines += ["", ladder_report(rungs).rstrip(), "",
+                  f"final problem: {result.final_problem}",
+                  f"wrote the revisions, ladder.txt, ladder.json and ladder.png to {out}"]
+        sys.stdout.write("\n".join(lines) + "\n")
+    return 0 if result.quiet and all(r.result.success for r in result.rounds) else 1

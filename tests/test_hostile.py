@@ -1,0 +1,455 @@
+"""Hostile input, second round (issue 13): what the corpus cannot hold as plain files.
+
+FIFOs and oversized files made on the fly, the output-set writer (whole or nothing,
+leftovers of killed runs, file modes, a full disk), JSON error documents for every exit
+code, YAML 1.2 numbers, streamed CSV blocks, codegen against stale data and odd problem
+names, and the slow ones: a 1e7-row CSV in bounded memory, and SIGINT/SIGTERM mid-solve.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import resource
+import shutil
+import signal
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+from symcal import files
+from symcal.cli import main
+from symcal.data import read_table
+from symcal.errors import SymcalError
+from symcal.language.yamlio import MAX_BYTES, load_yaml
+
+BASE = ROOT / "tests" / "bad_inputs" / "bad_max_iter"
+DUAL = ROOT / "problems" / "dual_sensor_calibration.yaml"
+DUAL_SCENARIO = ROOT / "problems" / "scenarios" / "courier_dual.yaml"
+
+
+@pytest.fixture
+def toy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A folder holding the corpus's small valid problem (prob.yaml, seg.yaml, data.csv)."""
+    for name in ("prob.yaml", "seg.yaml", "data.csv"):
+        shutil.copy(BASE / name, tmp_path / name)
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+def _run(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    try:
+        code = main(args)
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    out = capsys.readouterr()
+    assert "Traceback" not in out.err
+    return code, out.out, out.err
+
+
+def _tree(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _symcal(*args: str, cwd: Path, timeout: float = 120, **kw: object
+            ) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "symcal", *args], cwd=cwd, text=True,
+                          capture_output=True, timeout=timeout, **kw)  # type: ignore[call-overload]
+
+
+# ----------------------------------------------------------------- non-regular inputs
+
+@pytest.mark.parametrize("role", ["problem", "model", "data", "scenario", "result"])
+def test_a_fifo_is_refused_without_blocking(toy: Path, role: str) -> None:
+    fifo = toy / "pipe"
+    os.mkfifo(fifo)
+    args = {"problem": ["solve", "pipe"],
+            "model": ["solve", "prob.yaml"],
+            "data": ["solve", "prob.yaml", "--data", "calibration=pipe"],
+            "scenario": ["simulate", "pipe", "-o", "out.csv"],
+            "result": ["codegen", "prob.yaml", "--result", "pipe", "-o", "out"]}[role]
+    if role == "model":
+        text = (toy / "prob.yaml").read_text().replace("s2: {model: seg.yaml", "s2: {model: pipe")
+        (toy / "prob.yaml").write_text(text)
+    proc = _symcal(*args, cwd=toy, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    assert "is a named pipe, not a regular file" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (toy / "out").exists() and not (toy / "out.csv").exists()
+
+
+def test_an_oversized_yaml_file_is_refused(toy: Path, capsys) -> None:
+    (toy / "big.yaml").write_text("problem: toy\n" + "# padding\n" * (MAX_BYTES // 10 + 1))
+    code, _, err = _run(["solve", "big.yaml"], capsys)
+    assert code == 2
+    assert err == (f"symcal: error: big.yaml: cannot read problem file: it is too large "
+                   f"({(toy / 'big.yaml').stat().st_size} bytes; the limit is {MAX_BYTES})\n")
+
+
+def test_a_long_extends_chain_of_models_stops_at_32_levels(toy: Path, capsys) -> None:
+    (toy / "m0.yaml").write_text((toy / "seg.yaml").read_text())
+    for i in range(1, 1500):
+        (toy / f"m{i}.yaml").write_text(f"model: m{i}\nextends: m{i - 1}.yaml\n")
+    prob = (toy / "prob.yaml").read_text().replace("{model: seg.yaml", "{model: m1499.yaml")
+    (toy / "prob.yaml").write_text(prob)
+    start = time.perf_counter()
+    code, _, err = _run(["solve", "prob.yaml"], capsys)
+    assert code == 2
+    assert err == ("symcal: error: m1467.yaml:2: extends: more than 32 levels of 'extends' "
+                   "below m1499.yaml\n")
+    assert time.perf_counter() - start < 10
+
+
+def test_a_deeply_nested_result_is_refused(toy: Path, capsys) -> None:
+    (toy / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    code, out, err = _run(["codegen", "prob.yaml", "--result", "deep.json", "-o", "c"], capsys)
+    assert code == 2
+    assert "nested too deeply" in err
+    assert not (toy / "c").exists()
+
+
+# ----------------------------------------------------------------- YAML 1.2 numbers
+
+@pytest.mark.parametrize(("text", "value"), [
+    ("010", 10), ("1:30", "1:30"), ("0x1F", 31), ("0o17", 15), ("1e-3", 1e-3),
+    ("1e-05", 1e-5), ("5e-09", 5e-9), ("1.0e5", 1e5), ("-.5", -0.5), ("+12", 12),
+    ("yes", "yes"), ("off", "off"), ("2001-12-14", "2001-12-14"), ("1_000", "1_000"),
+    ("0b101", "0b101"), ("true", True), ("FALSE", False), ("~", None), (".inf", float("inf")),
+])
+def test_yaml_scalars_follow_the_core_schema(tmp_path: Path, text: str, value: object) -> None:
+    (tmp_path / "x.yaml").write_text(f"a: {text}\n")
+    doc, _ = load_yaml(tmp_path / "x.yaml")
+    assert doc["a"] == value and type(doc["a"]) is type(value)
+
+
+def test_exponent_numbers_work_as_parameter_values(toy: Path, capsys) -> None:
+    seg = (toy / "seg.yaml").read_text().replace("k0: {value: 0, unit: mm}",
+                                                  "k0: {value: 1e-3, unit: mm, scale: 5e-09}")
+    (toy / "seg.yaml").write_text(seg)
+    code, out, _ = _run(["solve", "prob.yaml", "--json"], capsys)
+    assert code == 0
+    initial = {p["name"]: p["initial"] for p in json.loads(out)["parameters"]}
+    assert initial["s1.k0"] == 1e-3
+
+
+# ----------------------------------------------------------------- CSV blocks
+
+def test_csv_read_in_small_blocks_equals_the_whole(toy: Path, monkeypatch) -> None:
+    text = (toy / "data.csv").read_text()
+    lines = text.splitlines()
+    messy = "\ufeff" + "\r\n".join(lines[:10] + ["", "   "] + lines[10:]) + "\r\n"
+    (toy / "messy.csv").write_text(messy, encoding="utf-8", newline="")
+    whole = np.loadtxt(toy / "data.csv", delimiter=",", skiprows=1)
+    monkeypatch.setattr("symcal.data.BLOCK_BYTES", 50)
+    columns = read_table(toy / "messy.csv")
+    assert list(columns) == ["t", "p1", "p2"]
+    np.testing.assert_array_equal(np.column_stack(list(columns.values())), whole)
+
+
+def test_csv_errors_name_the_line_in_a_later_block(toy: Path, monkeypatch) -> None:
+    lines = (toy / "data.csv").read_text().splitlines()
+    lines[40] = lines[40].replace(",", ",x", 1)
+    (toy / "bad.csv").write_text("\n".join(lines) + "\n")
+    monkeypatch.setattr("symcal.data.BLOCK_BYTES", 100)
+    with pytest.raises(SymcalError, match=r"^bad.csv:41: column 'p1': 'x.*' is not a number$"):
+        read_table(toy / "bad.csv")
+
+
+def test_a_csv_line_without_end_is_refused(toy: Path, monkeypatch) -> None:
+    monkeypatch.setattr("symcal.data.MAX_LINE_BYTES", 1000)
+    monkeypatch.setattr("symcal.data.BLOCK_BYTES", 300)
+    (toy / "long.csv").write_text("t,p1,p2\n" + "1," * 2000)
+    with pytest.raises(SymcalError, match="^long.csv:2: a line is longer than 1000 bytes"):
+        read_table(toy / "long.csv")
+
+
+def test_dataset_columns_are_read_only_without_a_copy(toy: Path) -> None:
+    from symcal.datasets import load_datasets
+    from symcal.problem import load_problem
+
+    data = load_datasets(load_problem("prob.yaml"))["calibration"]
+    for column in data.columns.values():
+        assert not column.flags.writeable
+
+
+# ----------------------------------------------------------------- outputs
+
+def test_every_output_gets_the_mode_of_an_ordinary_file(toy: Path, capsys) -> None:
+    old = os.umask(0o022)
+    try:
+        assert _run(["solve", "prob.yaml", "--out", "res", "--quiet"], capsys)[0] == 0
+        assert _run(["codegen", "prob.yaml", "--result", "res/result.json", "-o", "c"],
+                    capsys)[0] == 0
+        assert _run(["simulate", str(ROOT / "problems" / "scenarios" / "courier_platen.yaml"),
+                     "-o", "sim/run.csv", "-n", "20"], capsys)[0] == 0
+    finally:
+        os.umask(old)
+    written = [p for p in toy.rglob("*") if p.is_file() and p.parent != toy]
+    assert len(written) >= 2 + 6 + 3
+    assert {p.name: oct(stat.S_IMODE(p.stat().st_mode)) for p in written} == \
+        {p.name: "0o644" for p in written}
+
+
+def test_outputs_replace_symcals_own_files_and_keep_them_recorded(toy: Path, capsys) -> None:
+    assert _run(["solve", "prob.yaml", "--out", "res", "--quiet"], capsys)[0] == 0
+    assert _run(["solve", "prob.yaml", "--out", "res", "--quiet"], capsys)[0] == 0
+    record = json.loads((toy / "res" / files.MANIFEST).read_text())["files"]
+    assert set(record) == {"result.json", "report.txt"}
+    (toy / "res" / "report.txt").write_text("my notes\n")
+    code, _, err = _run(["solve", "prob.yaml", "--out", "res", "--quiet"], capsys)
+    assert code == 2
+    assert err == ("symcal: error: --out res: res/report.txt exists and was not written by "
+                   "symcal; remove it or choose another destination\n")
+
+
+def test_codegen_force_replaces_a_foreign_makefile_but_never_an_input(toy: Path,
+                                                                      capsys) -> None:
+    (toy / "Makefile").write_text("all:\n\techo mine\n")
+    assert _run(["codegen", "prob.yaml", "-o", "."], capsys)[0] == 2
+    assert (toy / "Makefile").read_text() == "all:\n\techo mine\n"
+    code, out, _ = _run(["codegen", "prob.yaml", "-o", ".", "--force"], capsys)
+    assert code == 0 and "wrote Makefile" in out
+    assert "Generated by symcal codegen" in (toy / "Makefile").read_text()
+    assert _run(["codegen", "prob.yaml", "-o", "."], capsys)[0] == 0  # its own now
+    (toy / "main.c").unlink()
+    shutil.copy(toy / "data.csv", toy / "main.c")
+    prob = (toy / "prob.yaml").read_text().replace("path: data.csv", "path: main.c")
+    (toy / "prob.yaml").write_text(prob)
+    code, _, err = _run(["codegen", "prob.yaml", "-o", ".", "--force"], capsys)
+    assert code == 2 and "refusing to overwrite input file main.c" in err
+
+
+def test_an_output_set_moves_in_whole_or_not_at_all(tmp_path: Path) -> None:
+    out = tmp_path / "res"
+    with files.OutputSet(out, option="--out res") as stage:
+        (stage / "a.txt").write_text("old a")
+    (out / "b.txt").write_text("foreign b")
+    with pytest.raises(SymcalError, match="b.txt exists and was not written by symcal"):
+        with files.OutputSet(out, option="--out res") as stage:
+            (stage / "a.txt").write_text("new a")
+            (stage / "b.txt").write_text("new b")
+    assert (out / "a.txt").read_text() == "old a"
+    with pytest.raises(RuntimeError):
+        with files.OutputSet(out, option="--out res", force=True) as stage:
+            (stage / "a.txt").write_text("new a")
+            raise RuntimeError("failed half way")
+    assert (out / "a.txt").read_text() == "old a"
+    assert sorted(p.name for p in out.iterdir()) == [files.MANIFEST, "a.txt", "b.txt"]
+
+
+def test_sigterm_while_a_set_moves_in_is_held_until_it_is_whole(tmp_path: Path,
+                                                                monkeypatch) -> None:
+    from symcal.cli.common import Terminated, signals_handled
+
+    out = tmp_path / "res"
+    real_replace = os.replace
+    moved: list[str] = []
+
+    def replace(src: str | Path, dst: str | Path) -> None:
+        real_replace(src, dst)
+        if not Path(dst).name.startswith("."):
+            moved.append(Path(dst).name)
+            if len(moved) == 1:  # between the two files of the set
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    with signals_handled(), pytest.raises(Terminated):
+        with files.OutputSet(out, option="--out res") as stage:
+            (stage / "result.json").write_text("{}")
+            (stage / "report.txt").write_text("report")
+            monkeypatch.setattr(files.os, "replace", replace)
+    monkeypatch.undo()
+    assert moved[:2] == ["report.txt", "result.json"]
+    assert sorted(p.name for p in out.iterdir()) == [files.MANIFEST, "report.txt",
+                                                     "result.json"]
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_leftovers_of_a_killed_run_are_cleaned_or_finished(toy: Path, capsys) -> None:
+    res = toy / "res"
+    res.mkdir()
+    pid = _dead_pid()
+    (res / f".result.json.symcal-{pid}-x1.tmp").write_text("half")
+    (res / f".report.txt.symcal-{os.getpid()}-x2.tmp").write_text("a live writer's")
+    half = res / f"{files.STAGING_PREFIX}{pid}-a"
+    half.mkdir()
+    (half / "result.json").write_text("never complete")
+    whole = res / f"{files.STAGING_PREFIX}{pid}-b"
+    whole.mkdir()
+    (whole / "notes.txt").write_text("complete set")
+    digest = hashlib.sha256(b"complete set").hexdigest()
+    (whole / files.COMMIT_MARK).write_text(json.dumps({"notes.txt": digest}))
+    assert _run(["solve", "prob.yaml", "--out", "res", "--quiet"], capsys)[0] == 0
+    assert sorted(p.name for p in res.iterdir()) == sorted(
+        [files.MANIFEST, "notes.txt", "report.txt", "result.json",
+         f".report.txt.symcal-{os.getpid()}-x2.tmp"])
+    assert (res / "notes.txt").read_text() == "complete set"
+
+
+@pytest.mark.skipif(not hasattr(resource, "RLIMIT_FSIZE"), reason="no RLIMIT_FSIZE")
+def test_a_full_disk_keeps_the_earlier_results(toy: Path) -> None:
+    assert _symcal("solve", "prob.yaml", "--out", "res", "--quiet", cwd=toy).returncode == 0
+    before = _tree(toy / "res")
+
+    def small_files() -> None:  # writes beyond 4 kB fail like a full disk (EFBIG)
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))
+
+    proc = _symcal("solve", "prob.yaml", "--out", "res", cwd=toy, preexec_fn=small_files)
+    assert proc.returncode == 2
+    assert proc.stderr.splitlines()[-1] == ("symcal: error: --out res: cannot write to res: "
+                                            "File too large; the files there are unchanged")
+    assert "symcal: toy (prob.yaml)" in proc.stdout  # the report was printed all the same
+    assert _tree(toy / "res") == before
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes to read-only folders")
+def test_a_read_only_folder_is_refused_before_the_solve(toy: Path, capsys) -> None:
+    (toy / "ro").mkdir()
+    (toy / "ro").chmod(0o555)
+    code, out, err = _run(["solve", "prob.yaml", "--out", "ro/res"], capsys)
+    assert code == 2 and out == ""
+    assert err.startswith("symcal: error: --out ro/res: cannot write to ro: ")
+
+
+# ----------------------------------------------------------------- one message, JSON
+
+def test_json_error_documents_for_every_exit_code(toy: Path, capsys) -> None:
+    code, out, err = _run(["solve", "nothere.yaml", "--json"], capsys)
+    assert code == 2
+    assert json.loads(out) == {"error": {"message": "nothere.yaml: problem file not found",
+                                         "exit_code": 2}}
+    code, out, err = _run(["solve", "prob.yaml", "--json", "--bogus"], capsys)
+    assert code == 2
+    assert json.loads(out) == {"error": {"message": "unrecognized arguments: --bogus",
+                                         "exit_code": 2}}
+    code, out, _ = _run(["solve", "prob.yaml", "--json", "--method", "ipopt", "--max-iter",
+                         "1"], capsys)
+    assert code == 1 and json.loads(out)["solver"]["success"] is False
+    code, out, _ = _run(["diagnose", "prob.yaml", "--json", "--report", "data.csv"], capsys)
+    assert code == 2 and json.loads(out)["error"]["exit_code"] == 2
+
+
+def test_unexpected_failures_are_one_message(toy: Path, capsys, monkeypatch) -> None:
+    import symcal.cli.solve as solve_cli
+
+    def broken(args: object) -> int:
+        raise RuntimeError("a bug \x1b[31m")
+
+    monkeypatch.setattr(solve_cli, "run", broken)
+    code, _, err = _run(["solve", "prob.yaml"], capsys)
+    assert code == 1
+    assert err == ("symcal: error: internal error (RuntimeError: a bug \\x1b[31m); please "
+                   "report it with the output of 'symcal --debug ...'\n")
+
+    def full(args: object) -> int:
+        raise OSError(28, "No space left on device", "res/result.json")
+
+    monkeypatch.setattr(solve_cli, "run", full)
+    assert _run(["solve", "prob.yaml"], capsys)[1:] == (
+        "", "symcal: error: res/result.json: No space left on device\n")
+
+
+# ----------------------------------------------------------------- codegen
+
+@pytest.mark.parametrize("name", ["int", "toy_", "_toy", "my__toy"])
+def test_codegen_takes_any_problem_name(toy: Path, name: str, capsys) -> None:
+    prob = (toy / "prob.yaml").read_text().replace("problem: toy", f"problem: {name}")
+    (toy / "prob.yaml").write_text(prob)
+    code, out, err = _run(["codegen", "prob.yaml", "-o", "c"], capsys)
+    assert (code, err) == (0, "")
+    header = next((toy / "c").glob("symcal_*.h"), None)
+    assert header is not None and "__" not in header.name and "_." not in header.name
+
+
+def test_codegen_refuses_a_result_computed_on_other_data(toy: Path, capsys) -> None:
+    assert _run(["solve", "prob.yaml", "--out", "r", "--quiet"], capsys)[0] == 0
+    with (toy / "data.csv").open("a") as fh:
+        fh.write("6.0,1.0,1.0\n")
+    code, _, err = _run(["codegen", "prob.yaml", "--result", "r/result.json", "-o", "c"],
+                        capsys)
+    assert code == 2
+    assert err == ("symcal: error: result file r/result.json was computed on another version "
+                   "of dataset 'calibration' (data.csv changed since the solve); solve again\n")
+    assert not (toy / "c").exists()
+
+
+# ----------------------------------------------------------------- slow: scale, signals
+
+@pytest.mark.slow
+def test_a_ten_million_row_csv_is_solved_in_bounded_memory(tmp_path: Path) -> None:
+    for name in ("prob.yaml", "seg.yaml"):
+        shutil.copy(BASE / name, tmp_path / name)
+    rng = np.random.default_rng(0)
+    chunk, f = 1_000_000, 2 * np.pi / 1.016
+    x = rng.uniform(0, 10, chunk)
+    cols = [np.arange(chunk) * 0.1, x + 0.002 * np.sin(f * x) + rng.normal(0, 1e-4, chunk),
+            x - 0.003 * np.sin(f * x) + rng.normal(0, 1e-4, chunk)]
+    block = tmp_path / "block.csv"
+    np.savetxt(block, np.column_stack(cols), delimiter=",", fmt="%.9g")
+    text = block.read_bytes()
+    with (tmp_path / "data.csv").open("wb") as fh:  # 1e7 rows: the block ten times
+        fh.write(b"t,p1,p2\n" + text * 10)
+    script = ("import resource, runpy, sys\n"
+              "sys.argv = ['symcal', 'solve', 'prob.yaml', '--quiet']\n"
+              "try:\n    runpy.run_module('symcal', run_name='__main__')\n"
+              "except SystemExit as exc:\n    code = exc.code\n"
+              "print(code, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n")
+    proc = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=600)
+    code, peak_kib = proc.stdout.split()
+    assert code == "0", proc.stderr
+    assert int(peak_kib) * 1024 < 1 << 30, f"peak {int(peak_kib) / 1024:.0f} MiB"
+
+
+@pytest.fixture(scope="module")
+def dual_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Earlier results of the dual problem in res/, and 100 000 simulated observations."""
+    folder = tmp_path_factory.mktemp("dual")
+    sim = _symcal("simulate", str(DUAL_SCENARIO), "-o", "big.csv", "--run", "calibration",
+                  "-n", "100000", "--seed", "3", cwd=folder)
+    assert sim.returncode == 0, sim.stderr
+    first = _symcal("solve", str(DUAL), "--out", "res", "--quiet", cwd=folder, timeout=300)
+    assert first.returncode == 0, first.stderr
+    return folder
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("sig", "code", "words"), [
+    (signal.SIGINT, 130, "interrupted by SIGINT (Ctrl-C)"),
+    (signal.SIGTERM, 143, "terminated by SIGTERM"),
+])
+def test_a_signal_mid_solve_stops_at_once_and_keeps_earlier_results(
+        dual_run: Path, sig: signal.Signals, code: int, words: str) -> None:
+    before = _tree(dual_run / "res")
+    proc = subprocess.Popen([sys.executable, "-m", "symcal", "solve", str(DUAL), "--data",
+                             "calibration=big.csv", "--out", "res", "--json"],
+                            cwd=dual_run, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    assert proc.stderr is not None
+    for line in proc.stderr:  # wait until IPOPT iterates on the full stage
+        if "full: iteration   1" in line:
+            break
+    sent = time.perf_counter()
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=60)
+    latency = time.perf_counter() - sent
+    assert proc.returncode == code
+    message = f"{words}; no output was written or changed"
+    assert err.splitlines()[-1] == f"symcal: error: {message}"
+    assert "Traceback" not in err and "WARNING" not in err
+    assert json.loads(out) == {"error": {"message": message, "exit_code": code}}
+    assert latency < 1.0, f"stopped {latency:.2f} s after the signal"
+    assert _tree(dual_run / "res") == before

@@ -1,0 +1,263 @@
+"""The loop closes (issue 12): on the project's simulated courier with one hidden effect
+each (errors applied where physics applies them, so the explicit model's own
+approximation is there too), `symcal improve` ends quiet at the noise floor, on the
+calibration and the held-out fly-by, in few rounds, with the true effect named first and
+its coefficient within 3 standard errors of the truth; what the constraints cannot
+determine is reported apart; every printed suggestion loads as written."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+import symcal
+import symcal.simulate
+from symcal.cli import main
+from symcal.data import make_dataset
+from symcal.diagnose import diagnose
+from symcal.improve import improve
+from symcal.numeric import mapped
+from symcal.simulate import load_scenario, noise_floor, simulate_run
+from symcal.simulate.scenario import AngleTerm, Drift, Effects, Harmonic, Lateral
+
+PROBLEMS = ROOT / "problems"
+EXPLICIT = PROBLEMS / "platen_self_calibration.yaml"
+IMPLICIT = PROBLEMS / "platen_self_calibration_implicit.yaml"
+NO = (AngleTerm(), AngleTerm(), AngleTerm(), AngleTerm())
+
+#: case -> (effects, the true candidate (or a member of its group), parameter suffix and
+#: true coefficients of the term symcal adds, sign of the instance it may land on)
+CASES = {
+    "harmonic": (Effects(harmonics=((), (Harmonic(3, 0.002, -0.0015),), (), ())),
+                 "s2.p_hat += harmonic 3 of s2.p (period 1.016 mm)"),
+    "drift": (Effects(drift=(Drift(rate=2e-5), Drift(), Drift(), Drift())),
+              "s1.p_hat += a slow drift in time (t)"),
+    "angle-dependent gain": (Effects(angle=(AngleTerm(), AngleTerm(), AngleTerm(a=0.3),
+                                            AngleTerm())),
+                             "s3.p_hat += a term linear in theta_raw"),
+}
+
+
+def _scenario(effects: Effects):
+    sc = load_scenario(PROBLEMS / "scenarios" / "courier_platen.yaml")
+    platen = dataclasses.replace(sc.platen, effects=effects, noise=5e-4,
+                                 distortion_at="true_position", geometry="small_angle")
+    return dataclasses.replace(sc, platen=platen)
+
+
+def _data(scenario, seed: int) -> dict[str, symcal.Dataset]:
+    return {name: make_dataset(name, "simulated", simulate_run(scenario, name, seed), [])
+            for name in ("calibration", "flyby")}
+
+
+def _realized_floor(seed: int) -> float:
+    """g_p's spread on the fly-by at the true parameters of the exact model (the implicit
+    one, no hidden effect) for this noise realization: the floor a held-out dataset can
+    reach (the noise streams do not depend on the effects)."""
+    scenario = _scenario(Effects())
+    flyby = _data(scenario, seed)["flyby"]
+    problem = symcal.load_problem(IMPLICIT)
+    true = symcal.simulate.truth(scenario)["parameters"]
+    theta = np.array([true[n] for n in problem.parameter_names])
+    fn = mapped(problem.theta, problem.u, [problem.constraint("g_p").sx])
+    return float(np.std(fn(theta, flyby.matrix(problem.columns))[0]))
+
+
+def _ratio(result: symcal.Result, scenario, dataset: str, seed: int) -> float:
+    """g_p's spread over its floor: on the calibration data the noise floor allowing for
+    the degrees of freedom the fit used; on the fly-by the realized floor."""
+    if dataset == "calibration":
+        floor = noise_floor(scenario)["g_p_std"] * np.sqrt(result.uncertainty.dof /
+                                                           result.rows)
+    else:
+        floor = _realized_floor(seed)
+    return result.stat("g_p", dataset).after.std / floor
+
+
+def _named(diag, truth: str) -> bool:
+    """The truth leads or is in the leading group (a harmonic of the reading is named by
+    where the model evaluates its error: the raw reading p, or u in an implicit model)."""
+    lead = diag.significant[0]
+    group = {label.replace(".u (", ".p (") for label in (lead.label, *lead.indistinguishable)}
+    return truth in group
+
+
+def _fitted(result: symcal.Result, case: str, scenario, seed: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The added term's coefficients, their standard errors and the truth, in the sign
+    of the instance the term landed on (g_p = (p1 - p3) - (p2 - p4): s1 and s4 enter with
+    one sign, s2 and s3 with the other).
+
+    The angle-dependent gain acts on the true angle and the model can only use the
+    uncalibrated theta_raw; but θ_raw - θ is a sum of the segments' modelled errors, which
+    the fit compensates through their coefficients, so the coefficient of theta_raw is
+    the gain itself (no errors-in-variables attenuation)."""
+    params = {p.name: p for p in result.parameters}
+    if case == "harmonic":
+        names = sorted((n for n in params if re.fullmatch(r"s[24]\.h3_(sin|cos)_[pu]", n)),
+                       key=lambda n: "_cos_" in n)   # sin first, as Harmonic(n, sin, cos)
+        sign = 1.0 if names[0].startswith("s2") else -1.0     # s4: the other sign
+        truth = sign * np.array([0.002, -0.0015])
+    elif case == "drift":
+        names = [n for n in params if n.endswith(".drift_t")]
+        sign = 1.0 if names[0][:2] in ("s1", "s4") else -1.0
+        truth = sign * np.array([2e-5])
+    else:
+        names = [n for n in params if n.endswith(".lin_theta_raw")]
+        sign = 1.0 if names[0][:2] in ("s2", "s3") else -1.0   # same sign as s3 in g_p
+        truth = sign * np.array([0.3])
+    value = np.array([params[n].value for n in names])
+    se = np.array([params[n].se for n in names])
+    return value, se, truth
+
+
+def test_clean_data_is_quiet_after_the_approximation(tmp_path) -> None:
+    """No hidden effect: starting explicit, the model's own approximation is the one
+    finding, switching to the implicit model reaches the floor and the diagnosis is
+    quiet; starting implicit it is quiet at once."""
+    scenario = _scenario(Effects())
+    data = _data(scenario, seed=61)
+    result = improve(EXPLICIT, tmp_path / "explicit", data)
+    assert [r.added for r in result.rounds] == [None, symcal.diagnose.APPROXIMATION]
+    assert result.quiet
+    final = result.rounds[-1].result
+    assert _ratio(final, scenario, "calibration", 61) < 1.05
+    assert _ratio(final, scenario, "flyby", 61) < 1.05
+    assert not diagnose(symcal.solve(IMPLICIT, data)).significant
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("start", ["explicit", "implicit"])
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize("seed", [71, 72])
+def test_one_hidden_effect_is_named_and_fixed(case, start, seed, tmp_path) -> None:
+    effects, truth = CASES[case]
+    scenario = _scenario(effects)
+    data = _data(scenario, seed)
+    problem = EXPLICIT if start == "explicit" else IMPLICIT
+    first = diagnose(symcal.solve(problem, data))
+    labels = [first.significant[0].label, *first.significant[0].indistinguishable]
+    if start == "implicit" or first.significant[0].basis.kind != "approximation":
+        assert _named(first, truth), labels
+    else:   # the approximation first, then the effect
+        assert _named(first, symcal.diagnose.APPROXIMATION)
+    result = improve(problem, tmp_path / "out", data)
+    assert result.quiet, [r.added for r in result.rounds]
+    assert len(result.rounds) - 1 <= (3 if start == "explicit" else 2)
+    final = result.rounds[-1].result
+    assert _ratio(final, scenario, "calibration", seed) < 1.10
+    assert _ratio(final, scenario, "flyby", seed) < 1.10
+    value, se, true = _fitted(final, case, scenario, seed)
+    assert np.all(np.abs(value - true) < 3 * se), (value, se, true)
+
+
+def test_lateral_dependence_is_not_calibratable_from_g_p() -> None:
+    """A lateral term of s1 is absorbed by s4's own harmonics in g_p: reported apart, with
+    the dual problem (which has g_x, g_y on the same sensors) as what can determine it,
+    and never suggested."""
+    scenario = _scenario(Effects(lateral=(Lateral(0.006, -0.003), Lateral(), Lateral(),
+                                          Lateral())))
+    diag = diagnose(symcal.solve(EXPLICIT, _data(scenario, seed=62)))
+    truth = "s1.p_hat += harmonic 1 of s4.p (period 1.016 mm)"
+    uncal = {m for c in diag.uncalibratable for m in (c.label, *c.indistinguishable)}
+    assert truth in uncal
+    lead = next(c for c in diag.uncalibratable
+                if truth in (c.label, *c.indistinguishable))
+    needs = diag.needs[lead.label]
+    assert "dual_sensor_calibration.yaml in the same folder adds the constraints g_x, g_y" \
+        in needs
+    suggested = {m for c in diag.significant for m in (c.label, *c.indistinguishable)}
+    assert truth not in suggested
+    assert all("harmonic 1 of s4.p" not in text for text in diag.yaml.values())
+    doc = diag.to_dict()
+    assert any(truth in (u["label"], *u["indistinguishable"]) for u in doc["uncalibratable"])
+
+
+def test_predictions_are_what_solving_again_gives(tmp_path) -> None:
+    """For the leading candidates the predicted spreads on every dataset, held-out ones
+    included, are within 20 % of what the re-solved calibration gives."""
+    scenario = _scenario(CASES["harmonic"][0])
+    data = _data(scenario, seed=63)
+    problem = symcal.load_problem(IMPLICIT)
+    diag = diagnose(symcal.solve(problem, data))
+    from symcal.effects import revised_problem
+
+    for cand in diag.significant[:2]:
+        again = symcal.solve(revised_problem(problem, cand, tmp_path), data)
+        for key, (_, predicted) in cand.reduction.items():
+            dataset, name = key.split("/")
+            actual = again.stat(name, dataset).shown("after").std
+            assert predicted == pytest.approx(actual, rel=0.2), (cand.label, key)
+
+
+def _apply_printed(text: str, home: Path) -> Path:
+    """Write the files a printed suggestion names, as a user would; return the overlay."""
+    files: dict[Path, list[str]] = {}
+    current: list[str] | None = None
+    for line in text.splitlines():
+        match = re.match(r"# (\S+\.yaml) \(beside \S+\)", line)
+        if match:
+            current = files.setdefault(home / match.group(1), [])
+        elif current is not None:
+            current.append(line)
+    for path, lines in files.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("\n".join(lines).strip() + "\n")
+    return next(p for p in files if p.parent == home)
+
+
+@pytest.mark.parametrize("case", ["drift", "angle-dependent gain"])
+def test_printed_suggestions_load_and_carry_units(case, tmp_path) -> None:
+    """Every printed suggestion, written literally as the comments say, loads and solves;
+    coefficients carry the units of what they multiply; terms go into the error `e`."""
+    shutil.copytree(ROOT / "models", tmp_path / "models")
+    shutil.copytree(PROBLEMS, tmp_path / "problems")
+    home = tmp_path / "problems"
+    scenario = _scenario(CASES[case][0])
+    data = _data(scenario, seed=64)
+    diag = diagnose(symcal.solve(home / "platen_self_calibration_implicit.yaml", data))
+    assert diag.significant
+    for cand in diag.significant[:3]:
+        text = diag.yaml[cand.label]
+        overlay = _apply_printed(text, home)
+        again = symcal.solve(overlay, data)
+        assert again.success
+        assert "  e: base.e + " in text
+    lead = diag.yaml[diag.significant[0].label]
+    unit = {"drift": "mm/s", "angle-dependent gain": "mm/rad"}[case]
+    assert f"unit: {unit}" in lead
+
+
+def test_symcal_improve_json_and_files(tmp_path, capsys) -> None:
+    """`symcal improve --json` prints the documented shape; every revision and the final
+    problem are overlays that load; the ladder is written."""
+    scenario = _scenario(CASES["drift"][0])
+    paths = {}
+    from symcal.data import write_table
+
+    for name, ds in _data(scenario, seed=65).items():
+        paths[name] = write_table(tmp_path / f"{name}.csv", dict(ds.columns)) or \
+            tmp_path / f"{name}.csv"
+    out = tmp_path / "out"
+    code = main(["improve", str(IMPLICIT), "--data", f"calibration={paths['calibration']}",
+                 "--data", f"flyby={paths['flyby']}", "--out", str(out), "--json", "--quiet"])
+    doc = json.loads(capsys.readouterr().out)
+    assert code == 0 and doc["quiet"] is True
+    assert doc["rounds"][0]["added"] is None
+    assert doc["rounds"][0]["problem"] == str(IMPLICIT)
+    assert doc["rounds"][1]["added"] == "s1.p_hat += a slow drift in time (t)"
+    for r in doc["rounds"]:
+        assert {"added", "problem", "statistics", "significant"} <= set(r)
+        assert symcal.load_problem(r["problem"])
+    assert doc["rounds"][-1]["significant"] == 0
+    final = symcal.load_problem(doc["final_problem"])
+    assert "s1.drift_t" in final.parameter_names
+    for name in ("ladder.txt", "ladder.json", "ladder.png"):
+        assert (out / name).exists()
