@@ -102,6 +102,7 @@ class Diagnosis:
     uncalibratable: tuple[Candidate, ...] = ()
     needs: dict[str, str] = field(default_factory=dict)
     variant: Variant | None = None
+    own: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
     @property
     def leads(self) -> tuple[Candidate, ...]:
@@ -116,8 +117,8 @@ class Diagnosis:
     def candidate_text(self, cand: Candidate) -> str:
         """The candidate in words."""
         if cand in self.uncalibratable:
-            return _uncalibratable_words(cand, self.needs.get(cand.label, ""))
-        return _words(cand, self.alpha, self.tested, self.variant)
+            return _uncalibratable_words(cand, self.needs.get(cand.label, ""), self.own)
+        return _words(cand, self.alpha, self.tested, self.variant, self.own)
 
     def to_dict(self, series: bool = False) -> dict:
         """Plain data (``--json``; with ``series`` the plotting contract)."""
@@ -167,7 +168,7 @@ def _falls(cand: Candidate) -> str:
     return "; ".join(f"{k.replace('/', ' ')} std {b:.3g} → {a:.3g}" for k, (b, a) in biggest)
 
 
-def _group_words(cand: Candidate) -> str:
+def _group_words(cand: Candidate, own: Mapping[str, tuple[str, ...]]) -> str:
     if not cand.indistinguishable:
         return ""
     shown = "; ".join(cand.indistinguishable[:4])
@@ -176,7 +177,15 @@ def _group_words(cand: Candidate) -> str:
     members = [cand.label, *cand.indistinguishable]
     outputs = sorted({m.split(" += ", 1)[0] for m in members})
     instances = sorted({o.split(".", 1)[0] for o in outputs})
-    if len(instances) == 1 and len(outputs) > 1:
+    gains = sorted({m.split(" += ", 1)[0] for m in members
+                    if " += a term linear in " in m
+                    and m.split(" += a term linear in ", 1)[1]
+                    in own.get(m.split(".", 1)[0], ())})
+    if len(instances) == 1 and len(gains) > 1:
+        channels = " and ".join(g.split(".", 1)[1] for g in gains)
+        common = (f"the {channels} channels of {instances[0]} disagree in gain (each a term "
+                  "linear in its own reading); these data see only the difference")
+    elif len(instances) == 1 and len(outputs) > 1:
         common = (f"they all change {instances[0]}'s outputs {', '.join(outputs)} in a way "
                   "these data see only as one effect (the channels disagree in the same "
                   "way)")
@@ -190,7 +199,8 @@ def _group_words(cand: Candidate) -> str:
             "can separate them.")
 
 
-def _words(cand: Candidate, alpha: float, tested: int, variant: Variant | None) -> str:
+def _words(cand: Candidate, alpha: float, tested: int, variant: Variant | None,
+           own: Mapping[str, tuple[str, ...]]) -> str:
     verdict = "significant" if cand.significant else "not significant"
     stats = (f"F = {cand.f_stat:.3g}, p = {cand.p_value:.2g}: {verdict} at {alpha:g} after "
              f"allowing for the {tested} candidates tested")
@@ -203,7 +213,7 @@ def _words(cand: Candidate, alpha: float, tested: int, variant: Variant | None) 
                 f"errors are not small against their period. {variant.description} explains "
                 f"{cand.share:.0%} of what the model cannot yet explain ({_falls(cand)} if "
                 f"the calibration is solved again with it){coef}; {stats}. Switch to the "
-                "implicit model rather than adding harmonics." + _group_words(cand))
+                "implicit model rather than adding harmonics." + _group_words(cand, own))
     owner = cand.basis.variable.split(".", 1)[0] if "." in cand.basis.variable else None
     instance = cand.output.split(".", 1)[0]
     cross = ""
@@ -214,14 +224,15 @@ def _words(cand: Candidate, alpha: float, tested: int, variant: Variant | None) 
     return (f"{cand.output} varies with {cand.basis.description}, a term its model lacks."
             f"{cross} Adding it would remove {cand.share:.0%} of what the calibration's "
             f"constraints cannot yet explain; solving again with it would give "
-            f"{_falls(cand)}; {stats}." + _group_words(cand))
+            f"{_falls(cand)}; {stats}." + _group_words(cand, own))
 
 
-def _uncalibratable_words(cand: Candidate, needs: str) -> str:
+def _uncalibratable_words(cand: Candidate, needs: str,
+                          own: Mapping[str, tuple[str, ...]]) -> str:
     return (f"{cand.output} varies with {cand.basis.description}: real (F = "
             f"{cand.f_stat:.3g}, p = {cand.p_value:.2g} with the reference comparisons), but "
             f"these constraints cannot determine it — the current parameters absorb it or it "
-            f"leaves them unchanged. {needs}" + _group_words(cand))
+            f"leaves them unchanged. {needs}" + _group_words(cand, own))
 
 
 @dataclass
@@ -497,8 +508,10 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
                       if c.basis.kind == "approximation" and variant is not None
                       else effect_yaml(problem, c))
             for c in leads}
+    own_inputs = {name: (*(f"{name}.{k}" for k in inst.bindings), *inst.bindings.values())
+                  for name, inst in problem.instances.items()}
     return Diagnosis(result, tuple(_views(blocks)), tuple(ranked), yaml, alpha,
-                     len(candidates), tuple(uncal), needs, variant)
+                     len(candidates), tuple(uncal), needs, variant, own_inputs)
 
 
 def _library_regressors(hp: Problem, blocks: list[_Block], keep: set[str]

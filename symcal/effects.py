@@ -106,8 +106,14 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
         inst, _, local = variable.partition(".")
         if inst == instance and local in model.expressions:   # its evaluation point
             return local
+        bound = _binding(problem, variable)
+        for key, text in problem.instances[instance].bindings.items():
+            if text == bound:                     # an input already bound to it
+                return key
         name = "v_" + _ident(variable)
-        new_inputs[name] = _binding(problem, variable)
+        while name in model.inputs or name in model.expressions or name in model.parameters:
+            name += "_"
+        new_inputs[name] = bound
         return name
 
     v = symbol(basis.variable)

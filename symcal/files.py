@@ -119,7 +119,7 @@ def _kind(mode: int) -> str:
                         (stat.S_ISDIR, "a folder")):
         if test(mode):
             return words
-    return "not a regular file"
+    return "a special file"
 
 
 def input_refusal(path: str | Path, max_bytes: int | None = None) -> str | None:

@@ -33,6 +33,9 @@ TRIES = 3
 WORSE = 0.10
 #: How many members of a group of indistinguishable candidates are tried.
 GROUP = 4
+#: A revision may make an existing parameter's standard error at most this many times
+#: larger (beyond it the new term is nearly aliased with what the model has).
+INFLATION = 5.0
 
 
 @dataclass(frozen=True)
@@ -92,8 +95,9 @@ def held_out_change(new: Result, old: Result, kind: str | None = None) -> float:
 
 def _pays(new: Result, old: Result) -> str | None:
     """None when ``new`` is better than ``old``, else why not: the solve succeeds, the BIC
-    falls, the held-out constraint residuals fall (on average), and no held-out reference
-    comparison gets worse by more than :data:`WORSE`."""
+    falls, the held-out constraint residuals fall (on average), no existing parameter
+    becomes much less determined (:data:`INFLATION`), and no held-out reference comparison
+    gets worse by more than :data:`WORSE`."""
     if not new.success:
         return "the solve failed"
     if new.bic >= old.bic:
@@ -102,12 +106,27 @@ def _pays(new: Result, old: Result) -> str | None:
     if change >= 0:
         return ("the held-out constraint residuals do not fall (mean change "
                 f"{np.expm1(change):+.1%})")
+    inflated = _inflated(new, old)
+    if inflated:
+        return inflated
     for s in new.statistics:
         if s.dataset != "calibration" and s.kind == "comparison":
             before = _spread(old, s.name, s.dataset)
             if before and s.after.std > (1 + WORSE) * before:
                 return (f"{s.dataset} {s.name} against the reference gets worse "
                         f"({before:.3g} → {s.after.std:.3g} internal units)")
+    return None
+
+
+def _inflated(new: Result, old: Result) -> str | None:
+    """Why the new terms are nearly aliased with parameters already there (a standard
+    error grows more than :data:`INFLATION` times), or None."""
+    before = {p.name: p.se for p in old.parameters if p.se}
+    worst = max(((p.se / before[p.name], p.name) for p in new.parameters
+                 if p.se and p.name in before), default=None)
+    if worst is not None and worst[0] > INFLATION:
+        return (f"it is nearly aliased with the parameters already there: the standard "
+                f"error of {worst[1]} grows {worst[0]:.0f} times")
     return None
 
 

@@ -190,10 +190,12 @@ def test_every_output_gets_the_mode_of_an_ordinary_file(toy: Path, capsys) -> No
                     capsys)[0] == 0
         assert _run(["simulate", str(ROOT / "problems" / "scenarios" / "courier_platen.yaml"),
                      "-o", "sim/run.csv", "-n", "20"], capsys)[0] == 0
+        assert _run(["diagnose", "prob.yaml", "--quiet", "--report", "page/d.html", "--plots",
+                     "figs"], capsys)[0] == 0
     finally:
         os.umask(old)
     written = [p for p in toy.rglob("*") if p.is_file() and p.parent != toy]
-    assert len(written) >= 2 + 6 + 3
+    assert len(written) >= 2 + 6 + 3 + 1 + 3
     assert {p.name: oct(stat.S_IMODE(p.stat().st_mode)) for p in written} == \
         {p.name: "0o644" for p in written}
 

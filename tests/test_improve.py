@@ -261,3 +261,50 @@ def test_symcal_improve_json_and_files(tmp_path, capsys) -> None:
     assert "s1.drift_t" in final.parameter_names
     for name in ("ladder.txt", "ladder.json", "ladder.png"):
         assert (out / name).exists()
+
+
+DUAL = PROBLEMS / "dual_sensor_calibration.yaml"
+DUAL_IMPLICIT = PROBLEMS / "dual_sensor_calibration_implicit.yaml"
+
+
+def _dual(gain_y: float = 0.0):
+    from symcal.simulate.scenario import AxisNonlinearity
+
+    sc = load_scenario(PROBLEMS / "scenarios" / "courier_dual_clean.yaml")
+    coord = dataclasses.replace(sc.coordination,
+                                nonlinearity=(AxisNonlinearity(), AxisNonlinearity(g=gain_y)))
+    return dataclasses.replace(sc, coordination=coord)
+
+
+@pytest.mark.slow
+def test_dual_clean_data_is_one_switch_from_quiet() -> None:
+    """The dual problem on clean data: explicit, the approximation leads, asking for 1 ×
+    the implicit problem within 3 standard errors; the implicit problem is quiet."""
+    data = _data(_dual(), seed=66)
+    first = diagnose(symcal.solve(DUAL, data))
+    lead = first.significant[0]
+    assert lead.label == symcal.diagnose.APPROXIMATION
+    assert abs(lead.coefficient[0] - 1) < 3 * lead.coefficient_se[0]
+    assert "extends: dual_sensor_calibration_implicit.yaml" in first.yaml[lead.label]
+    assert not diagnose(symcal.solve(DUAL_IMPLICIT, data)).significant
+
+
+@pytest.mark.slow
+def test_coordination_gain_is_named_by_its_channels_and_fixed(tmp_path) -> None:
+    """A 2 % gain error in the coordination sensor's y channel: to these constraints it is
+    the same as an x-channel gain (h scales both), so the group says the channels
+    disagree in gain; the true term is in it, and one revision reaches the floor."""
+    scenario = _dual(gain_y=0.02)
+    data = _data(scenario, seed=67)
+    diag = diagnose(symcal.solve(DUAL_IMPLICIT, data))
+    lead = diag.significant[0]
+    assert "cs.c_y += a term linear in psi_y" in (lead.label, *lead.indistinguishable)
+    assert lead.basis.kind == "linear" and lead.output.startswith("cs.")
+    assert "the c_x and c_y channels of cs disagree in gain" in diag.candidate_text(lead)
+    from symcal.effects import revised_problem
+
+    again = symcal.solve(revised_problem(diag.result.problem, lead, tmp_path), data)
+    floors = noise_floor(scenario)
+    dof = np.sqrt(again.uncertainty.dof / again.rows)
+    for name in ("g_x", "g_y", "g_p"):
+        assert again.stat(name).after.std < 1.10 * floors[f"{name}_std"] * dof, name

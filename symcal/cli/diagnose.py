@@ -60,8 +60,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.json:
         write_stdout(text)
     if args.plots or args.report:
-        _write(args, diagnosis_document(diag, series=True), text_report(result) + "\n" + text, formats,
-               inputs)
+        _write(args, diagnosis_document(diag, series=True),
+               text_report(result) + "\n" + text, formats, inputs)
     if args.json:
         write_stdout(plain_json(diagnosis_document(diag)))
     return 0 if diag.result.success else 1

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from symcal import expr
-from symcal.errors import SpecError, Where
+from symcal.errors import SpecError, Where, excerpt
 from symcal.language.fields import (
     check_keys,
     child_where,
@@ -31,7 +31,7 @@ def display_unit(value: Any, where: Where) -> str:
         known = [u for u in DISPLAY_UNITS if u]
         raise SpecError(
             where,
-            f"unknown unit '{value}'{did_you_mean(str(value), known)}; "
+            f"unknown unit '{excerpt(value)}'{did_you_mean(str(value), known)}; "
             f"known units: {', '.join(known)}",
         )
     return text

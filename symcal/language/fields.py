@@ -166,6 +166,6 @@ def expect_choice(value: Any, where: Where, choices: tuple[str, ...], what: str)
     """Return ``value`` if it is one of ``choices``, else raise with a did-you-mean."""
     text = expect_str(value, where)
     if text not in choices:
-        raise SpecError(where, f"unknown {what} '{text}'{did_you_mean(text, choices)}; "
+        raise SpecError(where, f"unknown {what} '{excerpt(text)}'{did_you_mean(text, choices)}; "
                                f"choose from: {', '.join(choices)}")
     return text

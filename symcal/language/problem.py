@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from symcal import expr
-from symcal.errors import SpecError, Where
+from symcal.errors import SpecError, Where, excerpt
 from symcal.files import input_refusal
 from symcal.language.common import (
     ConstantSpec,
@@ -314,7 +314,7 @@ def _parse_stage(index: int, value: Any, where: Where, constraints: dict) -> Sta
     for i, item in enumerate(items):
         item_at = child_where(items, at, i)
         if item not in constraints:
-            raise SpecError(item_at, f"unknown constraint '{item}'"
+            raise SpecError(item_at, f"unknown constraint '{excerpt(item)}'"
                                      f"{did_you_mean(str(item), constraints)}; "
                                      f"constraints: {', '.join(constraints)}")
         names.append(item)
@@ -360,7 +360,7 @@ def _parse_columns(doc: YMap, where: Where) -> dict[str, ColumnSpec]:
     value = doc.get("columns")
     if isinstance(value, str):
         if value not in PRESETS:
-            raise SpecError(at, f"unknown column preset '{value}'"
+            raise SpecError(at, f"unknown column preset '{excerpt(value)}'"
                                 f"{did_you_mean(value, PRESETS)}; presets: "
                                 f"{', '.join(PRESETS)} (or a mapping of columns)")
         return {k: ColumnSpec(k, unit, text, at, role)

@@ -227,7 +227,7 @@ def load_yaml(path: str | Path, what: str = "file") -> tuple[YMap, Where]:
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark is not None else None
-        problem = exc.problem or str(exc)
+        problem = excerpt(exc.problem or str(exc), 160)
         raise SpecError(Where(shown, line), f"invalid YAML: {problem}") from None
     except yaml.reader.ReaderError as exc:
         line = text.count("\n", 0, exc.position) + 1

@@ -45,7 +45,7 @@ arguments ``q_bar_1 = p_y - l_o theta_bar`` etc. from the raw readings.  Then Ga
 noise (``platen.noise``) and rounding to ``platen.quantization``.
 
 *Coordination sensor* (eq. 10-11).  ``c = R(t)^T ((x, y) - (o_x, o_y)) - (l_x, l_y)``,
-optionally ``c -> c + n2 c^2 + n3 c^3`` per axis (PSD nonlinearity), then
+optionally ``c -> c + g c + n2 c^2 + n3 c^3`` per axis (PSD gain and nonlinearity), then
 ``psi = atan(c / h)`` plus Gaussian noise.  Hence eq. (11) holds exactly for the true
 pose: ``(x, y) = (o_x, o_y) + R(t) (c + l)``.
 
@@ -397,8 +397,8 @@ def coordination_angles(
     cx, cy = coordination_displacement(coord, poses)
     if coord.nonlinearity is not None:
         nx, ny = coord.nonlinearity
-        cx = cx + nx.n2 * cx**2 + nx.n3 * cx**3
-        cy = cy + ny.n2 * cy**2 + ny.n3 * cy**3
+        cx = cx + nx.g * cx + nx.n2 * cx**2 + nx.n3 * cx**3
+        cy = cy + ny.g * cy + ny.n2 * cy**2 + ny.n3 * cy**3
     psi_x, psi_y = np.arctan(cx / coord.h), np.arctan(cy / coord.h)
     if coord.noise > 0.0:
         z = rng.standard_normal((len(cx), 2))
@@ -611,8 +611,9 @@ def _effects_truth(scenario: Scenario) -> dict:
     coord = scenario.coordination
     out["psd_nonlinearity"] = _switch(
         None if coord is None else coord.nonlinearity,
-        "c -> c + n2 c^2 + n3 c^3 per axis before psi = atan(c / h)",
-        lambda v: {axis: {"n2": nl.n2, "n3": nl.n3} for axis, nl in zip("xy", v, strict=True)},
+        "c -> c + g c + n2 c^2 + n3 c^3 per axis before psi = atan(c / h)",
+        lambda v: {axis: {"g": nl.g, "n2": nl.n2, "n3": nl.n3}
+                   for axis, nl in zip("xy", v, strict=True)},
     )
     return out
 

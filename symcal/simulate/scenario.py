@@ -34,9 +34,9 @@ Schema (``*`` marks a required key; every other key has the default shown)::
       o_x*: ..                        # beacon position in platen coordinates (mm)
       o_y*: ..
       noise: 0                        # Gaussian sigma of psi_x and psi_y (rad)
-      nonlinearity:                   # PSD nonlinearity: c + n2 c^2 + n3 c^3 per axis
-        x: {n2: 0, n3: 0}             # 1/mm, 1/mm^2
-        y: {n2: 0, n3: 0}
+      nonlinearity:                   # PSD gain and nonlinearity: c + g c + n2 c^2 + n3 c^3
+        x: {g: 0, n2: 0, n3: 0}       # 1, 1/mm, 1/mm^2 (per axis)
+        y: {g: 0, n2: 0, n3: 0}
     reference:                        # interferometer ground truth
       position_noise: 0               # sigma of x_ref, y_ref (mm)
       angle_noise: 0                  # sigma of theta_ref (rad)
@@ -191,10 +191,12 @@ class Platen:
 
 @dataclass(frozen=True)
 class AxisNonlinearity:
-    """PSD nonlinearity of one axis: ``c -> c + n2 c^2 + n3 c^3`` (1/mm, 1/mm^2)."""
+    """PSD gain error and nonlinearity of one axis: ``c -> c + g c + n2 c^2 + n3 c^3``
+    (``g`` dimensionless, ``n2`` 1/mm, ``n3`` 1/mm^2)."""
 
     n2: float = 0.0
     n3: float = 0.0
+    g: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -471,8 +473,9 @@ def _platen(value: Any, where: Where) -> Platen:
 
 
 def _axis_nonlinearity(value: Any, where: Where) -> AxisNonlinearity:
-    mapping = check_keys(value, where, optional=("n2", "n3"))
-    return AxisNonlinearity(_number(mapping, where, "n2", 0.0), _number(mapping, where, "n3", 0.0))
+    mapping = check_keys(value, where, optional=("g", "n2", "n3"))
+    return AxisNonlinearity(_number(mapping, where, "n2", 0.0), _number(mapping, where, "n3", 0.0),
+                            _number(mapping, where, "g", 0.0))
 
 
 def _coordination(value: Any, where: Where) -> Coordination:
