@@ -33,7 +33,7 @@ from symcal.analysis.discovery import Basis, Candidate, Design, test_candidates
 from symcal.analysis.residuals import Binned, Periodogram, Variable, periodogram, structure
 from symcal.data import Dataset
 from symcal.effects import effect_yaml
-from symcal.linalg import whitening
+from symcal.linalg import range_basis, whitening
 from symcal.numeric import mapped
 from symcal.problem import Problem
 from symcal.result import Result
@@ -584,7 +584,7 @@ def _predict(cand: Candidate, own: Design, x_own: np.ndarray, blocks: list[_Bloc
     delta, *_ = np.linalg.lstsq(a, own.r, rcond=None)
     m = x_own.shape[1]
     rows = len(own.r)
-    rank = int(np.linalg.matrix_rank(a))
+    rank = range_basis(a).shape[1]
     s2 = float(np.sum((own.r - a @ delta) ** 2)) / max(rows - rank, 1)
     cov = s2 * np.linalg.pinv(a.T @ a)
     # the fit explains the residual as X·δ; the term to add to the model is -δ
@@ -665,9 +665,7 @@ def _better_problem(problem: Problem) -> str:
 
 def _projected(design: Design) -> list[np.ndarray]:
     """Per block, the residuals (N × n_q, unwhitened) left after the nuisance is fitted."""
-    q, r_factor = np.linalg.qr(design.nuisance)
-    keep = np.abs(np.diag(r_factor)) > 1e-10 * max(1.0, float(np.abs(np.diag(r_factor)).max()))
-    q = q[:, keep]
+    q = range_basis(design.nuisance)
     r = design.r - q @ (q.T @ design.r)
     return [r[rows].reshape(-1, unwhiten.shape[1]) @ unwhiten.T
             for _, rows, unwhiten, _, _ in design.blocks]

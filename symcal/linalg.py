@@ -34,6 +34,15 @@ def numerical_rank(r_factor: np.ndarray, rows: int, scales: np.ndarray) -> int:
     return int(np.sum(s > rank_tolerance(s, rows)))
 
 
+def range_basis(matrix: np.ndarray) -> np.ndarray:
+    """Orthonormal columns spanning the numerical range of ``matrix`` (``M × k``), its
+    singular values above :func:`rank_tolerance`."""
+    if matrix.size == 0:
+        return np.zeros((matrix.shape[0], 0))
+    u, s, _ = np.linalg.svd(matrix, full_matrices=False)
+    return u[:, s > rank_tolerance(s, matrix.shape[0])]
+
+
 def _eigen(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Eigenvalues above :data:`PSD_RTOL` of the largest, and their eigenvectors."""
     w, v = np.linalg.eigh((matrix + matrix.T) / 2)

@@ -22,6 +22,8 @@ import numpy as np
 import scipy.linalg
 import scipy.stats
 
+from symcal.linalg import range_basis
+
 ABSORBED = 1e-3         # projected norm below this share of the raw norm: absorbed
 INDISTINGUISHABLE = 0.98  # canonical correlation above which candidates are one group
 EQUAL = 0.95              # a simpler member leads a group if it explains this much as well
@@ -104,9 +106,7 @@ def test_candidates(
     Within a group the data cannot choose; ``local`` marks the candidates to lead their
     group then (e.g. a term in the sensor's own input).
     """
-    qn, rn = np.linalg.qr(design.nuisance)
-    keep = np.abs(np.diag(rn)) > 1e-10 * max(1.0, float(np.max(np.abs(np.diag(rn)))))
-    qn = qn[:, keep]
+    qn = range_basis(design.nuisance)
     r = design.r - qn @ (qn.T @ design.r)
     rss0 = float(r @ r)
     dof = len(r) - qn.shape[1]
