@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from symcal.analysis.discovery import Candidate
-from symcal.files import atomic_write_text
+from symcal.files import write_output
 from symcal.problem import Problem, load_problem
 from symcal.units import internal_unit
 
@@ -173,10 +173,10 @@ def write_revision(problem: Problem, cand: Candidate, directory: str | Path,
     sug = suggestion(problem, cand)
     inst = problem.instances[sug.instance]
     model_path = directory / "models" / f"{sug.model_name}.yaml"
-    atomic_write_text(model_path, sug.model_text(_rel(inst.model.path, model_path.parent)))
+    write_output(model_path, sug.model_text(_rel(inst.model.path, model_path.parent)))
     name = name or _overlay_name(problem, sug)
     overlay = directory / f"{name}.yaml"
-    atomic_write_text(overlay, sug.overlay_text(
+    write_output(overlay, sug.overlay_text(
         name, _rel(Path(problem.path), directory), _rel(model_path, directory),
         f"{problem.name} plus {cand.label}"))
     return overlay

@@ -508,3 +508,13 @@ class OutputSet:
             with _signals_held():
                 self.moving = True
                 _move_in(stage, self.folder)
+
+
+def write_output(path: str | Path, text: str, inputs: Iterable[str | Path] = (),
+                 option: str = "") -> Path:
+    """Write one text file as an :class:`OutputSet` of one: never over an input or a file
+    symcal did not write, recorded as symcal's own; return the path."""
+    path = Path(path)
+    with OutputSet(path.parent, inputs, option or display_path(path)) as stage:
+        atomic_write_text(stage / path.name, text)
+    return path

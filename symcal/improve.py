@@ -23,7 +23,7 @@ from symcal.data import Dataset
 from symcal.datasets import load_datasets
 from symcal.diagnose import Diagnosis, diagnose
 from symcal.effects import write_revision
-from symcal.files import atomic_write_text
+from symcal.files import write_output
 from symcal.problem import Problem, load_problem
 from symcal.result import Result
 
@@ -169,7 +169,7 @@ def _best_of_group(
     final = directory / f"{name}.yaml"
     text = path.read_text(encoding="utf-8").replace(f"problem: {path.stem}\n",
                                                       f"problem: {name}\n", 1)
-    atomic_write_text(final, text)
+    write_output(final, text)
     path.unlink()
     return label, final, solve(load_problem(final), {n: d for n, d in datasets.items()
                                                       if n in new.problem.datasets})
@@ -182,8 +182,8 @@ def _revision(diag: Diagnosis, cand_label: str, directory: Path, name: str) -> P
         assert diag.variant is not None
         path = directory / f"{name}.yaml"
         for target, text in diag.variant.files(directory).items():
-            atomic_write_text(target, text)
-        atomic_write_text(path, diag.variant.overlay(Path(problem.path), name, directory))
+            write_output(target, text)
+        write_output(path, diag.variant.overlay(Path(problem.path), name, directory))
         return path
     return write_revision(problem, cand, directory, name)
 
@@ -254,7 +254,7 @@ def improve(
         say(f"round {k}: added {label}: {len(diag.significant)} significant candidate(s) left")
     final = directory / "final.yaml"
     base = Path(os.path.relpath(rounds[-1].problem_file.resolve(), directory.resolve()))
-    atomic_write_text(final, f"problem: {Path(problem).stem}_final\n"
+    write_output(final, f"problem: {Path(problem).stem}_final\n"
                              f"extends: {base.as_posix()}\n"
                              f"doc: the last revision symcal improve kept ({len(rounds) - 1} "
                              "round(s))\n")

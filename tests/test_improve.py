@@ -316,3 +316,22 @@ def test_coordination_gain_is_named_by_its_channels_and_fixed(tmp_path) -> None:
     dof = np.sqrt(again.uncertainty.dof / again.rows)
     for name in ("g_x", "g_y", "g_p"):
         assert again.stat(name).after.std < 1.10 * floors[f"{name}_std"] * dof, name
+
+
+def test_improve_never_replaces_a_file_it_did_not_write(tmp_path, capsys) -> None:
+    """A user's own file in --out is refused before any work and left as it was; a folder
+    symcal wrote can be used again."""
+    out = tmp_path / "out"
+    out.mkdir()
+    mine = out / "final.yaml"
+    mine.write_text("my notes\n")
+    code = main(["improve", str(IMPLICIT), "--out", str(out), "--quiet"])
+    assert code == 2
+    assert "--out " + str(out) in capsys.readouterr().err
+    assert mine.read_text() == "my notes\n"
+    mine.unlink()
+    assert main(["improve", str(IMPLICIT), "--out", str(out), "--quiet", "--max-rounds",
+                 "1"]) in (0, 1)
+    assert main(["improve", str(IMPLICIT), "--out", str(out), "--quiet", "--max-rounds",
+                 "1"]) in (0, 1)
+    capsys.readouterr()

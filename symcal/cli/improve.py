@@ -35,7 +35,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Run the loop; write the ladder; print the rounds; exit 0 when the model is quiet."""
     from symcal.compare import compare, ladder_report, save_ladder_plot
-    from symcal.files import atomic_write_text
+    from symcal.files import OutputSet, atomic_write_text, check_outputs
     from symcal.improve import improve
     from symcal.report import plain_json
 
@@ -49,12 +49,16 @@ def run(args: argparse.Namespace) -> int:
         raise SymcalError(f"--out {args.out}: exists and is not a folder")
     if any(p == out.resolve() or out.resolve() in p.parents for p in inputs_of(args)):
         raise SymcalError(f"--out {args.out}: an input file lies in it; choose a new folder")
+    option = f"--out {args.out}"
+    check_outputs([out / n for n in ("final.yaml", "ladder.txt", "ladder.json", "ladder.png")],
+                  inputs_of(args), option)
     result = improve(args.problem, out, data_map(args), args.max_rounds, args.alpha,
                      args.drop_invalid, None if args.quiet else progress)
     rungs = compare([r.result for r in result.rounds])
-    atomic_write_text(out / "ladder.txt", ladder_report(rungs))
-    atomic_write_text(out / "ladder.json", plain_json([r.to_dict() for r in rungs]))
-    save_ladder_plot(rungs, out)
+    with OutputSet(out, inputs_of(args), option) as stage:
+        atomic_write_text(stage / "ladder.txt", ladder_report(rungs))
+        atomic_write_text(stage / "ladder.json", plain_json([r.to_dict() for r in rungs]))
+        save_ladder_plot(rungs, stage)
     if args.json:
         sys.stdout.write(plain_json(result.to_dict()))
     else:
