@@ -243,6 +243,7 @@ def test_printed_suggestions_load_and_carry_units(case, tmp_path) -> None:
     assert f"unit: {unit}" in lead
 
 
+@pytest.mark.slow
 def test_symcal_improve_json_and_files(tmp_path, capsys) -> None:
     """`symcal improve --json` prints the documented shape; every revision and the final
     problem are overlays that load; the ladder is written."""
@@ -318,6 +319,7 @@ def test_coordination_gain_is_named_by_its_channels_and_fixed(tmp_path) -> None:
         assert again.stat(name).after.std < 1.10 * floors[f"{name}_std"] * dof, name
 
 
+@pytest.mark.slow
 def test_improve_never_replaces_a_file_it_did_not_write(tmp_path, capsys) -> None:
     """A user's own file in --out is refused before any work and left as it was; a folder
     symcal wrote can be used again."""

@@ -314,6 +314,7 @@ def _figure_texts(fig) -> list[str]:
     return [t for t in texts if t]
 
 
+@pytest.mark.slow
 def test_angle_axes_in_mrad_without_crowded_ticks(gain_diagnosis) -> None:
     doc = diagnosis_document(gain_diagnosis, series=True)
     fig = plots.build_figure(doc, "structure")
@@ -346,6 +347,7 @@ def test_angle_axes_in_mrad_without_crowded_ticks(gain_diagnosis) -> None:
 # ----------------------------------------------------------------------------- HTML
 
 
+@pytest.mark.slow
 def test_html_verdict_floors_and_regressions(gain: symcal.Result, gain_diagnosis) -> None:
     doc = diagnosis_document(gain_diagnosis, series=False)
     text = text_report(gain) + "\n" + diagnosis_report(gain_diagnosis)
