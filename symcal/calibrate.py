@@ -22,6 +22,7 @@ from symcal.solvers.base import SolverOutput
 from symcal.solvers.linear import solve_linear
 from symcal.solvers.nlp import solve_ipopt
 from symcal.solvers.objective import Objective
+from symcal.solvers.trust_region import solve_trust_region
 from symcal.suggest import did_you_mean
 from symcal.units import DISPLAY_UNITS
 
@@ -42,6 +43,9 @@ def _solve_stage(
     if method == "linear" and nonlinear:
         raise SolveError(f"stage '{label}': method 'linear' was asked for, but constraint(s) "
                          f"{', '.join(nonlinear)} are not linear in its free parameters")
+    if method == "lm":
+        return solve_trust_region(objective, data, theta, progress, options.max_iter,
+                                  label=label), notes
     if method == "ipopt" or nonlinear:
         twin = objective.problem.explicit
         if nonlinear and method == "auto" and twin is not None:

@@ -22,7 +22,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     data_options(cmd)
     cmd.add_argument("--json", action="store_true", help="print the result as JSON")
     cmd.add_argument("--out", metavar="DIR", help="write result.json and report.txt to DIR")
-    cmd.add_argument("--method", choices=["auto", "linear", "ipopt"],
+    cmd.add_argument("--method", choices=["auto", "linear", "ipopt", "lm"],
                      help="solve every stage with this method (default: each stage's own, "
                           "auto = closed form when linear)")
     cmd.add_argument("--weighting", choices=["equal", "estimated"],

@@ -8,7 +8,6 @@ from typing import Any
 
 from symcal import expr
 from symcal.errors import SpecError, Where
-from symcal.files import input_refusal
 from symcal.language.common import (
     ConstantSpec,
     ExprSpec,
@@ -27,8 +26,8 @@ from symcal.language.fields import (
     expect_str,
     expect_symbol,
 )
-from symcal.language.overlay import MAX_DEPTH
-from symcal.language.yamlio import MAX_BYTES, display_path, load_yaml
+from symcal.language.overlay import resolve_base
+from symcal.language.yamlio import load_yaml
 from symcal.suggest import did_you_mean
 
 MODEL_KEYS = ["doc", "extends", "constants", "inputs", "parameters", "expressions", "outputs",
@@ -286,17 +285,6 @@ def load_model(path: str | Path, _chain: tuple[Path, ...] = ()) -> ModelSpec:
         _check_implicit(model)
         return model
     at = child_where(doc, where, "extends")
-    parent_path = (path.parent / expect_str(doc["extends"], at)).resolve()
     chain = (*_chain, path.resolve())
-    if parent_path in chain:
-        names = " -> ".join(display_path(p) for p in (*chain, parent_path))
-        raise SpecError(at, f"models extend each other in a cycle: {names}")
-    if len(chain) > MAX_DEPTH:
-        raise SpecError(at, f"more than {MAX_DEPTH} levels of 'extends' below "
-                            f"{display_path(chain[0])}")
-    if not parent_path.exists():
-        raise SpecError(at, f"model file not found: {display_path(parent_path)}")
-    reason = input_refusal(parent_path, MAX_BYTES)
-    if reason is not None:
-        raise SpecError(at, f"cannot read model file {display_path(parent_path)}: it {reason}")
+    parent_path = resolve_base(doc["extends"], at, path, "model", chain)
     return _extend(load_model(parent_path, chain), model)

@@ -21,7 +21,7 @@ from symcal.language.fields import (
     expect_number,
 )
 
-METHODS = ("auto", "linear", "ipopt")
+METHODS = ("auto", "linear", "ipopt", "lm")
 #: The largest iteration limit accepted (IPOPT stores it in a C int).
 MAX_ITER_LIMIT = 1_000_000
 
@@ -33,10 +33,11 @@ class SolveOptions:
     Attributes
     ----------
     method
-        ``"auto"`` (closed form when the stage is linear, else IPOPT), ``"linear"`` or
-        ``"ipopt"`` for every stage; None keeps each stage's own ``method``.
+        ``"auto"`` (closed form when the stage is linear, else IPOPT), ``"linear"``,
+        ``"ipopt"`` or ``"lm"`` (symcal's trust-region Levenberg-Marquardt) for every
+        stage; None keeps each stage's own ``method``.
     max_iter
-        Iteration limit of each IPOPT stage (every run of a stage counts against it).
+        Iteration limit of each IPOPT or LM stage (every run of a stage counts against it).
     tol
         IPOPT's optimality tolerance.
     ipopt

@@ -109,7 +109,7 @@ def extends_chain(path: str | Path, what: str) -> tuple[Path, ...]:
         if "extends" not in doc:
             return tuple(chain)
         at = child_where(doc, where, "extends")
-        chain.append(_base_path(doc["extends"], at, chain[-1], what, tuple(chain)))
+        chain.append(resolve_base(doc["extends"], at, chain[-1], what, tuple(chain)))
 
 
 def _reached_through(exc: SpecError, top: str) -> SpecError:
@@ -125,7 +125,7 @@ def _merged(
     """``doc`` (which has ``extends``) merged onto its bases, recursively."""
     at = child_where(doc, where, "extends")
     chain = (*chain, path.resolve())
-    base_path = _base_path(doc["extends"], at, path, what, chain)
+    base_path = resolve_base(doc["extends"], at, path, what, chain)
     base, base_where = load_yaml(base_path, what)
     if what not in base:
         raise SpecError(at, f"{display_path(base_path)} is not a {what} file (it has no "
@@ -135,21 +135,21 @@ def _merged(
     return rule(without(base, [what]), without(doc, ["extends"]), base_path)
 
 
-def _base_path(value: Any, at: Where, path: Path, what: str, chain: tuple[Path, ...]) -> Path:
+def resolve_base(value: Any, at: Where, path: Path, what: str, chain: tuple[Path, ...]) -> Path:
     """The file ``extends: value`` names, checked against cycles, depth and absence."""
-    base_path = (path.parent / expect_str(value, at)).resolve()
-    if base_path in chain:
-        names = " -> ".join(display_path(p) for p in (*chain, base_path))
+    target = (path.parent / expect_str(value, at)).resolve()
+    if target in chain:
+        names = " -> ".join(display_path(p) for p in (*chain, target))
         raise SpecError(at, f"{what}s extend each other in a cycle: {names}")
     if len(chain) > MAX_DEPTH:
         raise SpecError(at, f"more than {MAX_DEPTH} levels of 'extends' below "
                             f"{display_path(chain[0])}")
-    if not base_path.exists():
-        raise SpecError(at, f"{what} file not found: {display_path(base_path)}")
-    reason = input_refusal(base_path, MAX_BYTES)
+    if not target.exists():
+        raise SpecError(at, f"{what} file not found: {display_path(target)}")
+    reason = input_refusal(target, MAX_BYTES)
     if reason is not None:
-        raise SpecError(at, f"cannot read {what} file {display_path(base_path)}: it {reason}")
-    return base_path
+        raise SpecError(at, f"cannot read {what} file {display_path(target)}: it {reason}")
+    return target
 
 
 # --------------------------------------------------------------------------- building blocks

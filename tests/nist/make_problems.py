@@ -63,6 +63,9 @@ MODELS: dict[str, str] = {
 #: The response as NIST states the model (only Nelson models a transform of y).
 RESPONSE = {"Nelson": "log(y)"}
 
+#: Trial steps allowed: Bennett5 from start 1 needs about 2000 (a long, flat valley).
+MAX_ITER = 3000
+
 IDENTITY = """\
 model: identity
 doc: >
@@ -124,6 +127,7 @@ def problem_text(name: str, info: dict, start: str) -> str:
             f"  calibration: {{path: {name}.csv}}",
             "solver:",
             "  method: lm",
+            f"  max_iter: {MAX_ITER}",
             ""]
     return "\n".join(out)
 

@@ -1,0 +1,296 @@
+"""Globalised least squares: symcal's own trust-region Levenberg–Marquardt solver.
+
+Minimises Σ g² (the weighted residuals of an :class:`Objective`) over the free parameters,
+on the exact Jacobian from CasADi's AD.
+
+* **Linearisation.** Each accepted iterate is linearised with ``Objective.accumulate_r``:
+  the R factor of ``[J | g]`` reduced chunk by chunk (TSQR), so no N × n Jacobian is stored
+  and the step is computed from R (condition number κ), not from JᵀJ (κ²).  Trial points
+  evaluate residuals only (``Objective.cost``).
+* **Variables.** x = θ_free / scale, each parameter in units of its nominal scale.  The
+  trust region is the ellipsoid ‖D p‖ ≤ Δ, D the largest Jacobian column norms seen so far
+  (in x), which makes steps independent of how the model is parametrised.
+* **Step.** With the SVD B = R_x D⁻¹ = U S Vᵀ computed once per iterate, the step for a
+  multiplier λ is z(λ) = D p = −V S (S² + λ)⁻¹ Uᵀc.  The Gauss–Newton step (λ = 0, singular
+  values below :func:`symcal.linalg.rank_tolerance` dropped: minimum norm) is taken when
+  it lies inside the region; otherwise λ solves ‖z(λ)‖ = Δ (to 10 %) by safeguarded Newton
+  iterations on 1/‖z(λ)‖, which is nearly linear in λ.
+* **Bounds.** Parameters at a bound whose gradient points out of the box are held for the
+  step (active set); the step of the others is then cut back into the box.  The model's
+  predicted decrease is that of the step actually taken.
+* **Acceptance.** A step is taken when the actual decrease is at least 10⁻⁴ of the
+  predicted one; the radius shrinks after poor steps (and non-finite trial costs) and grows
+  after good ones.  Only decreasing steps are accepted, so the iterate kept is always the
+  best one seen.
+* **Status.** Success only when a first-order test holds at the final iterate: a
+  Gauss–Newton step would lower the cost by less than ``GN_DECREMENT`` of itself (with the
+  held bounds: the projected problem), or the fit is exact (the residual vanished, or fell
+  below ``EXACT_FIT`` of the starting residual, where rounding dominates).  Divergence,
+  NaN/inf in the Jacobian, the iteration limit and a stall (the region shrank to nothing
+  without the test holding) are failures that say so.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from symcal.data import Dataset
+from symcal.linalg import rank_tolerance
+from symcal.solvers import instrument
+from symcal.solvers.base import SolverOutput
+from symcal.solvers.objective import Objective
+
+#: Converged when a Gauss–Newton step would lower the cost by less than this fraction
+#: (far tighter than the IPOPT path's 1e-14: NIST's certified values need it).
+GN_DECREMENT = 1e-20
+#: Rejected steps shorter than this fraction of ‖D x‖ measure the cost's rounding noise.
+NOISE_STEP = 1e-6
+#: Converged to rounding when a Gauss–Newton step promises at most this many times the
+#: largest rounding noise seen.
+NOISE_FACTOR = 4.0
+#: An exact fit: the residual norm fell below this fraction of the starting one.
+EXACT_FIT = 1e-12
+#: Stalled when the trust radius falls below this fraction of ‖D x‖ (or of 1).
+STALL = 1e-15
+#: Diverged when a parameter exceeds this many nominal scales.
+DIVERGED = 1e15
+#: A step is accepted when it achieves this fraction of its predicted decrease.
+ACCEPT = 1e-4
+
+
+@dataclass
+class _Linearisation:
+    """The linear model of the residual at one iterate, in scaled variables x."""
+
+    cost: float
+    r_x: np.ndarray  # R·diag(scale): ‖J_x p + g‖² = ‖r_x p + c‖² + tail
+    c: np.ndarray
+    r_theta: np.ndarray
+    rows: int
+
+    @property
+    def finite(self) -> bool:
+        """Whether the cost, R and c are all finite."""
+        return bool(math.isfinite(self.cost) and np.all(np.isfinite(self.r_x))
+                    and np.all(np.isfinite(self.c)))
+
+    @property
+    def gradient(self) -> np.ndarray:
+        """∇ Σ g² in x (2 J_xᵀ g)."""
+        return np.asarray(2.0 * (self.r_x.T @ self.c))
+
+
+def _held(x: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+          gradient: np.ndarray) -> np.ndarray:
+    """Parameters at a bound whose descent direction leaves the box."""
+    tol = 1e-12 * np.maximum(1.0, np.abs(x))
+    at_lower = (x - lower <= tol) & (gradient > 0)
+    at_upper = (upper - x <= tol) & (gradient < 0)
+    return np.asarray(at_lower | at_upper)
+
+
+def _step_norm(s: np.ndarray, a: np.ndarray, lam: float) -> float:
+    return float(np.linalg.norm(s * a / (s**2 + lam)))
+
+
+def _multiplier(s: np.ndarray, a: np.ndarray, radius: float) -> float:
+    """λ > 0 with ‖S (S² + λ)⁻¹ a‖ = radius to 10 %, by safeguarded Newton on 1/‖z(λ)‖."""
+    lo, hi = 0.0, float(np.linalg.norm(s * a)) / radius
+    lam = 0.0
+    for _ in range(60):
+        w = s * a / (s**2 + lam)
+        norm = float(np.linalg.norm(w))
+        if abs(norm - radius) <= 0.1 * radius:
+            return lam
+        if norm > radius:
+            lo = lam
+        else:
+            hi = lam
+        slope = float(np.sum(w**2 / (s**2 + lam)))  # −‖z‖·d‖z‖/dλ
+        newton = lam + (norm / radius - 1.0) * norm**2 / slope if slope > 0 else hi
+        lam = newton if lo < newton < hi else 0.5 * (lo + hi) if hi > 0 else 2 * lo + 1e-300
+        if hi - lo <= 1e-15 * hi:
+            break
+    return lam
+
+
+class _Steps:
+    """Trial steps from one linearisation, and what the rejected ones say about rounding."""
+
+    def __init__(self, lin: _Linearisation, x: np.ndarray, lower: np.ndarray,
+                 upper: np.ndarray, free: np.ndarray, d: np.ndarray, s: np.ndarray,
+                 a: np.ndarray, vt: np.ndarray, decrement: float) -> None:
+        self.lin, self.x, self.lower, self.upper = lin, x, lower, upper
+        self.free, self.d, self.s, self.a, self.vt = free, d, s, a, vt
+        self.decrement = decrement
+        self.accepted = False
+        self.noise = 0.0
+        self.small = NOISE_STEP * max(float(np.linalg.norm(d * x)), 1.0)
+
+    def trial(self, radius: float) -> tuple[np.ndarray, float, float]:
+        """The point of the step within ``radius``, its predicted decrease and its size."""
+        s, a = self.s, self.a
+        lam = 0.0
+        if float(np.linalg.norm(a / s)) > radius:
+            lam = _multiplier(s, a, radius)
+        z = -(self.vt.T @ (s * a / (s**2 + lam)))
+        step = np.zeros(len(self.x))
+        step[self.free] = z / self.d[self.free]
+        trial = np.clip(self.x + step, self.lower, self.upper)
+        taken = trial - self.x
+        model = self.lin.r_x @ taken + self.lin.c
+        predicted = float(self.lin.c @ self.lin.c - model @ model)
+        return trial, predicted, float(np.linalg.norm(self.d * taken))
+
+    def rejected(self, cost: float, predicted: float, size: float) -> None:
+        """Record a rejected trial: tiny ones measure the rounding noise of the cost."""
+        if math.isfinite(cost) and size <= self.small:
+            self.noise = max(self.noise, abs(self.lin.cost - cost - predicted))
+
+    def verdict(self) -> tuple[bool, str, str]:
+        """Success, status and words once no step lowers the cost any more."""
+        promised = self.decrement * self.lin.cost
+        if self.noise > 0 and promised <= NOISE_FACTOR * self.noise:
+            return True, "converged_to_rounding", (
+                f"converged to rounding: no step lowers the cost; the decrease a "
+                f"Gauss-Newton step predicts ({self.decrement:.2g} of the cost) is within "
+                f"the rounding noise of the cost ({self.noise / self.lin.cost:.2g} of it)")
+        return False, "stalled", (
+            f"failed: stalled, no step lowers the cost although a Gauss-Newton step predicts "
+            f"a decrease of {self.decrement:.2g} of it, above the rounding noise of the cost "
+            f"({self.noise / self.lin.cost:.2g} of it): the point is not stationary")
+
+
+def solve_trust_region(
+    objective: Objective,
+    dataset: Dataset,
+    theta0: np.ndarray,
+    progress: Callable[[str], None] | None = None,
+    max_iter: int = 200,
+    label: str = "lm",
+) -> SolverOutput:
+    """Minimise the objective with a trust-region Levenberg–Marquardt method from ``theta0``.
+
+    Parameters
+    ----------
+    objective
+        Constraints and free parameters.
+    dataset
+        Observations to solve on.
+    theta0
+        Initial values of all parameters (fixed ones stay); free ones outside their bounds
+        are moved onto them.
+    progress
+        Called with one line per iteration (None: silent).
+    max_iter
+        Largest number of trial steps (each one evaluation of the residuals).
+    label
+        Name shown in progress lines.
+
+    Returns
+    -------
+    SolverOutput
+        ``method == "lm"``.  ``success`` only when a first-order test holds (see the module
+        docstring); otherwise the best iterate seen, with the reason it stopped.
+    """
+    start = time.perf_counter()
+    problem = objective.problem
+    idx, scales = objective.index, objective.scales
+    params = [problem.parameters[i] for i in idx]
+    lower = np.array([q.lower / s for q, s in zip(params, scales, strict=True)])
+    upper = np.array([q.upper / s for q, s in zip(params, scales, strict=True)])
+    base = np.array(theta0, dtype=float)
+
+    def theta_of(x: np.ndarray) -> np.ndarray:
+        theta = base.copy()
+        theta[idx] = scales * x
+        return theta
+
+    def linearise(x: np.ndarray) -> _Linearisation:
+        r, c, tail, rows = objective.accumulate_r(dataset, theta_of(x))
+        return _Linearisation(float(c @ c + tail), r * scales[None, :], c, r, rows)
+
+    x = np.clip(base[idx] / scales, lower, upper)
+    lin = linearise(x)
+    cost0 = lin.cost
+    ok, status, words = False, "", ""
+    iterations = 0
+    d = np.zeros(len(x))
+    radius = 0.0
+    while True:
+        if not lin.finite:
+            status, words = "invalid_number", ("failed: a residual or derivative is NaN or "
+                                               "inf at the start")
+            break
+        if lin.cost == 0.0 or (iterations > 0 and lin.cost <= EXACT_FIT**2 * cost0):
+            ok, status = True, "exact_fit"
+            words = ("converged: exact fit (the residual vanished)" if lin.cost == 0.0 else
+                     f"converged: exact fit (the residual norm fell below {EXACT_FIT:g} of "
+                     "its starting value, to rounding)")
+            break
+        free = ~_held(x, lower, upper, lin.gradient)
+        d = np.maximum(d, np.linalg.norm(lin.r_x, axis=0))
+        d = np.where(d > 0, d, 1.0)
+        u, s, vt = np.linalg.svd(lin.r_x[:, free] / d[free][None, :], full_matrices=False)
+        a = u.T @ lin.c
+        rank = int(np.sum(s > rank_tolerance(s, lin.rows)))
+        s, a, vt = s[:rank], a[:rank], vt[:rank]
+        decrement = float(a @ a) / lin.cost
+        instrument.record_decrement(decrement)
+        if decrement < GN_DECREMENT:
+            ok, status = True, "converged"
+            words = (f"converged: a Gauss-Newton step would lower the cost by less than "
+                     f"{GN_DECREMENT:g} of itself")
+            break
+        if iterations == 0:
+            size = float(np.linalg.norm(d * x))
+            radius = size if size > 0 else 1.0
+        step_out = _Steps(lin, x, lower, upper, free, d, s, a, vt, decrement)
+        while not step_out.accepted:
+            if iterations >= max_iter:
+                status, words = "iteration_limit", (
+                    f"stopped: iteration limit ({max_iter}) reached before convergence (a "
+                    f"Gauss-Newton step would still lower the cost by {decrement:.2g} of "
+                    "itself)")
+                break
+            if radius <= STALL * max(float(np.linalg.norm(d * x)), 1.0):
+                ok, status, words = step_out.verdict()
+                break
+            trial, predicted, size = step_out.trial(radius)
+            iterations += 1
+            with np.errstate(over="ignore", invalid="ignore"):  # inf/NaN: a rejected trial
+                cost = (objective.cost(dataset, theta_of(trial)) if predicted > 0
+                        else math.nan)
+            ratio = (lin.cost - cost) / predicted if math.isfinite(cost) else -math.inf
+            if ratio < 0.25:
+                radius = 0.25 * min(radius, size) if size > 0 else 0.25 * radius
+            elif ratio > 0.75:
+                radius = max(radius, 2.0 * size)
+            if progress is not None:
+                progress(f"  {label}: iteration {iterations:3d}  cost {lin.cost:.6e}  "
+                         f"trial {cost:.6e}  step {size:.3e} (scaled)  ratio {ratio:.3g}")
+            if ratio > ACCEPT:
+                candidate = linearise(trial)
+                if candidate.finite:
+                    step_out.accepted = True
+                    x, lin = trial, candidate
+                    instrument.record_iteration(label, iterations, cost, x)
+                    continue
+                radius = 0.25 * min(radius, size)  # J is not finite there: a smaller step
+            step_out.rejected(cost, predicted, size)
+        if not step_out.accepted:
+            break
+        if float(np.max(np.abs(x))) > DIVERGED:
+            status, words = "diverged", (
+                f"failed: the iterates diverged (a parameter passed {DIVERGED:g} times its "
+                "nominal scale)")
+            break
+    return SolverOutput(theta_of(x), objective.free.copy(), "lm", ok, status,
+                        f"trust-region Levenberg-Marquardt: {words}; {iterations} "
+                        f"iterations", lin.r_theta, lin.rows, lin.cost, iterations,
+                        time.perf_counter() - start)
