@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -128,9 +129,33 @@ def _check_finite(objective: Objective, data: Dataset, theta: np.ndarray) -> Non
             "the data there")
 
 
+#: An iterative solve has diverged when a free parameter moved more than this many times
+#: its nominal scale from where the stage started.
+DIVERGED = 1e6
+
+
+def _diverged(out: SolverOutput, problem: Problem, theta0: np.ndarray,
+              objective: Objective) -> SolverOutput:
+    """``out`` marked failed when an iterative method carried a parameter away (a
+    divergence, whatever the solver's own status says)."""
+    if out.method == "linear" or not out.success:
+        return out
+    moved = np.abs(out.theta[objective.index] - theta0[objective.index]) / objective.scales
+    worst = int(np.argmax(moved)) if moved.size else 0
+    if moved.size and moved[worst] > DIVERGED:
+        name = objective.names[worst]
+        i = problem.index[name]
+        return replace(out, success=False, status="Diverged",
+                       message=f"failed: the iterates diverged ({name} went from "
+                               f"{theta0[i]:.6g} to {out.theta[i]:.6g}, more than "
+                               f"{DIVERGED:g} times its scale {objective.scales[worst]:g})")
+    return out
+
+
 def _check_information(stage: Stage, data: Dataset, rows: int, rank: int,
                        unidentifiable: int, n_free: int) -> None:
-    """Refuse data that determine no parameter, or leave no degree of freedom."""
+    """Refuse data that determine no parameter at the start, or leave no degree of
+    freedom: bad input, found before anything is solved."""
     if rows <= rank:
         raise DataError(f"stage '{stage.name}': {data.n} observations of '{data.name}' give "
                         f"{rows} residual values for {rank} identifiable parameters; at "
@@ -157,8 +182,14 @@ def run_stage(
     free = np.array([p.name in stage.free for p in problem.parameters])
     plain = Objective(problem, stage.constraints, free)
     _check_finite(plain, data, theta)
+    r_start, _, tail0, rows0 = plain.accumulate_r(data, theta)
+    ident0, unc0 = analyse(r_start, rows0, tail0, plain.names, plain.scales,
+                           theta[plain.index])
+    _check_information(stage, data, rows0, ident0.rank,
+                       sum(unc0.se[n] is None for n in plain.names), len(plain.names))
     method = options.method or stage.method
     out, notes = _solve_stage(plain, data, theta, method, progress, stage.name, options)
+    out = _diverged(out, problem, theta, plain)
     objective = plain
     if problem.weighting == "estimated" and len(stage.constraints) > 1 and out.success:
         objective, out, note = _reweighted(plain, out, data, method, progress, stage.name,
@@ -172,10 +203,10 @@ def run_stage(
         meat = objective.accumulate_r(data, out.theta, sqrt_psd(cov_g).T)[0]
     ident, unc = analyse(out.r_factor, out.rows, out.rss, names, scales, out.theta[idx],
                          meat)
-    _check_information(stage, data, out.rows, ident.rank,
-                       sum(unc.se[n] is None for n in names), len(names))
-    r_start = (out.r_factor if out.method == "linear"
-               else objective.accumulate_r(data, theta)[0])
+    if out.success and ident.rank == 0:
+        out = replace(out, success=False, status="Collapsed",
+                      message="failed: the iterates left the region the data describe: where "
+                              "they ended, the data determine none of the free parameters")
     moved = np.abs(out.theta[idx] - theta[idx]) > 1e-12 * scales
     at_bound = [p.name for p in (problem.parameters[i] for i in idx)
                 if min(abs(out.theta[problem.index[p.name]] - b) for b in (p.lower, p.upper))

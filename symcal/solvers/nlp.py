@@ -131,6 +131,11 @@ class _Oracle:
         self.costs: dict[bytes, float] = {}
         self.cost_scale = 1.0
         self.evaluations = 0
+        self.best: tuple[float, np.ndarray] | None = None   # lowest cost seen, at x
+
+    def _seen(self, x: np.ndarray, cost: float) -> None:
+        if math.isfinite(cost) and (self.best is None or cost < self.best[0]):
+            self.best = (cost, x.copy())
         self.stop = _Stop()
 
     def theta(self, x: np.ndarray) -> np.ndarray:
@@ -146,6 +151,7 @@ class _Oracle:
             if len(self.costs) > 64:
                 self.costs.clear()
             self.costs[key] = self.objective.cost(self.dataset, self.theta(x))
+            self._seen(x, self.costs[key])
         return self.costs[key] / self.cost_scale
 
     def _terms(self, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -153,6 +159,7 @@ class _Oracle:
         if key != self.key:
             self.evaluations += 1
             cost, jtg, jtj = self.objective.normal_equations(self.dataset, self.theta(x))
+            self._seen(x, cost)
             self.key, self.terms = key, (cost, jtg, jtj)
         assert self.terms is not None
         return self.terms
@@ -374,6 +381,10 @@ def solve_ipopt(
         if (not ok or status == "Gauss_Newton_Converged" or rounds >= max_rounds
                 or iterations >= max_iter or not after < 0.5 * before):
             break
+    if not ok and oracle.best is not None and not oracle.best[0] >= oracle.cost(x) * \
+            oracle.cost_scale:
+        x = oracle.best[1]              # a failed solve keeps the best iterate it saw
+        words += "; the estimate is the best iterate seen"
     theta = oracle.theta(x)
     r, c, tail, rows = objective.accumulate_r(dataset, theta)
     rss = float(np.sum(c**2) + tail)
