@@ -48,3 +48,13 @@ def test_a_diverged_solve_is_never_a_success() -> None:
                           options=symcal.SolveOptions(method="ipopt"))
     assert not result.success
     assert result.stages[-1].status == "Diverged"
+
+
+def test_numerical_warnings_are_one_line_not_thousands(capfd) -> None:
+    """MGH17 from start 1 used to print thousands of CasADi "NaN detected" warnings; they
+    are counted and summarised in the stage's message."""
+    code = main(["solve", str(NIST / "MGH17.start1.yaml"), "--method", "ipopt", "--quiet"])
+    out, err = capfd.readouterr()
+    assert code == 1
+    assert "WARNING" not in out + err and "detected" not in out + err
+    assert "trial point(s) gave a NaN or infinite cost" in out

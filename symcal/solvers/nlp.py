@@ -132,9 +132,12 @@ class _Oracle:
         self.cost_scale = 1.0
         self.evaluations = 0
         self.best: tuple[float, np.ndarray] | None = None   # lowest cost seen, at x
+        self.nonfinite = 0                                  # evaluations giving NaN/inf
 
     def _seen(self, x: np.ndarray, cost: float) -> None:
-        if math.isfinite(cost) and (self.best is None or cost < self.best[0]):
+        if not math.isfinite(cost):
+            self.nonfinite += 1
+        elif self.best is None or cost < self.best[0]:
             self.best = (cost, x.copy())
         self.stop = _Stop()
 
@@ -300,6 +303,7 @@ def _ipopt_round(
                                 [ca.triu(lam_f * calls[2](x))]),
         "iteration_callback": callback,
         "error_on_fail": False,
+        "show_eval_warnings": False,   # counted by the oracle, summarised in one line
         "print_time": False,
         "ipopt": {"print_level": PRINT_LEVEL, "sb": "yes", "max_iter": max_iter, "tol": tol,
                   "acceptable_tol": 1e-6, "acceptable_iter": 5, **extra},
@@ -385,6 +389,9 @@ def solve_ipopt(
             oracle.cost_scale:
         x = oracle.best[1]              # a failed solve keeps the best iterate it saw
         words += "; the estimate is the best iterate seen"
+    if oracle.nonfinite:
+        words += (f"; {oracle.nonfinite} trial point(s) gave a NaN or infinite cost (IPOPT "
+                  "stepped back from them)")
     theta = oracle.theta(x)
     r, c, tail, rows = objective.accumulate_r(dataset, theta)
     rss = float(np.sum(c**2) + tail)
