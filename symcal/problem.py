@@ -31,6 +31,7 @@ import casadi as ca
 
 from symcal import expr
 from symcal.errors import SpecError, Where
+from symcal.files import input_refusal
 from symcal.language.common import ExprSpec, ParameterSpec, apply_parameter_overrides, parse_expr
 from symcal.language.model import ImplicitSpec, ModelSpec
 from symcal.language.options import SolveOptions
@@ -41,7 +42,28 @@ from symcal.language.problem import (
     ProblemSpec,
     load_problem_spec,
 )
+from symcal.language.yamlio import display_path
 from symcal.suggest import did_you_mean
+
+#: At most this many bytes of a data file are read to find its column names for a hint.
+HEADER_BYTES = 1 << 16
+
+
+def data_columns(path: Path) -> tuple[str, ...]:
+    """The column names of a CSV (its header line) or NPZ file, or () when unreadable."""
+    if input_refusal(path, HEADER_BYTES << 14) is not None:   # a FIFO must never block
+        return ()
+    try:
+        if path.suffix.lower() == ".npz":
+            import numpy as np
+
+            with np.load(path, allow_pickle=False) as npz:
+                return tuple(npz.files)
+        with open(path, "rb") as fh:
+            head = fh.read(HEADER_BYTES).decode("utf-8-sig", errors="replace")
+    except (OSError, ValueError):
+        return ()
+    return tuple(c.strip() for c in head.splitlines()[0].split(",")) if head else ()
 
 
 @dataclass(frozen=True)
@@ -354,6 +376,7 @@ class _Scope:
         implicit: Mapping[str, ImplicitSpec],
         opened: list[_Implicit],
         hooked: Mapping[str, ca.SX] | None = None,
+        hint: Callable[[str], str] | None = None,
     ) -> None:
         self.label = label
         self.values = dict(values)
@@ -364,6 +387,7 @@ class _Scope:
         self.implicit = implicit
         self.opened = opened
         self.hooked = dict(hooked or {})
+        self.hint = hint or (lambda _name: "")
 
     def build(self, spec: ExprSpec) -> ca.SX:
         """Build one expression, reporting errors at its provenance."""
@@ -388,7 +412,8 @@ class _Scope:
         if found is not None:
             return found
         pool = [k for k in self.known() if k != "pi"]  # pi is never what a typo meant
-        raise SpecError(where, f"unknown symbol '{name}'{did_you_mean(name, pool)}")
+        raise SpecError(where, f"unknown symbol '{name}'{did_you_mean(name, pool)}"
+                               f"{self.hint(name)}")
 
     def _open_implicit(self, name: str, where: Where) -> ca.SX:
         """A placeholder for ``name``; its start and its map are built and recorded."""
@@ -479,7 +504,8 @@ class _Build:
         self.problem_symbols = {n: ca.SX.sym(n) for n in system.implicit}
         values.update(self.problem_symbols)
         defs = {k: q.expr for k, q in system.expressions.items()}
-        self.scope = _Scope("", values, defs, self._fallback, self._known, self.stack, {}, [])
+        self.scope = _Scope("", values, defs, self._fallback, self._known, self.stack, {}, [],
+                            hint=self._column_hint)
         self._build_all()
 
     # ------------------------------------------------------------------ building
@@ -489,6 +515,15 @@ class _Build:
         self.parameters.append(Parameter(name, p.value, p.unit, p.lower, p.upper, p.fixed,
                                          scale, p.doc, p.where))
         self.symbols[name] = ca.SX.sym(name)
+
+    def _column_hint(self, name: str) -> str:
+        """Where an unknown symbol is a column of a data file the problem names: say so."""
+        for ds in self.spec.study.datasets.values():
+            if ds.path is not None and name in data_columns(ds.path):
+                return (f"; {display_path(ds.path)} (dataset '{ds.name}') has a column "
+                        f"'{name}': declare it under 'columns:', e.g. "
+                        f"columns: {{{name}: {{unit: mm}}}}")
+        return ""
 
     def _known(self) -> list[str]:
         return [*self.scope.values, *self.scope.defs, *self.spec.system.columns,

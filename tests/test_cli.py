@@ -69,7 +69,7 @@ def test_spec_error_exit_2_no_traceback(tmp_path, monkeypatch, capsys) -> None:
     assert main(["solve", "bad.yaml"]) == 2
     assert capsys.readouterr().err == (
         "symcal: error: bad.yaml:3: constraint: unknown key 'constraint' (did you mean "
-        "'constraints'?); allowed keys: problem, instances, constraints, datasets, doc, "
+        "'constraints'?); allowed keys: problem, constraints, datasets, instances, doc, "
         "extends, constants, parameters, columns, expressions, comparisons, stages, "
         "weighting, implicit, solver\n")
 

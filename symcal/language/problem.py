@@ -406,8 +406,8 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
     """
     path = Path(path).resolve() if Path(path).exists() else Path(path)
     doc, where = load_with_extends(path, "problem", merge_problem)
-    check_keys(doc, where, required=["problem", "instances", "constraints", "datasets"],
-               optional=PROBLEM_KEYS)
+    check_keys(doc, where, required=["problem", "constraints", "datasets"],
+               optional=["instances", *PROBLEM_KEYS])
     name = expect_name(doc["problem"], child_where(doc, where, "problem"), "the problem's name")
     cache = _ModelCache()
 
@@ -423,8 +423,7 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
     constraints = entries("constraints", lambda k, v, at: _parse_quantity(k, v, at, True))
     datasets = entries("datasets", lambda k, v, at: _parse_dataset(k, v, at, path))
     comparisons = entries("comparisons", _parse_comparison)
-    for key, at in (("constraints", constraints), ("instances", instances),
-                    ("datasets", datasets)):
+    for key, at in (("constraints", constraints), ("datasets", datasets)):
         if not at:
             raise SpecError(child_where(doc, where, key), f"'{key}' must not be empty")
     if "calibration" not in datasets:

@@ -14,9 +14,8 @@ this script:
 
 The model of each problem is written here by hand from the ``Model:`` line of its
 reference file (NIST's ``exp[...]`` and ``arctan`` spelled in symcal's expression language).
-A symcal problem must have at least one model instance, while these problems have none, so
-every problem instantiates ``identity.yaml`` (a model with one input and no parameter,
-bound to ``x``), which takes no part in the constraint.
+They are plain regressions on data columns: a symcal problem with parameters, columns
+and a constraint, and no sensor instance.
 """
 
 from __future__ import annotations
@@ -66,18 +65,6 @@ RESPONSE = {"Nelson": "log(y)"}
 #: Trial steps allowed: Bennett5 from start 1 needs about 2000 (a long, flat valley).
 MAX_ITER = 3000
 
-IDENTITY = """\
-model: identity
-doc: >
-  A model with one input and no parameter.  symcal problems need a model instance; the
-  NIST problems are plain regressions on data columns, so each instantiates this one,
-  which takes no part in the constraint.
-inputs:
-  v: {doc: any column}
-outputs:
-  v_out: {expr: v, doc: the input unchanged}
-"""
-
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 
 
@@ -117,11 +104,7 @@ def problem_text(name: str, info: dict, start: str) -> str:
     out += [f"  {c}: {{}}" for c in info["columns"]]
     out += ["parameters:"]
     out += [f"  {p['name']}: {{value: {p[start]}}}" for p in info["params"]]
-    out += ["instances:",
-            "  data: {model: identity.yaml, inputs: {v: x}, doc: no part in the fit}"
-            if "x" in info["columns"] else
-            "  data: {model: identity.yaml, inputs: {v: x1}, doc: no part in the fit}",
-            "constraints:",
+    out += ["constraints:",
             f"  residual: {{expr: '{response} - ({MODELS[name]})'}}",
             "datasets:",
             f"  calibration: {{path: {name}.csv}}",
@@ -135,7 +118,6 @@ def problem_text(name: str, info: dict, start: str) -> str:
 def main(argv: list[str]) -> int:
     """Write every problem's files next to this script; the source folder is argv[1]."""
     source = Path(argv[1]) if len(argv) > 1 else DEFAULT_SOURCE
-    (HERE / "identity.yaml").write_text(IDENTITY)
     certified: dict[str, dict] = {}
     for name in sorted(MODELS):
         info = parse(source / f"{name}.dat")
