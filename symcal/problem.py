@@ -573,22 +573,21 @@ class _Build:
         model = inst.model
         # an output `reading + error` is hooked on its error, where a missing term goes
         # (inside an implicit definition when there is one); any other on itself
-        on_error: dict[str, ca.SX] = {}
+        on_error: dict[str, ca.SX] = {}      # error expression -> its hook
+        on_output: set[str] = set()           # outputs hooked on themselves
         for name in model.outputs:
             full = f"{inst.name}.{name}"
             self.hooks[full] = ca.SX.sym(f"hook:{full}")
             error = model.error_expression(name)
             if error is not None and error not in on_error:
                 on_error[error] = self.hooks[full]
+            else:
+                on_output.add(full)
         scope = _instance_scope(inst, inputs, params, self.stack, self.model_level, on_error)
-        hooked_outputs = {f"{inst.name}.{n}" for n in model.outputs
-                          if model.error_expression(n) in on_error
-                          and on_error[model.error_expression(n) or ""] is
-                          self.hooks[f"{inst.name}.{n}"]}
         for name, out in model.outputs.items():
             full = f"{inst.name}.{name}"
             sx = scope.lookup(name, out.where)
-            if full not in hooked_outputs:
+            if full in on_output:
                 sx = sx + self.hooks[full]
             self.signals[full] = Quantity(full, sx, out.unit, doc=out.doc)
         for name in model.implicit:
