@@ -331,9 +331,21 @@ class Result:
                 if _sha256(Path(info.file)) != info.sha256:
                     raise SymcalError(f"dataset '{info.name}' ({info.file}) changed since the "
                                       "result was computed; solve again")
-        return load_datasets(self.problem, files, drop_invalid=any(d.dropped
-                                                                    for d in self.datasets),
+        for info in self.datasets:
+            spec = self.problem.datasets.get(info.name)
+            if info.file is None and (spec is None or spec.source != info.source):
+                raise SymcalError(f"dataset '{info.name}' ({info.source}) was given as data in "
+                                  "memory, not as a file: it cannot be read again; solve again "
+                                  "with it")
+        data = load_datasets(self.problem, files, drop_invalid=any(d.dropped
+                                                                   for d in self.datasets),
                              names=[d.name for d in self.datasets])
+        for info in self.datasets:
+            if data[info.name].n != info.n:
+                raise SymcalError(f"dataset '{info.name}' ({info.source}) has "
+                                  f"{data[info.name].n} observations now, {info.n} when the "
+                                  "result was computed; solve again")
+        return data
 
     @property
     def regressions(self) -> tuple[Regression, ...]:

@@ -129,3 +129,15 @@ def test_consumers_of_a_result_never_solve_again(project, tmp_path) -> None:
     assert [c.label for c in first.candidates] == [c.label for c in again.candidates]
     assert [c.f_stat for c in first.candidates] == pytest.approx(
         [c.f_stat for c in again.candidates], rel=1e-9)
+
+
+def test_data_given_in_memory_are_not_silently_replaced(project, tmp_path) -> None:
+    """A result solved on datasets passed as objects cannot read them again: loading its
+    data is refused rather than silently reading the problem's own datasets."""
+    data = symcal.load_datasets(symcal.load_problem(project["problem"]),
+                                {"calibration": project["cal"], "flyby": project["fly"]})
+    moved = {k: symcal.Dataset(k, "in memory", v.columns) for k, v in data.items()}
+    path = symcal.solve(project["problem"], moved).save(tmp_path / "r.json")
+    loaded = symcal.Result.load(path)
+    with pytest.raises(SymcalError, match="was given as data in memory, not as a file"):
+        loaded.data  # noqa: B018 - the data are read on first use
