@@ -42,6 +42,7 @@ test-fast: $(VENV)/.installed-test
 
 bench: $(VENV)/.installed
 	$(BIN)/python benchmarks/run.py
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python benchmarks/nist_strd.py --out benchmarks/NIST.md
 
 clean:
 	rm -rf $(VENV) build

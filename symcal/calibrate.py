@@ -12,6 +12,7 @@ import numpy as np
 from symcal.analysis.fit import series_statistics
 from symcal.analysis.identifiability import analyse, conditioning
 from symcal.analysis.implicit import implicit_checks
+from symcal.analysis.outliers import Outliers, find_outliers
 from symcal.data import Dataset
 from symcal.datasets import load_datasets
 from symcal.errors import DataError, SolveError, SymcalError
@@ -23,6 +24,7 @@ from symcal.solvers.base import SolverOutput
 from symcal.solvers.linear import solve_linear
 from symcal.solvers.nlp import solve_ipopt
 from symcal.solvers.objective import Objective
+from symcal.solvers.robust import RowLosses, row_losses, sandwich_meat, solve_robust
 from symcal.solvers.trust_region import solve_trust_region
 from symcal.suggest import did_you_mean
 from symcal.units import DISPLAY_UNITS
@@ -44,16 +46,18 @@ def _solve_stage(
     if method == "linear" and nonlinear:
         raise SolveError(f"stage '{label}': method 'linear' was asked for, but constraint(s) "
                          f"{', '.join(nonlinear)} are not linear in its free parameters")
-    if method == "lm":
-        return solve_trust_region(objective, data, theta, progress, options.max_iter,
-                                  label=label), notes
-    if method == "ipopt" or nonlinear:
+    if nonlinear and method == "auto":
         twin = objective.problem.explicit
-        if nonlinear and method == "auto" and twin is not None:
+        if twin is not None:
             explicit = Objective(twin, objective.constraints, objective.free)
             if not explicit.nonlinear():
                 theta = solve_linear(explicit, data, theta).theta
-                notes.append("IPOPT started from the explicit model's closed-form estimate")
+                notes.append("started from the explicit model's closed-form estimate")
+        method = "lm"
+    if method == "lm":
+        return solve_trust_region(objective, data, theta, progress, options.max_iter,
+                                  label=label), notes
+    if method == "ipopt":
         return _ipopt(objective, data, theta, progress, label, options), notes
     out = solve_linear(objective, data, theta)
     outside = _out_of_bounds(objective.problem, out.theta, objective.free)
@@ -71,6 +75,53 @@ def _ipopt(objective: Objective, data: Dataset, theta: np.ndarray, progress: Pro
            label: str, options: SolveOptions) -> SolverOutput:
     return solve_ipopt(objective, data, theta, progress, options.max_iter, options.tol,
                        label=label, extra=options.ipopt)
+
+
+def _robust(
+    objective: Objective, data: Dataset, theta: np.ndarray, losses: RowLosses, method: str,
+    progress: Progress, label: str, options: SolveOptions,
+) -> tuple[SolverOutput, list[str], np.ndarray]:
+    """Solve a stage with robust losses: reweighting rounds, each on the path the first
+    round takes (:func:`_solve_stage`), warm-started."""
+    notes: list[str] = []
+    path: list[str] = []
+
+    def inner(weighted: Objective, start: np.ndarray) -> SolverOutput:
+        if not path:
+            out, first = _solve_stage(weighted, data, start, method, progress, label, options)
+            notes.extend(first)
+            path.append(out.method)
+            return out
+        if path[0] == "linear":
+            out = solve_linear(weighted, data, start)
+            if not _out_of_bounds(objective.problem, out.theta, objective.free):
+                return out
+            path[0] = "ipopt"
+        if path[0] == "lm":
+            return solve_trust_region(weighted, data, start, progress, options.max_iter,
+                                      label=label)
+        return _ipopt(weighted, data, start, progress, label, options)
+
+    robust = solve_robust(objective, data, theta, losses, inner, progress, label)
+    return robust.output, notes, robust.weights
+
+
+def _outliers(objective: Objective, data: Dataset, theta: np.ndarray,
+              weights: np.ndarray | None, losses: RowLosses | None) -> Outliers | None:
+    """The observations the stage's fit treats as outliers (None where a residual is not
+    finite at the estimate)."""
+    problem = objective.problem
+    g = objective.residuals(data, theta)
+    if not np.all(np.isfinite(g)):
+        return None
+    quantities = [problem.constraint(n) for n in objective.constraints]
+    time_col = next((c for c, spec in problem.column_specs.items()
+                     if spec.role == "time" and c in data.columns), None)
+    return find_outliers(
+        data.name, objective.constraints, tuple(q.unit for q in quantities),
+        np.array([q.sigma / DISPLAY_UNITS[q.unit] for q in quantities]), g, weights,
+        "squared" if losses is None else "; ".join(losses.texts),
+        None if time_col is None else np.asarray(data.columns[time_col], dtype=float))
 
 
 def _constraint_costs(objective: Objective, data: Dataset, before: np.ndarray,
@@ -188,7 +239,16 @@ def run_stage(
     _check_information(stage, data, rows0, ident0.rank,
                        sum(unc0.se[n] is None for n in plain.names), len(plain.names))
     method = options.method or stage.method
-    out, notes = _solve_stage(plain, data, theta, method, progress, stage.name, options)
+    losses = row_losses(plain)
+    weights = None
+    if losses is None:
+        out, notes = _solve_stage(plain, data, theta, method, progress, stage.name, options)
+    elif problem.weighting == "estimated":
+        raise SymcalError(f"stage '{stage.name}': {losses.texts[0]} is a robust loss, which "
+                          "weighting 'estimated' does not support: remove one of them")
+    else:
+        out, notes, weights = _robust(plain, data, theta, losses, method, progress,
+                                      stage.name, options)
     out = _diverged(out, problem, theta, plain)
     objective = plain
     if problem.weighting == "estimated" and len(stage.constraints) > 1 and out.success:
@@ -197,7 +257,10 @@ def run_stage(
         notes.append(note)
     names, scales, idx = objective.names, objective.scales, objective.index
     meat = None
-    if len(stage.constraints) > 1:
+    if weights is not None:
+        meat = sandwich_meat(plain, data, out.theta,
+                             weights, numerical_rank(out.r_factor, out.rows, scales))
+    elif len(stage.constraints) > 1:
         rank = numerical_rank(out.r_factor, out.rows, scales)
         cov_g = objective.residual_covariance(data, out.theta, rank)
         meat = objective.accumulate_r(data, out.theta, sqrt_psd(cov_g).T)[0]
@@ -217,6 +280,7 @@ def run_stage(
         tuple(n for n, m in zip(names, moved, strict=True) if not m), tuple(at_bound),
         conditioning(r_start, out.rows, names, scales),
         conditioning(out.r_factor, out.rows, names, scales), ident, unc, tuple(notes),
+        _outliers(plain, data, out.theta, weights, losses),
     )
     return out.theta, result
 

@@ -140,8 +140,25 @@ def test_ipopt_iterations_and_hook_match_the_solver(platen) -> None:
 
 
 def test_staged_solve_counts_every_ipopt_stage() -> None:
-    """The dual problem's stages: closed form, closed form, IPOPT.  The iterations
-    counted are those the result reports, and only the IPOPT stage reaches the hook."""
+    """The dual problem's stages, all through IPOPT: the iterations counted are those the
+    result reports, and every stage reaches the hook."""
+    scenario = load_scenario(SCENARIOS / "courier_dual.yaml")
+    data = {name: make_dataset(name, "simulated", simulate_run(scenario, name, 5, 1_000), [])
+            for name in ("calibration", "flyby")}
+    labels: set[str] = set()
+    with counting(on_iteration=lambda label, *_: labels.add(label)) as counts:
+        result = symcal.solve(symcal.load_problem(DUAL), data,
+                              symcal.SolveOptions(method="ipopt"))
+    assert result.success
+    assert all(st.method == "ipopt" and st.iterations > 0 for st in result.stages)
+    assert counts.iterations == sum(st.iterations for st in result.stages)
+    assert labels == {st.name for st in result.stages}
+    assert counts.r_passes >= len(result.stages)
+
+
+def test_default_staged_solve_counts_lm_steps() -> None:
+    """By default: closed form, closed form, then lm.  The hook sees the accepted lm steps
+    (no more than the trial steps the stage reports) and only the lm stage."""
     scenario = load_scenario(SCENARIOS / "courier_dual.yaml")
     data = {name: make_dataset(name, "simulated", simulate_run(scenario, name, 5, 1_000), [])
             for name in ("calibration", "flyby")}
@@ -149,11 +166,9 @@ def test_staged_solve_counts_every_ipopt_stage() -> None:
     with counting(on_iteration=lambda label, *_: labels.add(label)) as counts:
         result = symcal.solve(symcal.load_problem(DUAL), data)
     assert result.success
-    ipopt = [st for st in result.stages if st.method == "ipopt"]
-    assert ipopt and ipopt[0].iterations > 0
-    assert counts.iterations == sum(st.iterations for st in result.stages)
-    assert labels == {st.name for st in ipopt}
-    assert counts.r_passes >= len(result.stages)
+    assert [st.method for st in result.stages] == ["linear", "linear", "lm"]
+    assert 0 < counts.iterations <= result.stages[-1].iterations
+    assert labels == {"full"}
 
 
 def test_an_exception_in_the_hook_stops_the_solve(platen) -> None:

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from symcal.cli.common import data_map, data_options, inputs_of, progress, write_stdout
+from symcal.cli.common import data_map, data_options, inputs_of, solve_progress, write_stdout
 from symcal.errors import SymcalError
 
 if TYPE_CHECKING:
@@ -24,15 +24,30 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     cmd.add_argument("--out", metavar="DIR", help="write result.json and report.txt to DIR")
     cmd.add_argument("--method", choices=["auto", "linear", "ipopt", "lm"],
                      help="solve every stage with this method (default: each stage's own, "
-                          "auto = closed form when linear)")
+                          "auto = closed form when linear, else lm)")
     cmd.add_argument("--weighting", choices=["equal", "estimated"],
                      help="weights of the constraints in the cost (default: the problem's; "
                           "estimated = by their residual covariance)")
     cmd.add_argument("--max-iter", type=int, metavar="N",
-                     help="iteration limit of IPOPT stages (default: the problem's, else "
+                     help="iteration limit of lm and IPOPT stages (default: the problem's, else "
                           "200)")
     cmd.add_argument("--quiet", action="store_true",
                      help="no progress on stderr and no report on success")
+    fleet = cmd.add_argument_group(
+        "fleet", "calibrate every unit of a fleet folder in parallel on Dask: one "
+                 "subfolder per unit holding NAME.csv, NAME.npz or NAME.parquet for the "
+                 "problem's datasets NAME it has (the others come from --data or the "
+                 "problem); --out DIR writes DIR/UNIT/result.json and report.txt for each "
+                 "unit and DIR/fleet.json, fleet.txt, fleet.png; exit code 0 when every "
+                 "unit solved, 1 when any unit failed (its reason is in the summary; the "
+                 "other units are still solved), 2 for bad input of the fleet as a whole")
+    fleet.add_argument("--fleet", metavar="DIR",
+                       help="calibrate every unit of the fleet folder DIR")
+    fleet.add_argument("--scheduler", metavar="ADDRESS",
+                       help="use the running Dask scheduler at ADDRESS (e.g. "
+                            "tcp://host:8786) instead of a local cluster")
+    fleet.add_argument("--workers", type=int, metavar="N",
+                       help="worker processes of the local cluster (default: one per core)")
     return cmd
 
 
@@ -53,6 +68,13 @@ def run(args: argparse.Namespace) -> int:
     if args.max_iter is not None and not 1 <= args.max_iter <= MAX_ITER_LIMIT:
         raise SymcalError(f"--max-iter {args.max_iter}: must be between 1 and "
                           f"{MAX_ITER_LIMIT}")
+    if args.fleet is not None:
+        from symcal.cli.fleet import run_fleet
+
+        return run_fleet(args)
+    for option in ("scheduler", "workers"):
+        if getattr(args, option) is not None:
+            raise SymcalError(f"--{option} applies only with --fleet DIR")
     problem = load_problem(args.problem)
     data = data_map(args)
     inputs = inputs_of(args, [problem])
@@ -62,8 +84,9 @@ def run(args: argparse.Namespace) -> int:
     if args.weighting:
         problem = problem.with_weighting(args.weighting)
     options = problem.options.over(method=args.method, max_iter=args.max_iter)
-    result = solve(problem, data, options, drop_invalid=args.drop_invalid,
-                   progress=None if args.quiet else progress)
+    with solve_progress(args) as shown:
+        result = solve(problem, data, options, drop_invalid=args.drop_invalid,
+                       progress=shown)
     text = text_report(result)
     show = not args.quiet or not result.success
     if args.json:

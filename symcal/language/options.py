@@ -33,7 +33,7 @@ class SolveOptions:
     Attributes
     ----------
     method
-        ``"auto"`` (closed form when the stage is linear, else IPOPT), ``"linear"``,
+        ``"auto"`` (closed form when the stage is linear, else ``"lm"``), ``"linear"``,
         ``"ipopt"`` or ``"lm"`` (symcal's trust-region Levenberg-Marquardt) for every
         stage; None keeps each stage's own ``method``.
     max_iter

@@ -53,6 +53,9 @@ NOISE_STEP = 1e-6
 #: Converged to rounding when a Gauss–Newton step promises at most this many times the
 #: largest rounding noise seen.
 NOISE_FACTOR = 4.0
+#: The cost is a sum of rounded squares: its relative rounding is at least this many
+#: machine epsilons, measured or not (a step's predicted decrease below it is lost in it).
+ROUNDING_FLOOR = 16.0
 #: An exact fit: the residual norm fell below this fraction of the starting one.
 EXACT_FIT = 1e-12
 #: Stalled when the trust radius falls below this fraction of ‖D x‖ (or of 1).
@@ -155,7 +158,9 @@ class _Steps:
     def verdict(self) -> tuple[bool, str, str]:
         """Success, status and words once no step lowers the cost any more."""
         promised = self.decrement * self.lin.cost
-        if self.noise > 0 and promised <= NOISE_FACTOR * self.noise:
+        noise = max(self.noise, ROUNDING_FLOOR * np.finfo(float).eps * self.lin.cost)
+        if promised <= NOISE_FACTOR * noise:
+            self.noise = noise
             return True, "converged_to_rounding", (
                 f"converged to rounding: no step lowers the cost; the decrease a "
                 f"Gauss-Newton step predicts ({self.decrement:.2g} of the cost) is within "
