@@ -12,6 +12,7 @@ The public API follows the one-way flow of ARCHITECTURE.md::
 
 import os as _os
 import sys as _sys
+from typing import TYPE_CHECKING as _TYPE_CHECKING
 
 # symcal's linear algebra is on tall, skinny matrices, where OpenBLAS's threads cost more
 # than they give (measured on 2 cores: up to 25x slower, benchmarks/RESULTS.md).  Unless
@@ -21,17 +22,50 @@ if "numpy" not in _sys.modules:
     for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         _os.environ.setdefault(_var, "1")
 
-from symcal.calibrate import solve  # noqa: E402
-from symcal.data import Dataset, read_table  # noqa: E402
-from symcal.datasets import load_datasets  # noqa: E402
 from symcal.errors import DataError, SolveError, SpecError, SymcalError  # noqa: E402
-from symcal.language.options import SolveOptions  # noqa: E402
-from symcal.problem import Problem, load_problem  # noqa: E402
-from symcal.report import text_report  # noqa: E402
-from symcal.result import Result  # noqa: E402
+
+# The rest of the API is imported on first use (PEP 562), so that ``import symcal.cli``
+# (``symcal --help``) does not load CasADi, SciPy, pint or Dask.
+_LAZY = {
+    "solve": "symcal.calibrate", "Dataset": "symcal.data", "read_table": "symcal.data",
+    "load_datasets": "symcal.datasets", "FleetResult": "symcal.fleet",
+    "solve_fleet": "symcal.fleet", "SolveOptions": "symcal.language.options",
+    "Problem": "symcal.problem", "load_problem": "symcal.problem",
+    "text_report": "symcal.report", "Result": "symcal.result",
+    "solve_partitioned": "symcal.partitioned", "open_shards": "symcal.shards",
+}
+
+if _TYPE_CHECKING:
+    from symcal.calibrate import solve
+    from symcal.data import Dataset, read_table
+    from symcal.datasets import load_datasets
+    from symcal.fleet import FleetResult, solve_fleet
+    from symcal.language.options import SolveOptions
+    from symcal.partitioned import solve_partitioned
+    from symcal.problem import Problem, load_problem
+    from symcal.report import text_report
+    from symcal.result import Result
+    from symcal.shards import open_shards
+
+
+def __getattr__(name: str) -> object:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'symcal' has no attribute '{name}'")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
 
 __all__ = [
-    "DataError", "Dataset", "Problem", "Result", "SolveError", "SolveOptions", "SpecError",
-    "SymcalError", "load_datasets", "load_problem", "read_table", "solve", "text_report",
+    "DataError", "Dataset", "FleetResult", "Problem", "Result", "SolveError", "SolveOptions",
+    "SpecError", "SymcalError", "load_datasets", "load_problem", "open_shards",
+    "read_table", "solve", "solve_fleet", "solve_partitioned", "text_report",
 ]
 __version__ = "0.1.0"

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from symcal.analysis.fit import series_statistics
+from symcal.analysis.gauges import find_gauges
 from symcal.analysis.identifiability import analyse, conditioning
 from symcal.analysis.implicit import implicit_checks
 from symcal.analysis.outliers import Outliers, find_outliers
@@ -238,6 +239,10 @@ def run_stage(
                            theta[plain.index])
     _check_information(stage, data, rows0, ident0.rank,
                        sum(unc0.se[n] is None for n in plain.names), len(plain.names))
+    gauges = find_gauges(plain, data, theta)
+    if progress is not None:
+        for gauge in gauges.gauges:
+            progress(f"  {stage.name}: before the solve, a gauge: {gauge.text}")
     method = options.method or stage.method
     losses = row_losses(plain)
     weights = None
@@ -250,6 +255,9 @@ def run_stage(
         out, notes, weights = _robust(plain, data, theta, losses, method, progress,
                                       stage.name, options)
     out = _diverged(out, problem, theta, plain)
+    collapse = gauges.collapse(theta, out.theta, plain) if out.success else None
+    if collapse is not None:
+        out = replace(out, success=False, status="Collapsed", message=collapse)
     objective = plain
     if problem.weighting == "estimated" and len(stage.constraints) > 1 and out.success:
         objective, out, note = _reweighted(plain, out, data, method, progress, stage.name,
@@ -264,8 +272,9 @@ def run_stage(
         rank = numerical_rank(out.r_factor, out.rows, scales)
         cov_g = objective.residual_covariance(data, out.theta, rank)
         meat = objective.accumulate_r(data, out.theta, sqrt_psd(cov_g).T)[0]
+    exact_null = gauges.directions(plain, data, out.theta)
     ident, unc = analyse(out.r_factor, out.rows, out.rss, names, scales, out.theta[idx],
-                         meat)
+                         meat, exact_null)
     if out.success and ident.rank == 0:
         out = replace(out, success=False, status="Collapsed",
                       message="failed: the iterates left the region the data describe: where "
@@ -279,8 +288,8 @@ def run_stage(
         out.iterations, out.seconds, names, _constraint_costs(plain, data, theta, out.theta),
         tuple(n for n, m in zip(names, moved, strict=True) if not m), tuple(at_bound),
         conditioning(r_start, out.rows, names, scales),
-        conditioning(out.r_factor, out.rows, names, scales), ident, unc, tuple(notes),
-        _outliers(plain, data, out.theta, weights, losses),
+        conditioning(out.r_factor, out.rows, names, scales, gauges=exact_null), ident, unc,
+        tuple(notes), _outliers(plain, data, out.theta, weights, losses), gauges,
     )
     return out.theta, result
 

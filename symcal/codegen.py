@@ -15,8 +15,9 @@
 
 The flow is one way: :func:`plan` turns a problem (and a result) into C names, units and
 values, refusing what cannot be exported with a message that names the part and why;
-:func:`generate` builds the CasADi functions and renders the files.  Values are in
-symcal's internal units (mm, rad, s); a constraint's display unit (µm) is only noted.
+:func:`generate` builds the CasADi functions and renders the files.  Inputs and
+parameters are in their declared units, residuals and outputs in symcal's internal units
+(mm, rad, s); a constraint's display unit (µm) is only noted.
 """
 
 from __future__ import annotations
@@ -381,7 +382,8 @@ def plan(problem: Problem, result: ResultLike | None = None) -> Plan:
     instances = []
     for inst_name, items in per_instance:
         fields = _Namespace()
-        outs = tuple(CName(f"{inst_name}.{o}", fields.claim(o), q.unit, q.doc)
+        outs = tuple(CName(f"{inst_name}.{o}", fields.claim(o),
+                           internal_unit(q.unit) or q.unit, q.doc)   # values are internal
                      for o, q in items)
         reads: list[str] = []
         for _, q in items:
@@ -603,7 +605,8 @@ class _Render:
                    "of the sha256 of the YAML files"
                    + (" and the baked parameter values." if p.baked else ".")),
             " *",
-            *_wrap("Units are symcal's internal units (mm, rad, s); each field's comment "
+            *_wrap("Inputs and parameters are in their declared units, residuals and "
+                   "outputs in symcal's internal units (mm, rad, s); each field's comment "
                    "gives its unit and meaning.  Every function is allocation-free and "
                    "thread-safe: it uses only its arguments and fixed-size local arrays (at "
                    f"most about {self._stack()} bytes of stack), with no static mutable "

@@ -79,7 +79,8 @@ MAX_LISTED = 20
 #: Magic bytes of formats that are not CSV text, and what to say about them.
 _NOT_CSV = ((b"\x1f\x8b", "is gzip-compressed; decompress it first"),
             (b"PK\x03\x04", "is a zip archive; an NPZ file needs the suffix .npz"),
-            (b"\x93NUMPY", "is a NumPy .npy file; save the columns with numpy.savez as .npz"))
+            (b"\x93NUMPY", "is a NumPy .npy file; save the columns with numpy.savez as .npz"),
+            (b"PAR1", "is a Parquet file; a Parquet dataset needs the suffix .parquet"))
 
 
 def _name(text: str) -> str:
@@ -286,20 +287,59 @@ def _npz_column(shown: str, key: str, npz: Any, columns: dict[str, np.ndarray]) 
     return np.asarray(arr, dtype=float)
 
 
+#: The first (and last) bytes of a Parquet file.
+_PARQUET_MAGIC = b"PAR1"
+
+
+def _read_parquet(path: Path, shown: str) -> dict[str, np.ndarray]:
+    """The columns of a single Parquet file (pyarrow): flat real numbers, nulls as NaN."""
+    with open(path, "rb") as fh:
+        head = fh.read(4)
+    if head != _PARQUET_MAGIC:
+        raise DataError(f"{shown}: not a Parquet file (no PAR1 signature); write one with "
+                        "pyarrow.parquet.write_table")
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        table = pq.read_table(path)
+    except (pa.ArrowException, OSError, ValueError) as exc:
+        raise DataError(f"{shown}: not a readable Parquet file ({excerpt(exc, 80)})") from None
+    columns: dict[str, np.ndarray] = {}
+    for field in table.schema:
+        name = _name(field.name)
+        if field.name in columns:
+            raise DataError(f"{shown}: column '{name}' appears twice")
+        kind = field.type
+        if not (pa.types.is_integer(kind) or pa.types.is_floating(kind)):
+            raise DataError(f"{shown}: column '{name}' holds {kind} values; every column "
+                            "must hold real numbers (float or integer)")
+        column = table.column(field.name).cast(pa.float64())
+        if column.null_count:  # a null is a missing value: NaN, refused or dropped later
+            column = column.fill_null(float("nan"))
+        columns[field.name] = np.asarray(column.to_numpy(), dtype=float)
+    if not columns:
+        raise DataError(f"{shown}: the Parquet file has no columns")
+    return columns
+
+
 def read_table(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a CSV (header row, one row per observation) or NPZ file into columns.
+    """Read a CSV (header row, one row per observation), NPZ or Parquet file into columns.
 
     A CSV file is read in blocks of whole lines into one array sized from a first count
     of its lines, so memory stays near the size of the numbers themselves.  Blank lines
     are skipped; a line starting with ``#`` is refused (data files have no comments).
-    An NPZ file must hold 1-D arrays of real numbers, all of one length.
+    An NPZ file must hold 1-D arrays of real numbers, all of one length.  A ``.parquet``
+    file (one file, read with pyarrow) must hold columns of real numbers; its nulls
+    become NaN, refused or dropped like any invalid value.
 
     Raises
     ------
     DataError
         If the file is missing, not a regular file, empty, compressed, binary, not UTF-8,
-        malformed or has a non-numeric cell (naming the line and column), or an NPZ
-        file's arrays are not 1-D real numbers of one length.
+        malformed or has a non-numeric cell (naming the line and column), an NPZ
+        file's arrays are not 1-D real numbers of one length, or a Parquet file is not
+        readable or has a column that is not real numbers.
     """
     path = Path(path)
     shown = display_path(path)
@@ -311,6 +351,8 @@ def read_table(path: str | Path) -> dict[str, np.ndarray]:
     try:
         if path.suffix.lower() == ".npz":
             return _read_npz(path, shown)
+        if path.suffix.lower() == ".parquet":
+            return _read_parquet(path, shown)
         return _read_csv(path, shown)
     except OSError as exc:
         raise DataError(f"{shown}: cannot read the data file: "

@@ -30,6 +30,7 @@ import casadi as ca
 import numpy as np
 
 from symcal.analysis.discovery import Basis, Candidate, Design, test_candidates
+from symcal.analysis.outliers import Outliers, remedy_yaml
 from symcal.analysis.residuals import Binned, Periodogram, Variable, periodogram, structure
 from symcal.data import Dataset
 from symcal.effects import effect_yaml
@@ -105,6 +106,17 @@ class Diagnosis:
     own: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
     @property
+    def outliers(self) -> Outliers | None:
+        """The observations the calibration's last stage treats as outliers."""
+        return self.result.outliers
+
+    @property
+    def outliers_dominate(self) -> bool:
+        """Whether outliers dominate the fit: missing effects are then not looked for (a
+        robust loss comes first)."""
+        return self.outliers is not None and self.outliers.dominate
+
+    @property
     def leads(self) -> tuple[Candidate, ...]:
         """Ranked candidates, one per group of indistinguishable ones, best first."""
         return _leads(self.candidates)
@@ -147,6 +159,9 @@ class Diagnosis:
             "regressions": [r.to_dict() for r in self.result.regressions],
             "absorbed": [{"label": c.label, "biases": list(c.biases)}
                          for c in self.candidates if c.absorbed and c.biases][:20],
+            "outliers": None if self.outliers is None else {
+                **self.outliers.to_dict(), "remedy": remedy_yaml(self.outliers)
+                if self.outliers.dominate and self.outliers.squared else ""},
             "singular_values": list(self.result.identifiability.singular_values),
             "correlation": self.result.uncertainty.to_dict()["correlation"],
         }
@@ -302,7 +317,9 @@ def _variable_specs(hp: Problem) -> list[tuple[str, ca.SX, str, float | None, st
         if col not in references:
             spec = hp.column_specs.get(col)
             unit = spec.unit if spec is not None else ""
-            out.append((col, hp.u[k], unit, None, _column_kind(hp, col)))
+            factor = DISPLAY_UNITS[unit]    # a column in its declared unit → internal units
+            out.append((col, hp.u[k] * factor if factor != 1.0 else hp.u[k], unit, None,
+                        _column_kind(hp, col)))
     for sig in hp.signals:
         derived = ca.depends_on(sig.sx, hooks)
         period = sig.period
@@ -335,8 +352,10 @@ def _unused_columns(hp: Problem, ds: Dataset) -> list[Variable]:
     out = []
     for col, spec in hp.column_specs.items():
         if col in ds.columns and col not in hp.columns and col not in references:
-            out.append(Variable(col, np.asarray(ds.columns[col]), spec.unit, None,
-                                _column_kind(hp, col), spec.role))
+            factor = DISPLAY_UNITS[spec.unit]   # declared unit → internal units
+            values = np.asarray(ds.columns[col])
+            out.append(Variable(col, values * factor if factor != 1.0 else values, spec.unit,
+                                None, _column_kind(hp, col), spec.role))
     return out
 
 
@@ -384,12 +403,13 @@ def _library(variables: list[Variable]) -> list[tuple[Basis, Callable]]:
         period = float(v.period or 1.0)
         for n in range(1, HARMONICS + 1):
             w = 2 * np.pi * n / period
+            shown = period / DISPLAY_UNITS[v.unit]   # the period in the variable's unit
             lib.append((Basis("harmonic", v.name,
-                              f"harmonic {n} of {v.name} (period {period:g} {v.unit})",
+                              f"harmonic {n} of {v.name} (period {shown:g} {v.unit})",
                               (f"h{n}_sin", f"h{n}_cos"),
-                              (f"sin({2 * n}*pi*{{v}}/{period:g})",
-                               f"cos({2 * n}*pi*{{v}}/{period:g})"), order=n, unit=v.unit,
-                              scales=(0.0014, 0.0014)),
+                              (f"sin({2 * n}*pi*{{v}}/{{period}})",
+                               f"cos({2 * n}*pi*{{v}}/{{period}})"), order=n, unit=v.unit,
+                              scales=(0.0014, 0.0014), period=period),
                         _harmonic(index[v.name], w)))
     for v in variables:
         if v.kind == "drift":
@@ -400,11 +420,13 @@ def _library(variables: list[Variable]) -> list[tuple[Basis, Callable]]:
         mean = float(np.mean(v.values))
         centred = v.values - mean
         lib.append((Basis("linear", v.name, f"a term linear in {v.name}", ("lin",),
-                          (f"({{v}} - {mean:.6g})",), unit=v.unit,
-                          scales=(_scale(centred),)), _linear(index[v.name], mean)))
+                          ("({v} - {centre})",), unit=v.unit,
+                          scales=(_scale(centred),), centre=float(f"{mean:.6g}")),
+                    _linear(index[v.name], mean)))
         lib.append((Basis("quadratic", v.name, f"a quadratic dependence on {v.name}",
-                          ("lin", "quad"), (f"({{v}} - {mean:.6g})", f"({{v}} - {mean:.6g})**2"),
-                          unit=v.unit, scales=(_scale(centred), _scale(centred ** 2))),
+                          ("lin", "quad"), ("({v} - {centre})", "({v} - {centre})**2"),
+                          unit=v.unit, scales=(_scale(centred), _scale(centred ** 2)),
+                          centre=float(f"{mean:.6g}")),
                     _quadratic(index[v.name], mean)))
     for a in angles:
         for v in periodic:
@@ -414,9 +436,9 @@ def _library(variables: list[Variable]) -> list[tuple[Basis, Callable]]:
             lib.append((Basis("angle_harmonic", v.name,
                               f"the angle {a.name} times harmonic 1 of {v.name}",
                               ("ah_sin", "ah_cos"),
-                              (f"{{a}}*sin(2*pi*{{v}}/{period:g})",
-                               f"{{a}}*cos(2*pi*{{v}}/{period:g})"), a.name, unit=v.unit,
-                              angle_unit=a.unit, scales=(scale, scale)),
+                              ("{a}*sin(2*pi*{v}/{period})",
+                               "{a}*cos(2*pi*{v}/{period})"), a.name, unit=v.unit,
+                              angle_unit=a.unit, scales=(scale, scale), period=period),
                         _angle_harmonic(index[a.name], index[v.name], w)))
     return lib
 
@@ -464,6 +486,9 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
     data = result.data
     free = np.array([n in result.stages[-1].free for n in problem.parameter_names])
     blocks = [_evaluate(hp, ds, result.theta0, result.theta, free) for ds in data.values()]
+    if result.outliers is not None and result.outliers.dominate:
+        # outliers first: F-tests for missing effects mean nothing while they dominate
+        return Diagnosis(result, tuple(_views(blocks)), (), {}, alpha, 0)
     cal = list(data).index("calibration")
     own_names = [c.name for c in result.stages[-1].costs]
     own_cols = [blocks[cal].names.index(n) for n in own_names]

@@ -7,9 +7,12 @@ definition), else onto the output itself; a harmonic of the sensor's own reading
 evaluated where the model evaluates its error (``u``: the raw reading in the explicit
 model, the true position in the implicit one).  Each coefficient's unit is the output's
 divided by the unit of what it multiplies (mm/s for a drift, mm/rad for an angle gain),
-and its scale makes the term about a micrometre.  A new model input is bound to what the
-variable is in the problem (a data column or an expression of columns), never to another
-instance's input, so no binding between instances, and no cycle, is created.
+and its scale makes the term about a micrometre; a number with a unit in the term (the
+period of a harmonic, the centre of a linear term) is a constant in the variable's
+internal unit, so that the extension passes the dimension check.  A new model input is
+bound to what the variable is in the problem (a data column or an expression of
+columns), never to another instance's input, so no binding between instances, and no
+cycle, is created.
 """
 
 from __future__ import annotations
@@ -64,7 +67,14 @@ def _unit(out: str, per: str, power: int = 1) -> str:
     per = internal_unit(per)
     if not per:
         return out or "1"
+    if "/" in per or "*" in per:
+        per = f"({per})"
     return f"{out or '1'}/{per}" + (f"^{power}" if power > 1 else "")
+
+
+def _unit_key(unit: str) -> str:
+    """``, unit: U`` for a declaration in internal unit ``U`` (nothing for none)."""
+    return f", unit: {unit}" if unit else ""
 
 
 @dataclass(frozen=True)
@@ -82,13 +92,17 @@ class Suggestion:
         lines = [f"model: {self.model_name}", f"extends: {extends}", *self.body]
         return "\n".join(lines) + "\n"
 
+    def instance_entry(self, model: str) -> str:
+        """The overlay's line that gives the instance the model file ``model``."""
+        inputs = ", ".join(f"{k}: {v}" for k, v in self.new_inputs.items())
+        entry = f"{{model: {model}" + (f", inputs: {{{inputs}}}" if inputs else "") + "}"
+        return f"  {self.instance}: {entry}"
+
     def overlay_text(self, name: str, base: str, model: str, doc: str) -> str:
         """A problem overlay named ``name`` that extends ``base`` and gives the instance
         the model file ``model`` (paths as written in the overlay)."""
-        inputs = ", ".join(f"{k}: {v}" for k, v in self.new_inputs.items())
-        entry = f"{{model: {model}" + (f", inputs: {{{inputs}}}" if inputs else "") + "}"
         return "\n".join([f"problem: {name}", f"extends: {base}", f"doc: {doc}",
-                          "instances:", f"  {self.instance}: {entry}"]) + "\n"
+                          "instances:", self.instance_entry(model)]) + "\n"
 
 
 def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
@@ -97,8 +111,9 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
     model = problem.instances[instance].model
     basis = cand.basis
     new_inputs: dict[str, str] = {}
+    input_units: dict[str, str] = {}
 
-    def symbol(variable: str) -> str:
+    def symbol(variable: str, unit: str) -> str:
         own = _in_model(problem, instance, variable)
         if own is not None:
             point = model.evaluation_point(own) if basis.kind == "harmonic" else None
@@ -114,16 +129,30 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
         while name in model.inputs or name in model.expressions or name in model.parameters:
             name += "_"
         new_inputs[name] = bound
+        input_units[name] = internal_unit(unit)
         return name
 
-    v = symbol(basis.variable)
-    a = symbol(basis.angle) if basis.angle else ""
+    v = symbol(basis.variable, basis.unit)
+    a = symbol(basis.angle, basis.angle_unit) if basis.angle else ""
     tag = _TAGS[basis.kind] + (str(basis.order) if basis.kind == "harmonic" else "")
     tag += "_" + _ident(basis.variable.replace(f"{instance}.", ""))
     params = [f"{col}_{_ident(basis.variable.replace(f'{instance}.', ''))}"
               for col in basis.columns]
-    terms = [t.format(v=v, a=a) for t in basis.terms]
-    out_unit = internal_unit(model.outputs[output].unit) if output in model.outputs else ""
+    # numbers with a unit (a period, a centre) are constants in the variable's internal unit
+    constants = {key: (f"{key[0].upper() if key == 'period' else key[0]}_{tag}", value)
+                 for key, value in (("period", basis.period), ("centre", basis.centre))
+                 if "{" + key + "}" in "".join(basis.terms)}
+    for key in list(constants):
+        name, value = constants[key]
+        while name in model.constants or name in model.inputs or name in model.parameters \
+                or name in model.expressions:
+            name += "_"
+        constants[key] = (name, value)
+    terms = [t.format(v=v, a=a, **{k: n for k, (n, _) in constants.items()})
+             for t in basis.terms]
+    signal = next((q for q in problem.signals if q.name == cand.output), None)
+    out_unit = internal_unit(signal.unit if signal is not None else
+                             model.outputs[output].unit if output in model.outputs else "")
     units = {"harmonic": [out_unit or "1"] * 2,
              "linear": [_unit(out_unit, basis.unit)], "drift": [_unit(out_unit, basis.unit)],
              "quadratic": [_unit(out_unit, basis.unit), _unit(out_unit, basis.unit, 2)],
@@ -131,9 +160,15 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
     scales = basis.scales or (0.001,) * len(params)
     body = [f"doc: {model.name} plus {basis.description} on {output} (found by symcal "
             "diagnose)"]
+    if constants:
+        var_unit = internal_unit(basis.unit)
+        body.append("constants:")
+        body += [f"  {n}: {{value: {val:g}{_unit_key(var_unit)}}}"
+                 for n, val in constants.values()]
     if new_inputs:
         body.append("inputs:")
-        body += [f"  {k}: {{doc: bound to {val} in the problem}}" for k, val in new_inputs.items()]
+        body += [f"  {k}: {{doc: bound to {val} in the problem{_unit_key(input_units[k])}}}"
+                 for k, val in new_inputs.items()]
     body.append("parameters:")
     body += [f"  {p}: {{value: 0, unit: {u}, scale: {s:.3g}}}"
              for p, u, s in zip(params, units, scales, strict=True)]
@@ -166,19 +201,26 @@ def effect_yaml(problem: Problem, cand: Candidate) -> str:
 
 
 def write_revision(problem: Problem, cand: Candidate, directory: str | Path,
-                   name: str | None = None) -> Path:
+                   name: str | None = None, also: tuple[Candidate, ...] = ()) -> Path:
     """Write ``cand``'s model and a problem overlay using it into ``directory`` (models in
-    ``directory/models``); return the overlay's path."""
+    ``directory/models``); return the overlay's path.  ``also``: candidates on other
+    instances added by the same overlay (the same effect in sibling instances)."""
     directory = Path(directory)
-    sug = suggestion(problem, cand)
-    inst = problem.instances[sug.instance]
-    model_path = directory / "models" / f"{sug.model_name}.yaml"
-    write_output(model_path, sug.model_text(_rel(inst.model.path, model_path.parent)))
-    name = name or _overlay_name(problem, sug)
+    sugs = [suggestion(problem, c) for c in (cand, *also)]
+    if len({s.instance for s in sugs}) != len(sugs):
+        raise ValueError("one candidate per instance in a revision")
+    entries = []
+    for sug in sugs:
+        model_path = directory / "models" / f"{sug.model_name}.yaml"
+        inst = problem.instances[sug.instance]
+        write_output(model_path, sug.model_text(_rel(inst.model.path, model_path.parent)))
+        entries.append(sug.instance_entry(_rel(model_path, directory)))
+    name = name or _overlay_name(problem, sugs[0])
     overlay = directory / f"{name}.yaml"
-    write_output(overlay, sug.overlay_text(
-        name, _rel(Path(problem.path), directory), _rel(model_path, directory),
-        f"{problem.name} plus {cand.label}"))
+    labels = "; ".join(c.label for c in (cand, *also))
+    write_output(overlay, "\n".join([
+        f"problem: {name}", f"extends: {_rel(Path(problem.path), directory)}",
+        f"doc: {problem.name} plus {labels}", "instances:", *entries]) + "\n")
     return overlay
 
 

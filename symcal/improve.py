@@ -175,6 +175,64 @@ def _best_of_group(
                                                       if n in new.problem.datasets})
 
 
+def siblings(diag: Diagnosis, lead: Candidate) -> tuple[Candidate, ...]:
+    """The same effect in the lead's sibling instances (instances of the same model file):
+    for each, its most significant candidate of the same kind, order and period on the
+    same output, when the diagnosis finds one significant.  One physical effect of a
+    sensor model (a lateral dependence of every platen segment) is then added to every
+    instance that shows it in one round, each with its own coefficients.  None while the
+    model has an approximation of its own (an implicit variant): its residue, significant
+    or not, looks like the same effect in every sibling."""
+    problem = diag.result.problem
+    inst, _, output = lead.output.partition(".")
+    if inst not in problem.instances or diag.variant is not None:
+        return ()   # the model's own approximation shows in every sibling: it goes first
+    model = problem.instances[inst].model.path
+    shape = (lead.basis.kind, lead.basis.order, lead.basis.period, bool(lead.basis.angle))
+    found: dict[str, Candidate] = {}
+    for cand in diag.significant:
+        other, _, out = cand.output.partition(".")
+        if (other != inst and other not in found and out == output
+                and other in problem.instances
+                and problem.instances[other].model.path == model
+                and (cand.basis.kind, cand.basis.order, cand.basis.period,
+                     bool(cand.basis.angle)) == shape):
+            found[other] = cand
+    return tuple(found.values())
+
+
+def _try_siblings(
+    diag: Diagnosis, lead: Candidate, single: tuple[str, Path, Result] | None,
+    directory: Path, name: str, datasets: Mapping[str, Dataset], result: Result,
+    rejected: list[tuple[str, str]], say: Callable[[str], None],
+) -> tuple[str, Path, Result] | None:
+    """The lead with the same effect in its sibling instances, in one revision, when it
+    pays and beats the lead alone (``single``) on BIC: a sibling candidate that is only
+    significant because it is aliased with the lead adds parameters the BIC refuses."""
+    also = siblings(diag, lead)
+    if not also:
+        return single
+    label = "; ".join(c.label for c in (lead, *also))
+    path = write_revision(diag.result.problem, lead, directory, f"{name}_all", also)
+    revised = load_problem(path)
+    new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
+    why = _pays(new, result)
+    if why is None and single is not None and new.bic >= single[2].bic:
+        why = (f"its BIC ({new.bic:.1f}) is not below that of {single[0]} alone "
+               f"({single[2].bic:.1f})")
+    if why is not None:
+        rejected.append((label, why))
+        say(f"tried {label}: not kept, {why}")
+        path.unlink(missing_ok=True)
+        return single
+    final = directory / f"{name}.yaml"
+    write_output(final, path.read_text(encoding="utf-8").replace(
+        f"problem: {path.stem}\n", f"problem: {name}\n", 1))
+    path.unlink()
+    return label, final, solve(load_problem(final), {n: d for n, d in datasets.items()
+                                                      if n in new.problem.datasets})
+
+
 def _revision(diag: Diagnosis, cand_label: str, directory: Path, name: str) -> Path:
     problem = diag.result.problem
     cand = next(c for c in (*diag.candidates, *diag.uncalibratable) if c.label == cand_label)
@@ -242,8 +300,10 @@ def improve(
             say(f"round {k}: {line}")
 
         for lead in [c for c in diag.significant if c.label not in tried][:TRIES]:
-            kept = _best_of_group(diag, lead, directory, name, datasets, result, rejected,
-                                  say_round)
+            single = _best_of_group(diag, lead, directory, name, datasets, result,
+                                    rejected, say_round)
+            kept = _try_siblings(diag, lead, single, directory, name, datasets, result,
+                                 rejected, say_round)
             if kept is not None:
                 break
         if kept is None:

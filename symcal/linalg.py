@@ -66,3 +66,58 @@ def whitening(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def is_singular(cov: np.ndarray) -> bool:
     """Whether a covariance has a direction that :func:`whitening` would drop."""
     return _eigen(cov)[0].size < cov.shape[0]
+
+
+#: Relative size below which a relation checked at random points of the parameter space
+#: (the model's own, noise-free Jacobian) counts as exact: a gauge's residual there is at
+#: rounding level (1e-13 and below in practice), while the flattest real directions of
+#: the bundled problems are above 1e-6.
+EXACT_RTOL = 1e-8
+
+
+def null_basis(matrix: np.ndarray, rows: int) -> np.ndarray:
+    """Orthonormal rows spanning the numerical null space of ``matrix`` (``M × n``), its
+    singular values at or below :func:`rank_tolerance` (``rows`` behind it)."""
+    n = matrix.shape[1]
+    if n == 0:
+        return np.zeros((0, 0))
+    if matrix.shape[0] == 0:
+        return np.eye(n)
+    _, s, vt = np.linalg.svd(matrix, full_matrices=True)
+    rank = int(np.sum(s > rank_tolerance(s, rows)))
+    return vt[rank:]
+
+
+def common_null(bases: list[np.ndarray], n: int) -> np.ndarray:
+    """Orthonormal rows spanning the directions that lie in every one of ``bases`` (each
+    a set of orthonormal rows in ``n`` dimensions), to :data:`EXACT_RTOL`."""
+    if not bases or any(b.shape[0] == 0 for b in bases):
+        return np.zeros((0, n))
+    away = np.vstack([np.eye(n) - b.T @ b for b in bases])
+    _, s, vt = np.linalg.svd(away, full_matrices=True)
+    s = np.concatenate([s, np.zeros(n - s.size)])
+    return vt[s <= EXACT_RTOL]
+
+
+def known_null_svd(
+    matrix: np.ndarray, rows: int, known: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Singular values, right singular vectors and rank of ``matrix`` (``M × n``) with
+    the directions ``known`` (rows, ``k × n``, same units as the columns) counted as
+    exactly null: the matrix is projected onto their orthogonal complement first, and
+    its rank is at most ``n - k``.
+
+    Such directions are gauges found at random points of the parameter space: exact
+    symmetries, which noise in the data must not turn into a full rank.  Without them
+    this is the plain SVD and :func:`rank_tolerance`.
+    """
+    n = matrix.shape[1]
+    if known.size:
+        q = range_basis(known.T)
+        matrix = matrix - (matrix @ q) @ q.T
+        limit = n - q.shape[1]
+    else:
+        limit = n
+    _, s, vt = np.linalg.svd(matrix)
+    rank = min(int(np.sum(s > rank_tolerance(s, rows))), limit)
+    return s, vt, rank

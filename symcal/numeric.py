@@ -1,24 +1,33 @@
 """Evaluate per-observation CasADi functions over a whole dataset, in chunks.
 
-A function of ONE observation, ``f(theta, u)``, is mapped serially over a chunk of
-observations (the graph never grows with N), with θ shared by all of them, and the chunks
-are concatenated.  Evaluation goes through CasADi's buffer interface: inputs are read from
-and outputs written to numpy memory directly (column-major ``k × n`` is C-contiguous
-``n × k``), with no conversion to CasADi matrices.  Outputs are made dense column
-vectors; each comes back as an ``N × k`` array.
+A function of ONE observation, ``f(theta, u)``, is mapped over a chunk of observations
+with CasADi's plain serial ``map`` (a loop over the one-observation code: the graph never
+grows with N and building it costs microseconds), and the chunks are concatenated.
+Evaluation goes through CasADi's buffer interface: inputs are read from and outputs
+written to numpy memory directly (column-major ``k × n`` is C-contiguous ``n × k``), with
+no conversion to CasADi matrices.  θ is repeated once per row of a per-thread buffer, and
+refilled only when it changes.
+
+The buffer call releases the GIL, so chunks evaluated by different threads run on
+different cores: every thread has its own buffers (:class:`threading.local`).  Results
+are bit-for-bit the same whichever thread evaluates a chunk.
+
+A :class:`Mapped` pickles as its CasADi serialisation, so a Dask worker receives it as
+bytes and rebuilds it once per process (:func:`from_serialized` keeps a memo by content).
 """
 
 from __future__ import annotations
 
+import hashlib
+import threading
 from collections.abc import Iterator
 from typing import Any
 
 import casadi as ca
 import numpy as np
 
-#: Observations per chunk.  Building a mapped function costs time in proportion to its
-#: size (about 13 µs per observation here), so chunks stay modest and each chunk is padded
-#: to a power of two: at most log2(CHUNK) mapped functions per function, built once.
+#: Observations per chunk.  Each chunk is padded to a power of two (by repeating its
+#: last observation), so a function has at most log2(CHUNK) mapped forms, built once.
 CHUNK = 8_192
 
 
@@ -26,6 +35,27 @@ def chunks(n: int, size: int = CHUNK) -> Iterator[slice]:
     """Consecutive slices of ``range(n)`` of at most ``size`` elements."""
     for start in range(0, n, size):
         yield slice(start, min(n, start + size))
+
+
+def _view(array: np.ndarray) -> memoryview:
+    """A memoryview of a C-contiguous array (numpy arrays are buffers)."""
+    return memoryview(array)  # type: ignore[arg-type]  # numpy's stubs lack __buffer__
+
+
+class _Buffers:
+    """One thread's buffers for one mapped size: θ rows, input columns, outputs."""
+
+    def __init__(self, mapped_fn: ca.Function, fn: ca.Function, size: int) -> None:
+        self.buf, self.trigger = mapped_fn.buffer()
+        self.theta = np.empty((size, fn.nnz_in(0)))
+        self.theta_key: bytes | None = None
+        self.columns = np.empty((size, fn.nnz_in(1)))
+        self.outs = [np.empty((size, fn.nnz_out(i))) for i in range(fn.n_out())]
+        # the binding takes the size from the memoryview (its stub wrongly asks for it)
+        self.buf.set_arg(0, _view(self.theta))  # type: ignore[call-arg]
+        self.buf.set_arg(1, _view(self.columns))  # type: ignore[call-arg]
+        for i, out in enumerate(self.outs):
+            self.buf.set_res(i, _view(out))  # type: ignore[call-arg]
 
 
 class Mapped:
@@ -39,39 +69,84 @@ class Mapped:
 
     def __init__(self, fn: ca.Function) -> None:
         self.fn = fn
-        self._maps: dict[int, tuple[ca.Function, Any, Any]] = {}
+        self._maps: dict[int, ca.Function] = {}
+        self._lock = threading.Lock()
+        self._local = threading.local()
+        self._serialized: bytes | None = None
 
-    def _map(self, n: int) -> tuple[ca.Function, Any, Any]:
-        if n not in self._maps:
-            mapped_fn = self.fn.map("chunk", "serial", n, [0], [])  # θ shared, not repeated
-            buf, trigger = mapped_fn.buffer()
-            self._maps[n] = (mapped_fn, buf, trigger)
-        return self._maps[n]
+    def __reduce__(self) -> tuple[Any, tuple[bytes]]:
+        return from_serialized, (self.serialized(),)
 
-    def chunk(self, theta: np.ndarray, u: np.ndarray) -> list[np.ndarray]:
-        """Evaluate on one chunk: ``u`` is ``n_u × n``; returns ``n × k`` arrays."""
+    def serialized(self) -> bytes:
+        """The CasADi serialisation of the one-observation function."""
+        if self._serialized is None:
+            self._serialized = self.fn.serialize().encode()
+        return self._serialized
+
+    def _buffers(self, size: int) -> _Buffers:
+        states: dict[int, _Buffers] = self._local.__dict__.setdefault("states", {})
+        if size not in states:
+            with self._lock:
+                if size not in self._maps:
+                    self._maps[size] = self.fn.map(size)    # serial; θ given per row
+            states[size] = _Buffers(self._maps[size], self.fn, size)
+        return states[size]
+
+    def evaluate(self, theta: np.ndarray, u: np.ndarray) -> list[np.ndarray]:
+        """Evaluate on one chunk (``u`` is ``n_u × n``, n ≤ :data:`CHUNK` preferred).
+
+        Returns ``n × k`` arrays that are views of this thread's buffers: valid until the
+        next evaluation of this function by the same thread (copy to keep them).
+        """
         n = u.shape[1]
         size = 1 << max(0, (n - 1).bit_length())      # padded to a power of two
-        _, buf, trigger = self._map(size)
+        b = self._buffers(size)
         th = np.ascontiguousarray(theta, dtype=float)
-        columns = np.empty((size, u.shape[0]))
-        columns[:n] = u.T
-        columns[n:] = u.T[-1:] if n else 0.0           # repeat a real observation
-        outs = [np.empty((size, self.fn.nnz_out(i))) for i in range(self.fn.n_out())]
-        buf.set_arg(0, memoryview(th))  # type: ignore[arg-type]  # ndarray is a buffer
-        buf.set_arg(1, memoryview(columns))  # type: ignore[arg-type]
-        for i, out in enumerate(outs):
-            buf.set_res(i, memoryview(out))  # type: ignore[arg-type]
-        trigger()
-        return [out[:n] for out in outs]
+        key = th.tobytes()
+        if key != b.theta_key:
+            b.theta[:] = th[None, :]
+            b.theta_key = key
+        b.columns[:n] = u.T
+        b.columns[n:] = u.T[-1:] if n else 0.0         # repeat a real observation
+        b.trigger()
+        return [out[:n] for out in b.outs]
+
+    def chunk(self, theta: np.ndarray, u: np.ndarray) -> list[np.ndarray]:
+        """Evaluate on one chunk: ``u`` is ``n_u × n``; returns ``n × k`` arrays (copies)."""
+        return [out.copy() for out in self.evaluate(theta, u)]
 
     def __call__(self, theta: np.ndarray, u: np.ndarray, size: int = CHUNK) -> list[np.ndarray]:
         """Evaluate over all observations (``u`` is ``n_u × N``)."""
         n = u.shape[1]
-        parts = [self.chunk(theta, u[:, s]) for s in chunks(n, size)]
-        if not parts:
-            return [np.empty((0, self.fn.nnz_out(i))) for i in range(self.fn.n_out())]
-        return [np.concatenate([p[i] for p in parts], axis=0) for i in range(self.fn.n_out())]
+        outs = [np.empty((n, self.fn.nnz_out(i))) for i in range(self.fn.n_out())]
+        for part in chunks(n, size):
+            for out, value in zip(outs, self.evaluate(theta, u[:, part]), strict=True):
+                out[part] = value
+        return outs
+
+
+_MEMO: dict[bytes, Mapped] = {}
+_MEMO_LOCK = threading.Lock()
+
+
+def from_serialized(data: bytes) -> Mapped:
+    """The :class:`Mapped` of a serialised one-observation function, built once per
+    process (memo by content)."""
+    key = hashlib.sha256(data).digest()
+    with _MEMO_LOCK:
+        if key not in _MEMO:
+            out = Mapped(ca.Function.deserialize(data.decode()))
+            out._serialized = data
+            _MEMO[key] = out
+        return _MEMO[key]
+
+
+def shared_mapped(theta: ca.SX, u: ca.SX, outputs: list[ca.SX], name: str = "f") -> Mapped:
+    """Like :func:`mapped`, but one :class:`Mapped` per process for equal functions (memo
+    by the function's CasADi serialisation): solves and stages of the same problem share
+    the mapped forms and evaluation buffers."""
+    fn = ca.Function(name, [theta, u], [ca.densify(ca.vec(o)) for o in outputs])
+    return from_serialized(fn.serialize().encode())
 
 
 def mapped(theta: ca.SX, u: ca.SX, outputs: list[ca.SX], name: str = "f") -> Mapped:

@@ -581,3 +581,55 @@ def _correlation_figure(corr: Mapping[str, Any]) -> Figure:
         ax.set_ylabel("parameter index")
     ax.set_title("Correlation of the estimates")
     return fig
+
+
+# ----------------------------------------------------------------------- experiment design
+
+
+def design_figure(motions: Mapping[str, Mapping[str, Any]]) -> Figure:
+    """The designed motion beside the given one (``symcal design``).
+
+    Parameters
+    ----------
+    motions
+        ``{"given": poses, "designed": poses}``, each with ``x``, ``y`` (mm, as the motion
+        states them) and ``theta_deg`` per observation.
+
+    Returns
+    -------
+    Figure
+        One panel per motion with its positions coloured by angle, and the histogram of
+        the angles of both.
+    """
+    fig = _new_figure(11.0, 3.6)
+    axes = fig.subplots(1, 3)
+    limit = max(float(max(abs(_floats(m["theta_deg"])), default=0.0)) for m in motions.values())
+    limit = limit or 1.0
+    for ax, (label, poses) in zip(axes[:2], motions.items(), strict=False):
+        x, y, th = (_floats(poses[k]) for k in ("x", "y", "theta_deg"))
+        art = ax.scatter(x, y, c=th, s=4, cmap="coolwarm", vmin=-limit, vmax=limit,
+                         rasterized=len(x) > RASTERIZE_ABOVE)
+        ax.set_title(_text(f"{label} motion ({len(x)} observations)"))
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        fig.colorbar(art, ax=ax, label="θ (deg)")
+    hist = axes[2]
+    for (label, poses), colour in zip(motions.items(), (BEFORE_COLOUR, AFTER_COLOUR),
+                                      strict=False):
+        hist.hist(_floats(poses["theta_deg"]), bins=30, range=(-limit, limit), alpha=0.7,
+                  color=colour, label=_text(label))
+    hist.set_xlabel("θ (deg)")
+    hist.set_ylabel("observations")
+    hist.set_title("angles")
+    hist.legend()
+    return fig
+
+
+def save_design_figure(motions: Mapping[str, Mapping[str, Any]], path: str | Path) -> Path:
+    """Write :func:`design_figure` to ``path`` (its suffix is the format: png, svg, pdf)."""
+    fmt = _check_formats([Path(path).suffix.lstrip(".") or "png"])[0]
+    fig = design_figure(motions)
+    try:
+        return atomic_write_bytes(path, _render(fig, fmt))
+    finally:
+        fig.clear()

@@ -30,13 +30,16 @@ from pathlib import Path
 import casadi as ca
 
 from symcal import expr
+from symcal.dimensions import DimensionError, describe, same_dimension, unit_of
 from symcal.errors import SpecError, Where
 from symcal.files import input_refusal
 from symcal.language.common import ExprSpec, ParameterSpec, apply_parameter_overrides, parse_expr
+from symcal.language.loss import LossSpec
 from symcal.language.model import ImplicitSpec, ModelSpec
 from symcal.language.options import SolveOptions
 from symcal.language.problem import (
     ColumnSpec,
+    ComparisonSpec,
     DatasetSpec,
     InstanceSpec,
     ProblemSpec,
@@ -44,6 +47,7 @@ from symcal.language.problem import (
 )
 from symcal.language.yamlio import display_path
 from symcal.suggest import did_you_mean
+from symcal.units import Unit, parse_unit, size, text_of
 
 #: At most this many bytes of a data file are read to find its column names for a hint.
 HEADER_BYTES = 1 << 16
@@ -91,6 +95,7 @@ class Quantity:
     sigma: float = 1.0
     doc: str = ""
     period: float | None = None
+    loss: LossSpec | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -336,6 +341,31 @@ class Problem:
         return replace(self, study=replace(self.study, weighting=weighting))
 
 
+def _declared(text: str) -> Unit | None:
+    """The unit a declaration names, or None when it names none (not checked)."""
+    return parse_unit(text) if text else None
+
+
+def _unit_text(declared: str, found: Unit | None) -> str:
+    """The unit a quantity is shown in: as declared, else the unit its expression has."""
+    return declared or (text_of(found) if found is not None else "")
+
+
+def _scaled(sx: ca.SX, unit: str) -> ca.SX:
+    """A symbol's value in internal units (mm, rad, s): ``sx`` times the size of its
+    declared unit (unchanged when that is 1)."""
+    factor = size(unit)
+    return sx if factor == 1.0 else sx * factor
+
+
+def _check_declared(where: Where, what: str, declared: Unit | None,
+                    found: Unit | None) -> None:
+    """Refuse a declared unit of another dimension than the expression's."""
+    if not same_dimension(declared, found):
+        raise SpecError(where, f"{what} is declared in {describe(declared)}, but its "
+                               f"expression is in {describe(found)}")
+
+
 def _enter(stack: list[str], key: str, where: Where) -> None:
     """Push ``key`` on the resolution stack, or report the cycle it would close."""
     if key in stack:
@@ -377,6 +407,9 @@ class _Scope:
         opened: list[_Implicit],
         hooked: Mapping[str, ca.SX] | None = None,
         hint: Callable[[str], str] | None = None,
+        units: Mapping[str, Unit | None] | None = None,
+        declared: Mapping[str, Unit | None] | None = None,
+        unit_fallback: Callable[[str], Unit | None] | None = None,
     ) -> None:
         self.label = label
         self.values = dict(values)
@@ -388,10 +421,36 @@ class _Scope:
         self.opened = opened
         self.hooked = dict(hooked or {})
         self.hint = hint or (lambda _name: "")
+        self.units: dict[str, Unit | None] = dict(units or {})
+        self.declared = dict(declared or {})
+        self.unit_fallback = unit_fallback or (lambda _name: None)
 
     def build(self, spec: ExprSpec) -> ca.SX:
         """Build one expression, reporting errors at its provenance."""
         return expr.to_casadi(spec.node, lambda node: self.lookup(node.name, spec.where))
+
+    def unit(self, spec: ExprSpec) -> Unit | None:
+        """The unit of an expression :meth:`build` has built (its names are resolved),
+        checked; a mismatch is reported at the expression's provenance."""
+        try:
+            return unit_of(spec.node, self.unit_lookup)
+        except DimensionError as exc:
+            raise SpecError(spec.where, exc.detail) from None
+
+    def unit_lookup(self, name: str) -> Unit | None:
+        """The unit of a resolved name (None: no unit declared)."""
+        if name in self.units:
+            return self.units[name]
+        return self.unit_fallback(name)
+
+    def _def_unit(self, name: str) -> Unit | None:
+        """The unit of definition ``name``: as declared (checked against its expression's),
+        else its expression's."""
+        spec = self.defs[name]
+        found = self.unit(spec)
+        want = self.declared.get(name)
+        _check_declared(spec.where, f"'{name}'", want, found)
+        return want if want is not None else found
 
     def lookup(self, name: str, where: Where) -> ca.SX:
         if name in self.values:
@@ -407,6 +466,7 @@ class _Scope:
             if name in self.hooked:
                 value = value + self.hooked[name]
             self.values[name] = value
+            self.units[name] = self._def_unit(name)
             return value
         found = self.fallback(name, where, self.stack)
         if found is not None:
@@ -426,11 +486,20 @@ class _Scope:
             self.stack.pop()
         symbol = ca.SX.sym(key)
         self.values[name] = symbol
+        start_unit = self.unit(spec.start)
+        want = self.declared.get(name)
+        _check_declared(spec.start.where, f"the start of '{name}'", want, start_unit)
+        self.units[name] = want if want is not None else start_unit
         outer, self.stack = self.stack, [key]  # definitions in progress outside are built
         try:                                   # again here, in terms of the placeholder
             fmap = self.build(self.defs[name])
         finally:
             self.stack = outer
+        map_unit = self.unit(self.defs[name])
+        if not same_dimension(self.units[name], map_unit):
+            raise SpecError(self.defs[name].where,
+                            f"'{name}' starts in {describe(self.units[name])} but its "
+                            f"definition is in {describe(map_unit)}")
         if not ca.depends_on(fmap, symbol):
             raise SpecError(spec.where, f"'{name}' is declared implicit but its definition "
                                         "does not refer to itself")
@@ -441,12 +510,19 @@ class _Scope:
 def _instance_scope(
     inst: InstanceSpec, inputs: dict[str, ca.SX], params: dict[str, ca.SX], stack: list[str],
     opened: list[_Implicit], hooked: Mapping[str, ca.SX],
+    input_units: Mapping[str, Unit | None],
 ) -> _Scope:
     model = inst.model
-    values: dict[str, ca.SX] = {k: ca.SX(c.value) for k, c in model.constants.items()}
+    values: dict[str, ca.SX] = {k: ca.SX(c.value * size(c.unit))
+                                for k, c in model.constants.items()}
     values.update(inputs)
     values.update(params)
     values["pi"] = ca.SX(ca.pi)
+    units: dict[str, Unit | None] = {k: _declared(c.unit)
+                                          for k, c in model.constants.items()}
+    units.update(input_units)
+    units.update({k: _declared(p.unit) for k, p in model.parameters.items()})
+    units["pi"] = _declared("1")
     defs = dict(model.expressions)
     defs.update({k: o.expr for k, o in model.outputs.items()})
 
@@ -459,8 +535,10 @@ def _instance_scope(
                                    "names (instance.output) belong in problem files")
         return None
 
+    declared = {k: _declared(o.unit) for k, o in model.outputs.items()}
     return _Scope(f"{inst.name}.", values, defs, fallback,
-                  lambda: [*values, *defs], stack, model.implicit, opened, hooked)
+                  lambda: [*values, *defs], stack, model.implicit, opened, hooked,
+                  units=units, declared=declared)
 
 
 def _unroll(fmap: ca.SX, x: ca.SX, start: ca.SX, steps: int) -> tuple[ca.SX, ca.SX]:
@@ -487,6 +565,8 @@ class _Build:
         self.built: set[str] = set()
         self.parameters: list[Parameter] = []
         self.symbols: dict[str, ca.SX] = {}
+        self.scaled: dict[str, ca.SX] = {}         # parameter symbols in internal units
+        self.param_units: dict[str, Unit | None] = {}
         self.column_symbols: dict[str, ca.SX] = {}
         for inst in system.instances.values():
             for pname, pspec in inst.model.parameters.items():
@@ -496,16 +576,23 @@ class _Build:
                 self._add_parameter(f"{inst.name}.{pname}", pspec)
         for pspec in system.parameters.values():
             self._add_parameter(pspec.name, pspec)
-        values = {k: ca.SX(c.value) for k, c in system.constants.items()}
-        values.update({p.name: self.symbols[p.name] for p in system.parameters.values()})
+        values = {k: ca.SX(c.value * size(c.unit)) for k, c in system.constants.items()}
+        values.update({p.name: self.scaled[p.name] for p in system.parameters.values()})
         values["pi"] = ca.SX(ca.pi)
+        units = {k: _declared(c.unit) for k, c in system.constants.items()}
+        units.update({p.name: self.param_units[p.name] for p in system.parameters.values()})
+        units["pi"] = _declared("1")
+        declared = {k: _declared(q.unit) for k, q in system.expressions.items()}
         # problem-level implicit names are placeholders from the start, so that instances
-        # bound to them can be built before their maps
+        # bound to them can be built before their maps (in their declared unit, if any)
         self.problem_symbols = {n: ca.SX.sym(n) for n in system.implicit}
         values.update(self.problem_symbols)
+        units.update({n: declared[n] for n in system.implicit})
         defs = {k: q.expr for k, q in system.expressions.items()}
+        self.signal_units: dict[str, Unit | None] = {}
         self.scope = _Scope("", values, defs, self._fallback, self._known, self.stack, {}, [],
-                            hint=self._column_hint)
+                            hint=self._column_hint, units=units, declared=declared,
+                            unit_fallback=self._unit_fallback)
         self._build_all()
 
     # ------------------------------------------------------------------ building
@@ -515,6 +602,8 @@ class _Build:
         self.parameters.append(Parameter(name, p.value, p.unit, p.lower, p.upper, p.fixed,
                                          scale, p.doc, p.where))
         self.symbols[name] = ca.SX.sym(name)
+        self.scaled[name] = _scaled(self.symbols[name], p.unit)
+        self.param_units[name] = _declared(p.unit)
 
     def _column_hint(self, name: str) -> str:
         """Where an unknown symbol is a column of a data file the problem names: say so."""
@@ -542,7 +631,7 @@ class _Build:
         system = self.spec.system
         if "." in name:
             if name in self.symbols:
-                return self.symbols[name]
+                return self.scaled[name]
             inst_name = name.split(".", 1)[0]
             if inst_name in system.instances:
                 self._instance(system.instances[inst_name], where)
@@ -558,8 +647,17 @@ class _Build:
         if name in system.columns:
             if name not in self.column_symbols:
                 self.column_symbols[name] = ca.SX.sym(name)
-            return self.column_symbols[name]
+            return _scaled(self.column_symbols[name], system.columns[name].unit)
         return None
+
+    def _unit_fallback(self, name: str) -> Unit | None:
+        """The unit of a name :meth:`_fallback` resolved: a parameter, a signal, a column."""
+        if name in self.param_units:
+            return self.param_units[name]
+        if name in self.signal_units:
+            return self.signal_units[name]
+        column = self.spec.system.columns.get(name)
+        return _declared(column.unit) if column is not None else None
 
     def _instance(self, inst: InstanceSpec, where: Where) -> None:
         if inst.name in self.built:
@@ -569,8 +667,17 @@ class _Build:
             inputs = {k: self.scope.build(b) for k, b in inst.bindings.items()}
         finally:
             self.stack.pop()
-        params = {k: self.symbols[f"{inst.name}.{k}"] for k in inst.model.parameters}
         model = inst.model
+        input_units: dict[str, Unit | None] = {}
+        for k, b in inst.bindings.items():
+            found = self.scope.unit(b)
+            want = _declared(model.inputs[k].unit)
+            if not same_dimension(want, found):
+                raise SpecError(b.where, f"input '{k}' of model '{model.name}' is in "
+                                         f"{describe(want)}, but '{b.text}' bound to it is "
+                                         f"in {describe(found)}")
+            input_units[k] = want if want is not None else found
+        params = {k: self.scaled[f"{inst.name}.{k}"] for k in inst.model.parameters}
         # an output `reading + error` is hooked on its error, where a missing term goes
         # (inside an implicit definition when there is one); any other on itself
         on_error: dict[str, ca.SX] = {}      # error expression -> its hook
@@ -583,28 +690,41 @@ class _Build:
                 on_error[error] = self.hooks[full]
             else:
                 on_output.add(full)
-        scope = _instance_scope(inst, inputs, params, self.stack, self.model_level, on_error)
+        scope = _instance_scope(inst, inputs, params, self.stack, self.model_level, on_error,
+                                input_units)
         for name, out in model.outputs.items():
             full = f"{inst.name}.{name}"
             sx = scope.lookup(name, out.where)
             if full in on_output:
                 sx = sx + self.hooks[full]
-            self.signals[full] = Quantity(full, sx, out.unit, doc=out.doc)
+            self.signal_units[full] = scope.units.get(name)
+            self.signals[full] = Quantity(full, sx, _unit_text(out.unit, scope.units.get(name)),
+                                          doc=out.doc)
         for name in model.implicit:
             scope.lookup(name, model.implicit[name].where)
         for name, inp in model.inputs.items():
             period = None
+            unit = input_units[name]
             if inp.period is not None:
                 value = scope.build(inp.period)
                 if not value.is_constant():
                     raise SpecError(inp.period.where, "a period must be a constant expression")
+                found = scope.unit(inp.period)
+                if not same_dimension(unit, found):
+                    raise SpecError(inp.period.where, f"the period of input '{name}' is in "
+                                                      f"{describe(found)}, but the input is in "
+                                                      f"{describe(unit)}")
                 period = float(ca.evalf(value))
+            self.signal_units[f"{inst.name}.{name}"] = unit
             self.signals[f"{inst.name}.{name}"] = Quantity(
-                f"{inst.name}.{name}", inputs[name], inp.unit, doc=inp.doc, period=period)
+                f"{inst.name}.{name}", inputs[name], _unit_text(inp.unit, unit), doc=inp.doc,
+                period=period)
             point = model.evaluation_point(name)
             if point is not None and point not in model.outputs:
+                sx = scope.lookup(point, inp.where)
+                self.signal_units[f"{inst.name}.{point}"] = scope.units.get(point)
                 self.signals[f"{inst.name}.{point}"] = Quantity(
-                    f"{inst.name}.{point}", scope.lookup(point, inp.where), inp.unit,
+                    f"{inst.name}.{point}", sx, _unit_text(inp.unit, scope.units.get(point)),
                     doc=f"where the model evaluates its error in {name}", period=period)
         self.built.add(inst.name)
 
@@ -612,15 +732,34 @@ class _Build:
         system = self.spec.system
         for inst in system.instances.values():
             self._instance(inst, inst.where)
-        self.expressions = [Quantity(k, self.scope.lookup(k, q.where), q.unit, doc=q.doc)
-                            for k, q in system.expressions.items()]
-        self.constraints = [Quantity(k, self.scope.build(q.expr), q.unit, q.sigma, q.doc)
-                            for k, q in system.constraints.items()]
-        self.comparisons = [Comparison(k, self.scope.build(c.estimate),
-                                       self.scope.build(c.reference), c.unit, c.datasets,
-                                       c.remove_mean, c.doc)
-                            for k, c in system.comparisons.items()]
+        self.expressions = []
+        for k, q in system.expressions.items():
+            sx = self.scope.lookup(k, q.where)
+            self.expressions.append(Quantity(k, sx, _unit_text(q.unit, self.scope.units.get(k)),
+                                             doc=q.doc))
+        self.constraints = []
+        for k, q in system.constraints.items():
+            sx = self.scope.build(q.expr)
+            found = self.scope.unit(q.expr)
+            _check_declared(q.where, f"constraint '{k}'", _declared(q.unit), found)
+            unit = _unit_text(q.unit, found)
+            # a written sigma is in the constraint's unit; g/sigma is formed in internal units
+            sigma = q.sigma * size(unit) if q.sigma_given else q.sigma
+            self.constraints.append(Quantity(k, sx, unit, sigma, q.doc, loss=q.loss))
+        self.comparisons = [self._comparison(k, c) for k, c in system.comparisons.items()]
         self.problem_level = self._problem_implicit()
+
+    def _comparison(self, name: str, c: ComparisonSpec) -> Comparison:
+        estimate, reference = self.scope.build(c.estimate), self.scope.build(c.reference)
+        a, b = self.scope.unit(c.estimate), self.scope.unit(c.reference)
+        if not same_dimension(a, b):
+            raise SpecError(c.where, f"comparison '{name}': the estimate '{c.estimate.text}' "
+                                     f"is in {describe(a)}, but the reference "
+                                     f"'{c.reference.text}' is in {describe(b)}")
+        _check_declared(c.where, f"comparison '{name}'", _declared(c.unit),
+                        a if a is not None else b)
+        unit = _unit_text(c.unit, a if a is not None else b)
+        return Comparison(name, estimate, reference, unit, c.datasets, c.remove_mean, c.doc)
 
     def _problem_implicit(self) -> list[_Implicit]:
         system = self.spec.system
@@ -631,6 +770,10 @@ class _Build:
             if any(ca.depends_on(start, s) for s in self.problem_symbols.values()):
                 raise SpecError(item.where, "an implicit start refers to an implicit name")
             fmap = self.scope.build(system.expressions[n].expr)
+            start_unit, map_unit = self.scope.unit(item.start), self.scope.units.get(n)
+            if not same_dimension(start_unit, map_unit):
+                raise SpecError(item.where, f"the start of '{n}' is in {describe(start_unit)}, "
+                                            f"but '{n}' is in {describe(map_unit)}")
             if hooks:  # the true positions are solved from the outputs as modelled
                 fmap = ca.substitute(fmap, ca.vertcat(*hooks), ca.SX.zeros(len(hooks)))
             out.append(_Implicit(n, self.problem_symbols[n], start, fmap, item.steps,

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 import casadi as ca
 import numpy as np
 
+from symcal.analysis.outliers import THRESHOLD, Outliers, remedy_yaml
 from symcal.errors import SymcalError
 from symcal.files import json_text as plain_json
 from symcal.result import REGRESSION_TOLERANCE, Regression, Result
@@ -21,6 +22,7 @@ from symcal.units import DISPLAY_UNITS, symbol
 
 if TYPE_CHECKING:
     from symcal.analysis.fit import SeriesStats
+    from symcal.design import Design
     from symcal.diagnose import Diagnosis
 
 #: At most this many regressions are listed in a verdict (all are in the tables).
@@ -161,6 +163,54 @@ def _null_space_text(result: Result) -> str:
             "initial values are kept; see Identifiability)")
 
 
+def outlier_text(outliers: Outliers) -> str | None:
+    """The outliers of a fit in one sentence (None when there are none), e.g.
+    ``outliers dominate: 8 of 1000 observations of calibration ... carry 94% of the cost``."""
+    if outliers.count == 0:
+        return None
+    n_obs = outliers.rows // max(len(outliers.units), 1)
+    what = (f"{outliers.observations} of {n_obs} observations of {outliers.dataset} have a "
+            f"residual beyond {THRESHOLD:g} robust standard deviations")
+    if outliers.squared:
+        carry = f"they carry {outliers.share:.0%} of the cost Σ(g/σ)²"
+    else:
+        carry = (f"down-weighted by the robust loss ({outliers.loss}), they carry "
+                 f"{outliers.share:.0%} of the weighted cost's gradient variance")
+    if outliers.dominate:
+        remedy = ("; a robust loss is the remedy (see Outliers)" if outliers.squared else
+                  "; a loss that down-weights them more (cauchy, arctan) or a smaller scale "
+                  "is the remedy")
+        return f"outliers dominate: {what}; {carry}{remedy}"
+    return f"{what}; {carry}"
+
+
+def _outlier_lines(outliers: Outliers) -> list[str]:
+    """The Outliers section of the text report."""
+    spread = ", ".join(f"{name} {std:.4g} {symbol(outliers.units.get(name, ''))}"
+                       for name, std in outliers.robust_std.items())
+    loss = "squared residuals" if outliers.squared else f"robust loss {outliers.loss}"
+    lines = [f"  {loss}; robust standard deviation (1.4826 × MAD) of each residual: {spread}"]
+    sentence = outlier_text(outliers)
+    if sentence is None:
+        lines.append(f"  no residual lies beyond {THRESHOLD:g} robust standard deviations")
+        return lines
+    lines.append(f"  {sentence}")
+    rows = [["dataset", "row", "time", "constraint", "residual", "unit", "× robust std",
+             "weight"]]
+    for o in outliers.listed:
+        rows.append([o.dataset, str(o.row), _num(o.time), o.constraint, f"{o.residual:.4g}",
+                     symbol(o.unit), f"{o.whitened:.3g}", f"{o.weight:.3g}"])
+    lines += _table(rows, "lrrlrlrr")
+    if outliers.count > len(outliers.listed):
+        lines.append(f"  ... {outliers.count - len(outliers.listed)} more (the largest are "
+                     "listed; rows count the dataset's observations from 0)")
+    if outliers.dominate and outliers.squared:
+        lines.append("  To give these constraints a robust loss (Huber, scale about twice the "
+                     "robust standard deviation), add to the problem file:")
+        lines += [f"    {ln}" for ln in remedy_yaml(outliers).splitlines()]
+    return lines
+
+
 def _regression_lines(found: tuple[Regression, ...], indent: str) -> list[str]:
     lines = [indent + _regression_text(r) for r in found[:VERDICT_REGRESSIONS]]
     if len(found) > VERDICT_REGRESSIONS:
@@ -194,6 +244,9 @@ def verdict_lines(result: Result,
     n = len(result.stages)
     lines = [_failure_text(result)
              or f"solved: {n} stage{'s' if n > 1 else ''} converged ({result.method})"]
+    sentence = None if result.outliers is None else outlier_text(result.outliers)
+    if sentence is not None:
+        lines.append(sentence)
     worst = _worst_against_floor(result, floors)
     if worst is not None:
         s, after, ratio = worst
@@ -210,6 +263,32 @@ def verdict_lines(result: Result,
         lines.append(f"no residual or comparison is worse after calibration (by more than "
                      f"{REGRESSION_TOLERANCE:.0%})")
     lines.append(_null_space_text(result))
+    gauges = _gauges(result)
+    if gauges:
+        kinds = "; ".join(f"{g.kind} of {', '.join(g.parameters)}" for _, g in gauges)
+        lines.append(f"{len(gauges)} gauge(s) found before the solve, which no data can "
+                     f"determine ({kinds}); see Gauges for the fix")
+    return lines
+
+
+def _gauges(result: Result) -> list[tuple[str, Any]]:
+    """Every stage's gauges as ``(stage, gauge)``, each text once."""
+    seen: set[str] = set()
+    out = []
+    for st in result.stages:
+        for g in st.gauges.gauges if st.gauges is not None else ():
+            if g.text not in seen:
+                seen.add(g.text)
+                out.append((st.name, g))
+    return out
+
+
+def _gauge_lines(result: Result) -> list[str]:
+    lines = []
+    for stage, g in _gauges(result):
+        lines.append(f"  {stage}: {g.text}")
+        where = "" if g.kind == "offset" else " at the start"
+        lines += [f"    direction{where}: {c.text}" for c in g.directions]
     return lines
 
 
@@ -312,6 +391,10 @@ def text_report(result: Result) -> str:
     floors = noise_floors(result)
     lines = [f"symcal: {result.name} ({result.problem_path}){state}", "", "Verdict"]
     lines += [f"  {ln}" for ln in verdict_lines(result, floors)]
+    if _gauges(result):
+        lines += ["", "Gauges (symmetries found before the solve, at the start and at random "
+                  "points: no data can determine them)"]
+        lines += _gauge_lines(result)
     lines += ["", "Data"]
     lines += _table([[d.name, f"{d.n} observations", d.source
                       + (f" ({d.dropped} invalid rows dropped)" if d.dropped else "")]
@@ -324,8 +407,14 @@ def text_report(result: Result) -> str:
               "parameters (before) and the estimate (after)"
               + ("; the noise floor where the data were simulated" if floors else "")]
     lines += _fit_lines(result, floors)
-    lines += ["", "Parameters (standard errors from the Jacobian at the estimate, scaled by "
-              "the residual variance)"]
+    if result.outliers is not None:
+        lines += ["", f"Outliers (last stage, '{result.stages[-1].name}': residual rows "
+                  f"beyond {THRESHOLD:g} robust standard deviations)"]
+        lines += _outlier_lines(result.outliers)
+    robust = result.outliers is not None and not result.outliers.squared
+    lines += ["", "Parameters (standard errors from the Jacobian at the estimate, "
+              + ("the robust sandwich with the final weights)" if robust else
+                 "scaled by the residual variance)")]
     lines += _parameter_lines(result)
     lines += ["", "Strongly correlated estimates"]
     lines += _correlation_lines(result)
@@ -390,6 +479,12 @@ def _floor_note(value: float, floor: float | None, unit: str) -> str:
     return f" (noise floor {_spread_text(shown, unit)}; {value / shown:.2f} ×)"
 
 
+def outliers_dominate(diag: Diagnosis) -> bool:
+    """Whether outliers dominate the diagnosed fit (then they come before any missing
+    effect)."""
+    return bool(getattr(diag, "outliers_dominate", False))
+
+
 def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     """The verdict at the top of :func:`diagnosis_report`: where it fails, what to add,
     what cannot be calibrated.
@@ -413,6 +508,9 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     floors = noise_floors(result)
     lines = [verdict_lines(result, floors)[0]]
     where = []
+    outliers = getattr(diag, "outliers", None)
+    if outliers is not None and outliers_dominate(diag):
+        where.append(outlier_text(outliers) or "")
     worst = _worst_against_floor(result, floors)
     if worst is not None:
         s, after, ratio = worst
@@ -429,7 +527,11 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     lines.append(f"where it fails: {where[0]}")
     lines += where[1:]
     significant = diag.significant
-    if significant:
+    if outliers is not None and outliers_dominate(diag):
+        lines.append("what to add: a robust loss on the constraints with outliers (YAML "
+                     "below); missing effects are looked for once outliers no longer "
+                     "dominate")
+    elif significant:
         more = (f" (and {len(significant) - 1} more significant, below)"
                 if len(significant) > 1 else "")
         lines.append(f"what to add: {significant[0].label}{more}")
@@ -446,7 +548,26 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
                       "cannot determine")
     lines.append("what cannot be calibrated: " + ("; ".join(cannot) if cannot else
                                                   "nothing found"))
+    lines += design_pointer(result)
     return lines
+
+
+def design_pointer(result: Result) -> list[str]:
+    """A verdict line pointing to ``symcal design`` when the last stage leaves a nearly
+    flat direction (a parameter poorly determined by this motion), naming the scenario
+    the calibration data were simulated from when there is one."""
+    if not result.stages:
+        return []
+    near = result.stages[-1].conditioning_after.near_null
+    if not near:
+        return []
+    spec = result.problem.datasets.get("calibration")
+    scenario = getattr(spec, "scenario", None) if spec is not None else None
+    where = f"--scenario {scenario}" if scenario else "--scenario SCENARIO.yaml"
+    return [f"poorly determined by this motion: {near[0][0].text} (singular value "
+            f"{near[0][1]:.1g} of the largest); 'symcal design {result.problem.path} {where} "
+            "--optimize --target NAME=SE' predicts another motion's standard errors before "
+            "recording it"]
 
 
 def diagnosis_report(diag: Diagnosis) -> str:
@@ -475,6 +596,16 @@ def diagnosis_report(diag: Diagnosis) -> str:
                   "larger with the estimate than with the initial parameters)"]
         lines += [f"  {_regression_text(r)} ({r.ratio:.2f} ×)" for r in result.regressions]
     ranked = list(diag.leads)
+    outliers = getattr(diag, "outliers", None)
+    if outliers is not None and (outliers.count or outliers_dominate(diag)):
+        lines += ["", f"Outliers (checked before missing effects: residual rows beyond "
+                  f"{THRESHOLD:g} robust standard deviations)"]
+        lines += _outlier_lines(outliers)
+    if outliers_dominate(diag):
+        lines += ["", "Which effect is missing: not examined, since outliers dominate the fit "
+                  "(tests for missing effects would follow the outliers); add the robust "
+                  "loss above, solve and diagnose again"]
+        return "\n".join(lines) + "\n"
     lines += ["", f"Which effect is missing ({diag.tested} candidate terms tested; family-wise "
               f"level {diag.alpha:g}, Bonferroni; indistinguishable candidates grouped)"]
     if not diag.significant:
@@ -569,3 +700,101 @@ def diagnosis_document(diag: Diagnosis, series: bool = False) -> dict[str, Any]:
         if isinstance(x, dict):
             x.setdefault("unit", _unit_of(units, x.get("name")))
     return doc
+
+
+# ----------------------------------------------------------------------- experiment design
+
+
+def _se_text(value: float | None) -> str:
+    return "only in combination" if value is None else f"{value:.4g}"
+
+
+def _motion_text(value: Any) -> str:
+    if isinstance(value, tuple):
+        return f"[{value[0]:.4g}, {value[1]:.4g}]"
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+
+def design_report(design: Design, result: Result | None = None) -> str:
+    """The text report of ``symcal design``: the motion before and after, the binding
+    limits, the targets, and per parameter the predicted standard error before and after
+    design (and the one a given result reports).
+
+    Parameters
+    ----------
+    design
+        What :func:`symcal.design.design` returned (or a design of the given scenario
+        alone).
+    result
+        A calibration result to compare the predictions with (``--result``).
+    """
+    base, final = design.baseline, design.final
+    optimised = design.designed is not None and design.designed is not design.baseline
+    lines = [f"Design of run '{base.run}' of scenario '{base.scenario.name}' "
+             f"(last stage '{base.stage.name}': what the calibration reports)"]
+    if optimised:
+        goal = (f"criterion {design.criterion} with the most observations the limits allow"
+                if design.criterion else "targets " + ", ".join(t.text for t in design.targets)
+                + " with the fewest observations")
+        lines.append(f"  goal: {goal}; {design.message}")
+        space = base.scenario.design
+        limits = {} if space is None else space.bounds
+        rows = [["motion", "given", "designed", "limits"]]
+        for key in ("n", "x", "y", "theta_deg", "dwell"):
+            lim = limits.get(key)
+            rows.append([key, _motion_text(design.before[key]), _motion_text(design.after[key]),
+                         "fixed" if lim is None else _motion_text(tuple(lim))])
+        lines += ["  " + r for r in _table(rows, "llll")]
+        lines.append("  binding limits: " + (", ".join(design.binding) or "none"))
+        for t in design.targets:
+            se = final.se.get(t.name)
+            ok = design.met.get(t.name, False)
+            unit = final.units.get(t.name, "")
+            lines.append(f"  target {t.text}: predicted {_se_text(se)} {unit} "
+                         f"({'met' if ok else 'NOT met: the best reachable within the limits'})")
+        if design.targets and not all(design.met.values()):
+            lines.append(f"  meeting every target on the designed motion would need about "
+                         f"{design.needed_n} observations")
+    ident0, ident1 = base.identifiability, final.identifiability
+    lines.append(f"  rank {ident1.rank} of {ident1.n_free} free parameters; condition number "
+                 f"of the identifiable part {ident0.condition_number:.4g}"
+                 + (f" -> {ident1.condition_number:.4g}" if optimised else ""))
+    for combo in ident1.null_space:
+        lines.append(f"    cannot be determined: {combo.text}")
+    for combo in ident1.identifiable_combinations:
+        lines.append(f"    determined only in combination: {combo.text} ± "
+                     f"{_se_text(combo.se)}")
+    res = ", ".join(
+        f"{name} {base.residual_std[name]:.3g}"
+        + (f" -> {final.residual_std[name]:.3g}" if optimised else "")
+        + f" {symbol(base.units[name])} (noise alone {final.residual_noise[name]:.3g})"
+        for name in base.stage.constraints)
+    lines.append(f"  predicted residual std: {res}")
+    head = ["parameter", "unit", "SE given motion"] + (["SE designed"] if optimised else [])
+    head += ["SE of --result"] if result is not None else []
+    rows = [head]
+    reported = {} if result is None else {p.name: p.se for p in result.parameters}
+    for name, se in base.se.items():
+        row = [name, symbol(base.units.get(name, "")), _se_text(se)]
+        if optimised:
+            row.append(_se_text(final.se.get(name)))
+        if result is not None:
+            row.append(_se_text(reported.get(name)))
+        rows.append(row)
+    lines.append("")
+    lines.append("Predicted standard errors (no data recorded)")
+    lines += ["  " + r for r in _table(rows, "ll" + "r" * (len(head) - 2))]
+    return "\n".join(lines) + "\n"
+
+
+def design_document(design: Design, scenario_path: str | None) -> dict[str, Any]:
+    """The ``--json`` document of ``symcal design``: ``{"parameters": {NAME:
+    {"predicted_se": ..., "baseline_se": ...}}, "binding": [...], "scenario": PATH}``, with
+    standard errors in each parameter's unit (null: determined only in combination)."""
+    final = design.final
+    return {
+        "parameters": {name: {"predicted_se": final.se.get(name), "baseline_se": se}
+                       for name, se in design.baseline.se.items()},
+        "binding": list(design.binding),
+        "scenario": scenario_path,
+    }

@@ -21,8 +21,10 @@ from typing import Any
 import numpy as np
 
 from symcal.analysis.fit import SeriesStats
+from symcal.analysis.gauges import GaugeAnalysis
 from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
 from symcal.analysis.implicit import ImplicitCheck
+from symcal.analysis.outliers import Outliers
 from symcal.data import Dataset
 from symcal.errors import SymcalError
 from symcal.files import atomic_write_text, json_text
@@ -176,7 +178,8 @@ class ConstraintCost:
 
 @dataclass(frozen=True, eq=False)
 class StageResult:
-    """The outcome of one stage of a calibration."""
+    """The outcome of one stage of a calibration; ``outliers`` are the observations its
+    fit treats as outliers (None where its residuals were not finite)."""
 
     name: str
     doc: str
@@ -195,6 +198,8 @@ class StageResult:
     identifiability: Identifiability
     uncertainty: Uncertainty
     notes: tuple[str, ...] = ()
+    outliers: Outliers | None = None
+    gauges: GaugeAnalysis | None = None  # the stage's gauges, found before its solve
 
     @property
     def cost_before(self) -> float:
@@ -220,6 +225,8 @@ class StageResult:
             "identifiability": self.identifiability.to_dict(),
             "uncertainty": self.uncertainty.to_dict(),
             "notes": list(self.notes),
+            "outliers": None if self.outliers is None else self.outliers.to_dict(),
+            "gauges": None if self.gauges is None else self.gauges.to_dict(),
         }
 
     @classmethod
@@ -232,7 +239,11 @@ class StageResult:
                    tuple(doc["at_bound"]), Conditioning.from_dict(cond["before"]),
                    Conditioning.from_dict(cond["after"]),
                    Identifiability.from_dict(doc["identifiability"]),
-                   Uncertainty.from_dict(doc["uncertainty"]), tuple(doc["notes"]))
+                   Uncertainty.from_dict(doc["uncertainty"]), tuple(doc["notes"]),
+                   None if doc.get("outliers") is None
+                   else Outliers.from_dict(doc["outliers"]),
+                   None if doc.get("gauges") is None
+                   else GaugeAnalysis.from_dict(doc["gauges"]))
 
 
 def file_hashes(problem: Problem) -> dict[str, str]:
@@ -348,6 +359,11 @@ class Result:
         return data
 
     @property
+    def outliers(self) -> Outliers | None:
+        """The observations the last stage's fit treats as outliers."""
+        return self.stages[-1].outliers
+
+    @property
     def regressions(self) -> tuple[Regression, ...]:
         """Residuals and reference comparisons that calibration made worse, on any
         dataset (more than :data:`REGRESSION_TOLERANCE` larger after than before; see
@@ -415,6 +431,7 @@ class Result:
             "uncertainty": self.uncertainty.to_dict(),
             "statistics": [s.to_dict() for s in self.statistics],
             "regressions": [r.to_dict() for r in self.regressions],
+            "outliers": None if self.outliers is None else self.outliers.to_dict(),
             "implicit": [c.to_dict() for c in self.implicit],
             "information_criteria": {"aic": self.aic, "bic": self.bic, "rows": self.rows,
                                      "rss": self.rss},

@@ -10,7 +10,7 @@ import sys
 import pytest
 from conftest import ROOT
 
-JOBS = ("starts", "assemble", "data", "profile", "blas", "solve")
+JOBS = ("starts", "assemble", "data", "profile", "blas", "fleet", "solve")
 BENCHMARKS = ROOT / "benchmarks"
 
 

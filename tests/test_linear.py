@@ -120,6 +120,8 @@ def _variant(tmp_path: Path, extra: str, constraint: str) -> Path:
     model = (ROOT / "models" / "platen_segment.yaml").as_posix()
     text = textwrap.dedent(f"""\
         problem: variant
+        constants:
+          per_mm: {{value: 1, unit: 1/mm}}   # keeps a product of two lengths a length
         instances:
           s1: {{model: {model}, inputs: {{p: p1}}{extra}}}
           s2: {{model: {model}, inputs: {{p: p2}}}}
@@ -140,7 +142,7 @@ BASE_G = "(s1.p_hat - s3.p_hat) - (s2.p_hat - s4.p_hat)"
 
 
 def test_nonlinear_constraint_goes_to_lm(tmp_path: Path, true_k) -> None:
-    path = _variant(tmp_path, "", BASE_G + " + s1.k1*s2.k1")
+    path = _variant(tmp_path, "", BASE_G + " + s1.k1*s2.k1*per_mm")
     problem = symcal.load_problem(path)
     free = np.ones(len(problem.parameters), dtype=bool)
     assert Objective(problem, ("g",), free).nonlinear() == ["g"]
@@ -155,7 +157,7 @@ def test_nonlinear_constraint_goes_to_lm(tmp_path: Path, true_k) -> None:
 
 def test_linear_in_free_parameters_when_partner_fixed(tmp_path: Path, true_k) -> None:
     path = _variant(tmp_path, ", parameters: {k1: {value: 0.002, fixed: true}}",
-                    BASE_G + " + s1.k1*s2.k1")
+                    BASE_G + " + s1.k1*s2.k1*per_mm")
     result = symcal.solve(symcal.load_problem(path), _data(true_k, 300, flyby=False))
     assert result.method == "linear"
     assert result.params["s1.k1"] == 0.002

@@ -89,8 +89,10 @@ def gain_diagnosis(gain: symcal.Result):
 def test_symbols_and_axis_units() -> None:
     assert [symbol(u) for u in ("um", "urad", "", None, "(internal)", "mm", "mrad", "µm")] \
         == ["µm", "µrad", "(internal)", "(internal)", "(internal)", "mm", "mrad", "µm"]
-    assert [axis_unit(u) for u in ("rad", "mrad", "urad", "um", "mm", "s", "", "furlong")] \
-        == ["mrad", "mrad", "urad", "um", "mm", "s", "", ""]
+    # any unit pint knows is drawn as declared (furlong is a length); a non-unit unscaled
+    assert [axis_unit(u) for u in ("rad", "mrad", "urad", "um", "mm", "s", "", "furlong",
+                                   "mmm")] \
+        == ["mrad", "mrad", "urad", "um", "mm", "s", "", "furlong", ""]
 
 
 # ----------------------------------------------------------------------------- regressions

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import signal
 import sys
 import tempfile
@@ -148,6 +149,9 @@ def main(argv: list[str] | None = None) -> int:
                          "symcal's")
     with tempfile.TemporaryDirectory(prefix="symcal-bench-") as tmp:
         workdir = Path(tmp)
+        # compiled functions (symcal.jit) in a cache of this run only: every run builds
+        # them once (job startup) and measures the same state, whatever ran before
+        os.environ["XDG_CACHE_HOME"] = str(workdir / "cache")
         ctx = Run(settings, workdir, make_data(workdir, settings.sizes), report, clock)
         summaries = run_jobs(ctx)
     report["load_end"] = load_average()

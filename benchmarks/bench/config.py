@@ -31,12 +31,13 @@ PROBLEMS: dict[str, dict[str, Any]] = {
         "scenario": "problems/scenarios/courier_dual.yaml",
         "title": "§3.2 dual-sensor calibration: nonlinear, 49 parameters, "
                  "cost Σ g_x² + g_y² + g_p²",
-        "methods": ("symcal", "least_squares", "bfgs", "symcal_analysis"),
+        "methods": ("symcal", "symcal_serial", "least_squares", "bfgs", "symcal_analysis"),
     },
 }
 
 LABELS = {
     "symcal": "symcal (default path)",
+    "symcal_serial": "symcal, 1 thread, interpreted",
     "floor": "numpy Γ + lstsq (floor)",
     "least_squares": "scipy least_squares, FD Jacobian",
     "bfgs": "scipy BFGS, FD gradient",

@@ -111,10 +111,32 @@ def peer(problem: str, method: str, cols: Columns, cap: float) -> Method:
     return run
 
 
+def serial(run: Method) -> Method:
+    """``run`` with symcal's passes on one thread and interpreted (``SYMCAL_THREADS=1``,
+    ``SYMCAL_JIT=off``): symcal's default path as it was before issue 16."""
+    import os
+
+    def wrapped(theta0: np.ndarray) -> Outcome:
+        saved = {k: os.environ.get(k) for k in ("SYMCAL_THREADS", "SYMCAL_JIT")}
+        os.environ.update(SYMCAL_THREADS="1", SYMCAL_JIT="off")
+        try:
+            return run(theta0)
+        finally:
+            for key, value in saved.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
+
+    return wrapped
+
+
 def method(problem: str, name: str, cols: Columns, cap: float) -> Method:
     """The method ``name`` (a key of ``bench.config.LABELS``) on ``problem``'s data."""
     if name == "symcal":
         return symcal_solver(problem, cols)
+    if name == "symcal_serial":
+        return serial(symcal_solver(problem, cols))
     if name == "symcal_analysis":
         return symcal_analysis(problem, cols)
     return peer(problem, name, cols, cap)

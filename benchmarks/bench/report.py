@@ -234,9 +234,14 @@ def _blas_table(report: dict[str, Any]) -> list[str]:
 
 
 def extras_section(report: dict[str, Any], settings: Settings) -> list[str]:
-    """Load and assemble, data, and BLAS threads."""
+    """Load and assemble, data, BLAS threads, and the fleet."""
+    from .jobs.fleet import table as fleet_table
+    from .jobs.hugelog import table as hugelog_table
+    from .jobs.startup import table as startup_table
+
     return (_assemble_table(report) + _data_table(report, max(settings.sizes))
-            + _blas_table(report))
+            + _blas_table(report) + fleet_table(report) + startup_table(report)
+            + hugelog_table(report))
 
 
 def plain(obj: Any) -> Any:

@@ -39,12 +39,15 @@ class Basis:
     description: str           # e.g. "harmonic 3 of s2.p (period 1.016 mm)"
     columns: tuple[str, ...]   # coefficient names, e.g. ("h3_sin", "h3_cos")
     terms: tuple[str, ...]     # YAML expressions of each column in the model's symbols,
-                               # with {v} (and {a} for an angle) placeholders
+                               # with {v} (and {a} for an angle) placeholders, and
+                               # {period}, {centre} for the constants below
     angle: str | None = None   # the angle variable of an angle product
     order: int = 1             # the harmonic number (1 for other kinds)
     unit: str = ""             # display unit of the variable
     angle_unit: str = ""       # display unit of the angle of an angle product
     scales: tuple[float, ...] = ()  # coefficients giving terms of about 1 µm (internal)
+    period: float = 0.0        # the period of a harmonic, in internal units
+    centre: float = 0.0        # the centre of a linear or quadratic term, internal units
 
     @property
     def complexity(self) -> tuple[int, int]:

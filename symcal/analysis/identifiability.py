@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from symcal.linalg import rank_tolerance
+from symcal.linalg import known_null_svd
 
 _ZERO = 1e-9  # relative size below which a coefficient counts as zero
 
@@ -207,6 +207,7 @@ def analyse(
     scales: np.ndarray,
     values: np.ndarray,
     meat: np.ndarray | None = None,
+    gauges: np.ndarray | None = None,
 ) -> tuple[Identifiability, Uncertainty]:
     """Identifiability and uncertainty from the R factor of the weighted Jacobian.
 
@@ -225,12 +226,20 @@ def analyse(
         covariance between the constraints of one observation.  The covariance is then
         the sandwich ``(JᵀJ)⁺ MᵀM (JᵀJ)⁺``, right when the constraints have different
         noise levels or are correlated; without it, ``s² (JᵀJ)⁺`` with one pooled s².
+    gauges
+        Directions (rows, ``k × n``, parameter units) known to be exactly undeterminable
+        (:mod:`symcal.analysis.gauges`): counted as null whatever the noise, so that an
+        exact symmetry on noisy data is named rather than inverted; the covariance is then
+        the minimum-norm one, orthogonal to them (in units of the scales).
     """
     n = len(names)
     d = np.asarray(scales, dtype=float)
-    _, s, vt = np.linalg.svd(r_factor * d[None, :]) if n else (None, np.zeros(0), np.zeros((0, 0)))
-    tol = rank_tolerance(s, rows)
-    rank = int(np.sum(s > tol))
+    known = (np.asarray(gauges, dtype=float) / d[None, :] if gauges is not None and n
+             else np.zeros((0, n)))
+    if n:
+        s, vt, rank = known_null_svd(r_factor * d[None, :], rows, known)
+    else:
+        s, vt, rank = np.zeros(0), np.zeros((0, 0)), 0
     cond = float(s[0] / s[rank - 1]) if rank else float("inf")
     v = vt.T
     null_theta = (d[:, None] * v[:, rank:]).T  # rows: null directions in parameter space
@@ -314,6 +323,7 @@ class Conditioning:
 def conditioning(
     r_factor: np.ndarray, rows: int, names: tuple[str, ...], scales: np.ndarray,
     count: int = 3, threshold: float = 1e-3, terms: int = 6,
+    gauges: np.ndarray | None = None,
 ) -> Conditioning:
     """Condition number of the Hessian from R (``JᵀJ = RᵀR``) and its near-null directions.
 
@@ -327,11 +337,14 @@ def conditioning(
     terms
         At most this many parameters are named per direction (the largest coefficients;
         ``+ ...`` marks the rest).
+    gauges
+        Directions known to be exactly undeterminable (as in :func:`analyse`), left out.
     """
     if not names:
         return Conditioning(float("nan"), 0, ())
-    _, s, vt = np.linalg.svd(r_factor * np.asarray(scales)[None, :])
-    rank = int(np.sum(s > rank_tolerance(s, rows)))
+    known = (np.asarray(gauges, dtype=float) / np.asarray(scales)[None, :]
+             if gauges is not None else np.zeros((0, len(names))))
+    s, vt, rank = known_null_svd(r_factor * np.asarray(scales)[None, :], rows, known)
     if rank == 0:
         return Conditioning(float("inf"), len(names), ())
     cond = float((s[0] / s[rank - 1]) ** 2)

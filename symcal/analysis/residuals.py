@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.signal
 
+from symcal.units import DISPLAY_UNITS
+
 
 @dataclass(frozen=True)
 class Variable:
@@ -100,7 +102,8 @@ def binned(r: np.ndarray, v: np.ndarray, name: str, bins: int = 20) -> Binned | 
 def phase_variable(var: Variable) -> Variable:
     """The phase ``v mod period`` of a periodic variable."""
     assert var.period is not None
-    return Variable(f"phase of {var.name} (mod {var.period:g} {var.unit})".replace(" )", ")"),
+    shown = var.period / DISPLAY_UNITS[var.unit]   # values are internal; shown as declared
+    return Variable(f"phase of {var.name} (mod {shown:g} {var.unit})".replace(" )", ")"),
                     np.mod(var.values, var.period), var.unit, None, "phase")
 
 
@@ -135,5 +138,6 @@ def periodogram(r: np.ndarray, var: Variable, max_cycles: float = 12.0,
     angular = 2 * np.pi * cycles / var.period
     power = scipy.signal.lombscargle(var.values, r - r.mean(), angular, normalize=True)
     peak = float(cycles[int(np.argmax(power))])
-    text = unit_text or f"per period ({var.period:g} {var.unit}) of {var.name}"
+    text = unit_text or (f"per period ({var.period / DISPLAY_UNITS[var.unit]:g} {var.unit}) "
+                         f"of {var.name}")
     return Periodogram(var.name, var.period, cycles, power, peak, text)

@@ -12,12 +12,12 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from symcal.cli import codegen, compare, diagnose, improve, simulate, solve
+from symcal.cli import codegen, compare, design, diagnose, improve, simulate, solve
 from symcal.cli.common import Parser, run_guarded
 
 #: The commands, in the order ``symcal --help`` lists them.
 COMMANDS = {"solve": solve, "diagnose": diagnose, "improve": improve, "compare": compare,
-            "codegen": codegen, "simulate": simulate}
+            "codegen": codegen, "simulate": simulate, "design": design}
 
 
 def _parser() -> argparse.ArgumentParser:

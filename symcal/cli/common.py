@@ -26,6 +26,7 @@ from symcal.errors import (
 
 if TYPE_CHECKING:
     from symcal.problem import Problem
+    from symcal.progress import Bars
 
 
 class UsageError(SymcalError):
@@ -63,7 +64,8 @@ def debug_option(parser: argparse.ArgumentParser) -> None:
 def data_options(parser: argparse.ArgumentParser) -> None:
     """The options every command that reads a problem's data shares."""
     parser.add_argument("--data", action="append", type=_data_option, default=[],
-                        metavar="NAME=PATH", help="replace dataset NAME with a CSV/NPZ file")
+                        metavar="NAME=PATH",
+                        help="replace dataset NAME with a CSV, NPZ or Parquet file")
     parser.add_argument("--drop-invalid", action="store_true",
                         help="drop rows with NaN/inf instead of refusing the data")
     debug_option(parser)
@@ -80,8 +82,47 @@ def data_map(args: argparse.Namespace) -> dict[str, str]:
 
 
 def progress(line: str) -> None:
-    """Print one progress line on stderr."""
-    print(escape_controls(line), file=sys.stderr, flush=True)
+    """Print one progress line on stderr (above an open progress bar, never through it)."""
+    from symcal.progress import write_line
+
+    write_line(escape_controls(line), sys.stderr)
+
+
+def progress_bars(args: argparse.Namespace) -> Bars | None:
+    """The progress bars of a command (:mod:`symcal.progress`): tqdm bars on stderr when
+    stderr is a terminal, None under ``--quiet`` or when stderr is a file or a pipe."""
+    if getattr(args, "quiet", False):
+        return None
+    from symcal.progress import terminal_bars
+
+    return terminal_bars(sys.stderr)
+
+
+@contextlib.contextmanager
+def solve_progress(args: argparse.Namespace, label: str = "solve"
+                   ) -> Iterator[Callable[[str], None] | None]:
+    """The progress callback of a solve: None under ``--quiet``; on a terminal, a bar
+    counting the solver's iterations with its latest iteration line beside it (other
+    lines, such as notes, are printed above the bar); else every line on stderr
+    (:func:`progress`)."""
+    if getattr(args, "quiet", False):
+        yield None
+        return
+    bars = progress_bars(args)
+    if bars is None:
+        yield progress
+        return
+    from symcal.progress import meter
+
+    with meter(bars, label, None, "it") as m:
+        def show(line: str) -> None:
+            if " iteration " not in line:
+                progress(line)
+                return
+            m.advance()
+            m.note(escape_controls(line.strip()))
+
+        yield show
 
 
 def write_stdout(text: str) -> None:

@@ -6,8 +6,6 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from symcal.cli.common import debug_option, inputs_of
 from symcal.errors import SymcalError
 
@@ -64,8 +62,10 @@ def run(args: argparse.Namespace) -> int:
         for name, target in targets.items():
             write_table(stage / target.name, simulate_run(scenario, name, seed=args.seed,
                                                           n=args.n))
-        doc = truth(scenario)
+        doc = truth(scenario, args.seed, args.n)
         doc["seed"] = args.seed
+        import yaml  # here, not at the top: ``symcal --help`` does not need it
+
         atomic_write_text(stage / truth_path.name, yaml.safe_dump(doc, sort_keys=False))
     for target in targets.values():
         print(f"wrote {target}")

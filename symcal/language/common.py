@@ -18,22 +18,22 @@ from symcal.language.fields import (
     expect_symbol,
 )
 from symcal.language.yamlio import YMap
-from symcal.suggest import did_you_mean
-from symcal.units import DISPLAY_UNITS
+from symcal.units import check_unit
 
 
 def display_unit(value: Any, where: Where) -> str:
-    """Validate a display unit (one of :data:`DISPLAY_UNITS`)."""
+    """Validate a unit string (any unit pint knows, :func:`symcal.units.parse_unit`;
+    ``""`` when absent), refusing an unknown one with a did-you-mean."""
     if value is None:
         return ""
-    text = str(value) if isinstance(value, (int, float)) else value
-    if not isinstance(text, str) or text not in DISPLAY_UNITS:
-        known = [u for u in DISPLAY_UNITS if u]
-        raise SpecError(
-            where,
-            f"unknown unit '{excerpt(value)}'{did_you_mean(str(value), known)}; "
-            f"known units: {', '.join(known)}",
-        )
+    text = str(value) if isinstance(value, (int, float)) and not isinstance(value, bool) \
+        else value
+    if not isinstance(text, str):
+        raise SpecError(where, f"a unit must be text, found '{excerpt(value)}'")
+    reason = check_unit(text)
+    if reason is not None:
+        raise SpecError(where, f"{reason}; units are pint's (mm, um, m, rad, mrad, deg, s, "
+                               "mm/s, ...)")
     return text
 
 
@@ -95,9 +95,7 @@ def _doc(entry: YMap, where: Where) -> str:
 def _unit(entry: YMap, where: Where) -> str:
     if "unit" not in entry:
         return ""
-    value = entry["unit"]
-    return expect_str(str(value) if isinstance(value, (int, float)) else value,
-                      child_where(entry, where, "unit"))
+    return display_unit(entry["unit"], child_where(entry, where, "unit"))
 
 
 def parse_constant(name: str, value: Any, where: Where) -> ConstantSpec:
@@ -111,7 +109,7 @@ def parse_constant(name: str, value: Any, where: Where) -> ConstantSpec:
 
 
 PARAMETER_KEYS = ["value", "unit", "lower", "upper", "fixed", "scale", "doc"]
-#: Widest range of magnitudes a parameter may span, in internal units (mm, rad, s): its
+#: Widest range of magnitudes a parameter may span, in its own unit: its
 #: scale lies within [1/MAGNITUDE, MAGNITUDE] and its value within MAGNITUDE scales.
 MAGNITUDE = 1e9
 _WHY = ("the solver and the identifiability analysis work in units of the scale, and double "
@@ -165,7 +163,7 @@ def _check_magnitude(spec: ParameterSpec, where: Where) -> None:
     """Refuse a scale or value whose magnitude would make the solve meaningless."""
     if spec.scale is not None and not 1 / MAGNITUDE <= spec.scale <= MAGNITUDE:
         raise SpecError(where, f"scale {spec.scale:g} is outside [{1 / MAGNITUDE:g}, "
-                               f"{MAGNITUDE:g}] (internal units mm, rad, s): {_WHY}")
+                               f"{MAGNITUDE:g}] (in the parameter's unit): {_WHY}")
     scale = spec.scale if spec.scale is not None else 1.0
     if abs(spec.value) > MAGNITUDE * scale:
         raise SpecError(where, f"initial value {spec.value:g} is more than {MAGNITUDE:g} times "

@@ -13,6 +13,7 @@ from symcal.language.common import (
     ExprSpec,
     ParameterSpec,
     check_unique,
+    display_unit,
     parse_constant,
     parse_expr,
     parse_parameter,
@@ -119,7 +120,7 @@ class ModelSpec:
 def _parse_input(name: str, value: Any, where: Where) -> InputSpec:
     expect_symbol(name, where, "an input's name")
     entry = check_keys(value, where, optional=["unit", "doc", "period"])
-    unit = str(entry.get("unit", ""))
+    unit = display_unit(entry.get("unit"), child_where(entry, where, "unit"))
     doc = expect_str(entry["doc"], child_where(entry, where, "doc")) if "doc" in entry else ""
     period = (
         parse_expr(entry["period"], child_where(entry, where, "period"))
@@ -136,7 +137,7 @@ def _parse_output(name: str, value: Any, where: Where) -> OutputSpec:
     doc = expect_str(entry["doc"], child_where(entry, where, "doc")) if "doc" in entry else ""
     return OutputSpec(
         name, parse_expr(entry["expr"], child_where(entry, where, "expr")),
-        str(entry.get("unit", "")), doc, where,
+        display_unit(entry.get("unit"), child_where(entry, where, "unit")), doc, where,
     )
 
 

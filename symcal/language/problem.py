@@ -35,6 +35,7 @@ from symcal.language.fields import (
     expect_str,
     expect_symbol,
 )
+from symcal.language.loss import LossSpec, parse_loss
 from symcal.language.model import (
     ImplicitSpec,
     ModelSpec,
@@ -80,7 +81,8 @@ class InstanceSpec:
 
 @dataclass(frozen=True)
 class QuantitySpec:
-    """A named expression, constraint or comparison side, with display unit and weight."""
+    """A named expression, constraint or comparison side, with display unit and weight;
+    a constraint may carry a robust ``loss``."""
 
     name: str
     expr: ExprSpec
@@ -88,6 +90,10 @@ class QuantitySpec:
     sigma: float
     doc: str
     where: Where
+    loss: LossSpec | None = None
+    #: True when ``sigma`` is written (in the constraint's unit), False for the default 1
+    #: (one internal unit: the constraint unweighted).
+    sigma_given: bool = False
 
 
 @dataclass(frozen=True)
@@ -241,7 +247,7 @@ def _parse_quantity(name: str, value: Any, where: Where, weighted: bool) -> Quan
     expect_symbol(name, where)
     if not isinstance(value, dict):
         return QuantitySpec(name, parse_expr(value, where), "", 1.0, "", where)
-    optional = ["unit", "doc"] + (["sigma"] if weighted else [])
+    optional = ["unit", "doc"] + (["sigma", "loss"] if weighted else [])
     entry = check_keys(value, where, required=["expr"], optional=optional)
     sigma = 1.0
     if "sigma" in entry:
@@ -249,10 +255,12 @@ def _parse_quantity(name: str, value: Any, where: Where, weighted: bool) -> Quan
         sigma = expect_number(entry["sigma"], at)
         if sigma <= 0:
             raise SpecError(at, f"sigma must be positive, found {entry['sigma']}")
+    unit = display_unit(entry.get("unit"), child_where(entry, where, "unit"))
+    loss = (parse_loss(entry["loss"], child_where(entry, where, "loss"), unit)
+            if "loss" in entry else None)
     return QuantitySpec(
-        name, parse_expr(entry["expr"], child_where(entry, where, "expr")),
-        display_unit(entry.get("unit"), child_where(entry, where, "unit")), sigma,
-        _doc(entry, where), where,
+        name, parse_expr(entry["expr"], child_where(entry, where, "expr")), unit, sigma,
+        _doc(entry, where), where, loss, "sigma" in entry,
     )
 
 
@@ -351,7 +359,8 @@ def _parse_column(name: str, value: Any, where: Where) -> ColumnSpec:
     entry = check_keys(value, where, optional=["unit", "doc", "role"])
     role = (expect_choice(entry["role"], child_where(entry, where, "role"), ROLES, "role")
             if "role" in entry else "")
-    return ColumnSpec(name, str(entry.get("unit", "")), _doc(entry, where), where, role)
+    return ColumnSpec(name, display_unit(entry.get("unit"), child_where(entry, where, "unit")),
+                      _doc(entry, where), where, role)
 
 
 def _parse_columns(doc: YMap, where: Where) -> dict[str, ColumnSpec]:
@@ -449,6 +458,11 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
     if "weighting" in doc:
         weighting = expect_choice(doc["weighting"], child_where(doc, where, "weighting"),
                                   WEIGHTINGS, "weighting")
+    robust = next((q for q in constraints.values() if q.loss is not None), None)
+    if weighting == "estimated" and robust is not None and robust.loss is not None:
+        raise SpecError(robust.loss.where, f"constraint '{robust.name}' declares a robust "
+                                           "loss, which 'weighting: estimated' does not "
+                                           "support: remove one of them")
     implicit = entries("implicit", parse_implicit)
     for key, item in implicit.items():
         if key not in expressions:

@@ -5,8 +5,10 @@ Public API::
     load_scenario(path) -> Scenario
     simulate_run(scenario, run, seed=0, n=None) -> {column: array}
     simulate(scenario, seed=0, n=None) -> {run: {column: array}}
-    truth(scenario) -> dict          # true parameters in the calibration models' names
+    truth(scenario, seed=None, n=None) -> dict  # true parameters, effects (slipped rows)
+    slipped_rows(scenario, run, seed=0, n=None) -> {segment: rows}  # count slips
     noise_floor(scenario) -> dict    # standard deviations noise alone leaves
+    input_noise(scenario) -> dict    # standard deviation of each column's noise
 """
 
 from symcal.simulate.courier import (
@@ -16,9 +18,11 @@ from symcal.simulate.courier import (
     SEGMENTS,
     columns,
     fourier_error,
+    input_noise,
     noise_floor,
     simulate,
     simulate_run,
+    slipped_rows,
     truth,
 )
 from symcal.simulate.scenario import Scenario, load_scenario, parse_scenario
@@ -31,10 +35,12 @@ __all__ = [
     "Scenario",
     "columns",
     "fourier_error",
+    "input_noise",
     "load_scenario",
     "noise_floor",
     "parse_scenario",
     "simulate",
     "simulate_run",
+    "slipped_rows",
     "truth",
 ]

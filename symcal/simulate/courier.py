@@ -32,6 +32,10 @@ switchable extras, each off unless the scenario lists it:
 - pitch variation: the tooth coordinate is ``u = p* + w(p*)`` with
   ``w(p) = sum A sin(2 pi p / wavelength + phase)``, ``w_x`` for s1, s3 and ``w_y`` for
   s2, s4 (without it ``u = p*``); the reading counts teeth.
+- count slips: on a share ``fraction`` of the observations (each drawn independently,
+  per segment, from a stream of its own) the segment's reading is off by ``+-pitch/4``, a
+  quadrature count lost or gained on that observation only (a glitch); the slipped rows
+  are in :func:`slipped_rows` and in :func:`truth` given a seed.
 
 Readings.  ``distortion_at: true_position`` (physics, default):
 ``p_bar = u - E(u - k0, q, theta, t)`` with ``E`` = eq. (3) + extras: the tooth error is
@@ -79,7 +83,8 @@ FOURIER_HARMONICS: tuple[int, ...] = (1, 2, 4, 6)
 PLATEN_COLUMNS: tuple[str, ...] = ("t", "p1", "p2", "p3", "p4")
 COORDINATION_COLUMNS: tuple[str, ...] = ("psi_x", "psi_y")
 REFERENCE_COLUMNS: tuple[str, ...] = ("x_ref", "y_ref", "theta_ref")
-STREAMS: dict[str, int] = {"pose": 0, "platen": 1, "coordination": 2, "reference": 3}
+STREAMS: dict[str, int] = {"pose": 0, "platen": 1, "coordination": 2, "reference": 3,
+                           "dwell": 4, "slips": 5}
 
 _X_SEGMENT = np.array([True, False, True, False])
 _READING_TOLERANCE = 1e-13
@@ -383,6 +388,42 @@ def platen_readings(platen: Platen, poses: Poses, rng: np.random.Generator) -> n
     return p_bar
 
 
+def slips(platen: Platen, count: int, rng: np.random.Generator) -> np.ndarray:
+    """The count slips of ``count`` observations (``(count, 4)``, mm): ``+-pitch/4`` where
+    a segment slipped, else 0; draws are row-wise (a prefix for a smaller ``count``)."""
+    out = np.zeros((count, 4))
+    entries = platen.effects.count_slips
+    if entries is None:
+        return out
+    draws = rng.uniform(size=(count, 4, 2))
+    for i, entry in enumerate(entries):
+        hit = draws[:, i, 0] < entry.fraction
+        out[hit, i] = np.where(draws[hit, i, 1] < 0.5, -0.25, 0.25) * platen.pitch
+    return out
+
+
+def slipped_rows(scenario: Scenario, run: str, seed: int = 0,
+                 n: int | None = None) -> dict[str, list[int]]:
+    """The rows (from 0) of each segment whose reading slipped, in one simulated run.
+
+    Parameters
+    ----------
+    scenario, run, seed, n
+        As for :func:`simulate_run`.
+
+    Returns
+    -------
+    dict
+        Segment name → sorted row indices (empty without the ``count_slips`` effect).
+    """
+    _check_counts(seed, n)
+    index = scenario.run_index(run)
+    motion = scenario.runs[index].motion
+    jumps = slips(scenario.platen, motion.n if n is None else n, stream(seed, index, "slips"))
+    return {name: [int(r) for r in np.flatnonzero(jumps[:, i])]
+            for i, name in enumerate(SEGMENTS)}
+
+
 def coordination_displacement(coord: Coordination, poses: Poses) -> tuple[np.ndarray, np.ndarray]:
     """True ``c = R(t)^T ((x, y) - o) - l`` of eq. (11), before nonlinearity (mm)."""
     dx, dy = poses.x - coord.o_x, poses.y - coord.o_y
@@ -409,8 +450,10 @@ def coordination_angles(
 # --------------------------------------------------------------------------- motions
 
 
-def run_poses(scenario: Scenario, run: Run, rng: np.random.Generator, n: int | None) -> Poses:
-    """True poses of ``run`` (``n`` overrides its sample count)."""
+def run_poses(scenario: Scenario, run: Run, rng: np.random.Generator, n: int | None,
+              dwell_rng: np.random.Generator | None = None) -> Poses:
+    """True poses of ``run`` (``n`` overrides its sample count); a scatter with ``dwell``
+    draws which poses dwell at the ends of its angle range from ``dwell_rng``."""
     motion = run.motion
     count = motion.n if n is None else n
     if isinstance(motion, Line):
@@ -420,6 +463,11 @@ def run_poses(scenario: Scenario, run: Run, rng: np.random.Generator, n: int | N
         high = (motion.x[1], motion.y[1], motion.theta[1])
         draws = rng.uniform(low, high, size=(count, 3))
         sx, sy, theta = draws[:, 0].copy(), draws[:, 1].copy(), draws[:, 2].copy()
+        if motion.dwell > 0.0:
+            ends = (np.random.default_rng(0) if dwell_rng is None else dwell_rng).uniform(
+                size=(count, 2))
+            at_end = ends[:, 0] < motion.dwell
+            theta[at_end] = np.where(ends[at_end, 1] < 0.5, motion.theta[0], motion.theta[1])
     if motion.rotate_about == "coordination":
         coord = scenario.coordination
         assert coord is not None  # guaranteed by the scenario loader
@@ -489,8 +537,10 @@ def simulate_run(
     """
     _check_counts(seed, n)
     index = scenario.run_index(run)
-    poses = run_poses(scenario, scenario.runs[index], stream(seed, index, "pose"), n)
+    poses = run_poses(scenario, scenario.runs[index], stream(seed, index, "pose"), n,
+                      stream(seed, index, "dwell"))
     readings = platen_readings(scenario.platen, poses, stream(seed, index, "platen"))
+    readings = readings + slips(scenario.platen, len(poses.t), stream(seed, index, "slips"))
     out = {"t": poses.t}
     for i in range(4):
         out[f"p{i + 1}"] = np.ascontiguousarray(readings[:, i])
@@ -521,8 +571,17 @@ def simulate(
     return {name: simulate_run(scenario, name, seed, n) for name in scenario.run_names}
 
 
-def truth(scenario: Scenario) -> dict:
+def truth(scenario: Scenario, seed: int | None = None, n: int | None = None) -> dict:
     """The true parameters and effects of a scenario, as a plain YAML-able dict.
+
+    Parameters
+    ----------
+    scenario
+        The scenario.
+    seed, n
+        With a seed (and the ``n`` that overrides each run's count, as for
+        :func:`simulate_run`), ``effects.count_slips.values.rows`` lists the slipped rows
+        of every run and segment (:func:`slipped_rows`).
 
     Returns
     -------
@@ -550,7 +609,7 @@ def truth(scenario: Scenario) -> dict:
         "scenario": scenario.name,
         "parameters": parameters,
         "constants": {"pitch": platen.pitch, "l_s": platen.l_s, "l_o": platen.l_o},
-        "effects": _effects_truth(scenario),
+        "effects": _effects_truth(scenario, seed, n),
         "noise": _noise_truth(scenario),
     }
 
@@ -562,7 +621,7 @@ def _per_segment_values(entries: tuple, keys: tuple[str, ...]) -> dict[str, dict
     }
 
 
-def _effects_truth(scenario: Scenario) -> dict:
+def _effects_truth(scenario: Scenario, seed: int | None = None, n: int | None = None) -> dict:
     platen = scenario.platen
     eff = platen.effects
     out: dict[str, dict] = {
@@ -608,6 +667,13 @@ def _effects_truth(scenario: Scenario) -> dict:
             for axis in ("x", "y")
         },
     )
+    out["count_slips"] = _switch(
+        eff.count_slips, "on a share 'fraction' of the observations the reading is off by "
+        "+-pitch/4 (a glitch of that observation)",
+        lambda v: {"fraction": {name: e.fraction for name, e in zip(SEGMENTS, v, strict=True)},
+                   **({} if seed is None else {"rows": {
+                       run: slipped_rows(scenario, run, seed, n)
+                       for run in scenario.run_names}})})
     coord = scenario.coordination
     out["psd_nonlinearity"] = _switch(
         None if coord is None else coord.nonlinearity,
@@ -633,6 +699,24 @@ def _noise_truth(scenario: Scenario) -> dict[str, float]:
     }
     if scenario.coordination is not None:
         out["psi_sigma"] = scenario.coordination.noise
+    return out
+
+
+def input_noise(scenario: Scenario) -> dict[str, float]:
+    """Standard deviation of each simulated column's noise (mm, rad), by column name.
+
+    A platen reading has ``sqrt(sigma^2 + q^2 / 12)`` (quantization as uniform error), a
+    coordination angle the scenario's ``coordination.noise``, a reference column its
+    reference noise; the time column is exact (0).  Every column's noise is independent
+    of every other's.
+    """
+    platen = scenario.platen
+    s = math.sqrt(platen.noise**2 + platen.quantization**2 / 12.0)
+    out = {"t": 0.0, "p1": s, "p2": s, "p3": s, "p4": s}
+    if scenario.coordination is not None:
+        out["psi_x"] = out["psi_y"] = scenario.coordination.noise
+    ref = scenario.reference
+    out.update(x_ref=ref.position_noise, y_ref=ref.position_noise, theta_ref=ref.angle_noise)
     return out
 
 

@@ -27,6 +27,7 @@ Schema (``*`` marks a required key; every other key has the default shown)::
         harmonics:       {s1: [{n*: 3, sin: 0, cos: 0}, ...], ...}  # mm
         drift:           {s1: {rate: 0, quadratic: 0}, ...}         # mm/s, mm/s^2
         pitch_variation: {x: [{amplitude*: .., wavelength*: .., phase: 0}, ...], y: [...]}
+        count_slips:     {s1: {fraction*: 0.01}, ...}  # readings off by +-pitch/4 (glitches)
     coordination:                     # optional: the coordination sensor (eq. 10-11)
       h*: ..                          # height of the beacon above the PSD (mm)
       l_x*: ..                        # body offset coordination sensor -> platen sensor (mm)
@@ -51,6 +52,7 @@ Schema (``*`` marks a required key; every other key has the default shown)::
           y*: [lo, hi]                # mm
           theta_deg*: [lo, hi]        # degrees
           rotate_about: platen        # or: coordination
+          dwell: 0                    # share of poses at the ends of the theta range
         line:
           n*: 400
           from*: [x, y]               # mm
@@ -58,6 +60,22 @@ Schema (``*`` marks a required key; every other key has the default shown)::
           theta_deg: 0                # constant angle (degrees)
           theta_jitter_deg: 0         # sigma of Gaussian jitter on theta (degrees)
           rotate_about: platen        # or: coordination
+
+    design:                           # optional: what ``symcal design`` may change
+      run*: NAME                      # a scatter run
+      doc: TEXT
+      limits*:                        # each listed motion parameter may change within
+        x: [lo, hi]                   #   its limits (mm); unlisted ones stay as written
+        y: [lo, hi]                   # mm
+        theta_deg: [lo, hi]           # degrees
+        dwell: [lo, hi]               # within [0, 1]
+        n: [lo, hi]                   # whole numbers of observations
+
+``dwell: w`` makes a share ``w`` of a scatter's poses dwell at the two ends of its
+``theta_deg`` range (half at each; drawn from a stream of their own, so the positions stay
+those of the same scatter without dwell); the rest turn uniformly over the range.  A
+``design`` section declares the courier's limits: the motion the run describes must lie
+within them.
 
 ``rotate_about: coordination`` (needs a ``coordination`` section) means that the sampled
 or interpolated ``(x, y)`` are the world position ``s`` of the coordination sensor's
@@ -94,7 +112,10 @@ FOURIER_KEYS: tuple[str, ...] = tuple(f"k{j}" for j in range(9))
 DISTORTION_MODES: tuple[str, ...] = ("true_position", "reading")
 GEOMETRIES: tuple[str, ...] = ("exact", "small_angle")
 PIVOTS: tuple[str, ...] = ("platen", "coordination")
-EFFECT_NAMES: tuple[str, ...] = ("lateral", "angle", "harmonics", "drift", "pitch_variation")
+EFFECT_NAMES: tuple[str, ...] = ("lateral", "angle", "harmonics", "drift", "pitch_variation",
+                                 "count_slips")
+#: The motion parameters of a scatter run that a ``design`` section may let change.
+DESIGN_KEYS: tuple[str, ...] = ("x", "y", "theta_deg", "dwell", "n")
 
 DEFAULT_PITCH = 1.016
 DEFAULT_L_S = 9.7
@@ -159,6 +180,15 @@ class PitchVariation:
 
 
 @dataclass(frozen=True)
+class CountSlip:
+    """Quadrature count slips of one segment: on a share ``fraction`` of the observations,
+    drawn at random, its reading is off by a quarter pitch (either sign), a glitch of
+    that one observation."""
+
+    fraction: float = 0.0
+
+
+@dataclass(frozen=True)
 class Effects:
     """The switchable effects; ``None`` means off, otherwise one entry per segment s1..s4."""
 
@@ -167,6 +197,7 @@ class Effects:
     harmonics: tuple[tuple[Harmonic, ...], ...] | None = None
     drift: tuple[Drift, ...] | None = None
     pitch_variation: PitchVariation | None = None
+    count_slips: tuple[CountSlip, ...] | None = None
 
     def active(self) -> tuple[str, ...]:
         """Names of the effects that are switched on."""
@@ -222,13 +253,15 @@ class Reference:
 
 @dataclass(frozen=True)
 class Scatter:
-    """``n`` poses drawn uniformly over ``x`` x ``y`` x ``theta`` (mm, mm, rad)."""
+    """``n`` poses drawn uniformly over ``x`` x ``y`` x ``theta`` (mm, mm, rad); a share
+    ``dwell`` of them at the two ends of the ``theta`` range instead."""
 
     n: int
     x: tuple[float, float]
     y: tuple[float, float]
     theta: tuple[float, float]
     rotate_about: str = "platen"
+    dwell: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -255,6 +288,26 @@ class Run:
 
 
 @dataclass(frozen=True)
+class DesignSpace:
+    """What ``symcal design`` may change: the motion parameters of one scatter run and
+    their limits (``x``, ``y`` in mm, ``theta_deg`` in degrees, ``dwell``, ``n``)."""
+
+    run: str
+    limits: tuple[tuple[str, tuple[float, float]], ...]
+    doc: str = ""
+    where: Where = field(default=Where("<scenario>"), compare=False)
+
+    @property
+    def bounds(self) -> dict[str, tuple[float, float]]:
+        """The limits by motion parameter (``DESIGN_KEYS`` order)."""
+        return dict(self.limits)
+
+    def limit_where(self, key: str) -> Where:
+        """Provenance of the limit of ``key``."""
+        return self.where.child("limits").child(key)
+
+
+@dataclass(frozen=True)
 class Scenario:
     """A validated courier scenario (see the module docstring for the YAML schema)."""
 
@@ -266,6 +319,7 @@ class Scenario:
     doc: str = ""
     source: str = "<scenario>"
     runs_where: Where = field(default=Where("<scenario>"), compare=False)
+    design: DesignSpace | None = None
 
     @property
     def run_names(self) -> tuple[str, ...]:
@@ -433,6 +487,18 @@ def _pitch_variation(value: Any, where: Where) -> PitchVariation:
     return out
 
 
+def _count_slip(value: Any, where: Where) -> CountSlip:
+    if value is None:
+        return CountSlip()
+    mapping = check_keys(value, where, required=("fraction",))
+    fraction = _number(mapping, where, "fraction", nonnegative=True)
+    if fraction > 1.0:
+        raise SpecError(child_where(mapping, where, "fraction"),
+                        f"fraction is a share of the observations: expected a number from 0 "
+                        f"to 1, found {fraction:g}")
+    return CountSlip(fraction)
+
+
 def _effects(value: Any, where: Where) -> Effects:
     mapping = check_keys(value, where, optional=EFFECT_NAMES)
     parsers = {
@@ -441,6 +507,7 @@ def _effects(value: Any, where: Where) -> Effects:
         "harmonics": lambda v, w: _per_segment(v, w, _harmonics),
         "drift": lambda v, w: _per_segment(v, w, _drift),
         "pitch_variation": _pitch_variation,
+        "count_slips": lambda v, w: _per_segment(v, w, _count_slip),
     }
     found: dict[str, Any] = {
         name: parsers[name](mapping[name], child_where(mapping, where, name))
@@ -523,7 +590,12 @@ def _pivot(mapping: YMap, where: Where, has_coordination: bool) -> str:
 
 def _scatter(value: Any, where: Where, has_coordination: bool) -> Scatter:
     mapping = check_keys(value, where, required=("n", "x", "y", "theta_deg"),
-                         optional=("rotate_about",))
+                         optional=("rotate_about", "dwell"))
+    dwell = _number(mapping, where, "dwell", 0.0, nonnegative=True)
+    if dwell > 1.0:
+        raise SpecError(child_where(mapping, where, "dwell"),
+                        f"dwell is a share of the poses: expected a number from 0 to 1, "
+                        f"found {dwell:g}")
     return Scatter(
         n=expect_int(mapping["n"], child_where(mapping, where, "n"), minimum=1,
                      maximum=MAX_SAMPLES),
@@ -531,6 +603,7 @@ def _scatter(value: Any, where: Where, has_coordination: bool) -> Scatter:
         y=_range(mapping, where, "y"),
         theta=_range(mapping, where, "theta_deg", math.pi / 180.0),
         rotate_about=_pivot(mapping, where, has_coordination),
+        dwell=dwell,
     )
 
 
@@ -582,6 +655,63 @@ def _runs(value: Any, where: Where, has_coordination: bool) -> tuple[Run, ...]:
     return tuple(out)
 
 
+# --------------------------------------------------------------------------- design
+
+
+def _limit(mapping: YMap, where: Where, key: str) -> tuple[float, float]:
+    lo, hi = _range(mapping, where, key)
+    kw = child_where(mapping, where, key)
+    if key == "dwell" and not 0.0 <= lo <= hi <= 1.0:
+        raise SpecError(kw, f"dwell is a share of the poses: its limits must lie within "
+                            f"[0, 1], found [{lo:g}, {hi:g}]")
+    if key == "n":
+        if lo != int(lo) or hi != int(hi) or lo < 1 or hi > MAX_SAMPLES:
+            raise SpecError(kw, f"n's limits must be whole numbers from 1 to {MAX_SAMPLES}, "
+                                f"found [{lo:g}, {hi:g}]")
+    return lo, hi
+
+
+def _motion_values(motion: Scatter) -> dict[str, tuple[float, float]]:
+    """The scatter's motion parameters in the units of a design's limits."""
+    deg = 180.0 / math.pi
+    return {"x": motion.x, "y": motion.y,
+            "theta_deg": (motion.theta[0] * deg, motion.theta[1] * deg),
+            "dwell": (motion.dwell, motion.dwell), "n": (float(motion.n), float(motion.n))}
+
+
+def _design(value: Any, where: Where, runs: tuple[Run, ...]) -> DesignSpace:
+    mapping = check_keys(value, where, required=("run", "limits"), optional=("doc",))
+    rw = child_where(mapping, where, "run")
+    name = expect_name(mapping["run"], rw, "a run name")
+    names = tuple(run.name for run in runs)
+    if name not in names:
+        raise SpecError(rw, f"no run named '{name}'{did_you_mean(name, names)}; runs: "
+                            f"{', '.join(names)}")
+    motion = runs[names.index(name)].motion
+    if not isinstance(motion, Scatter):
+        raise SpecError(rw, f"run '{name}' is a line; only a scatter run can be designed")
+    lw = child_where(mapping, where, "limits")
+    limits_map = check_keys(mapping["limits"], lw, optional=DESIGN_KEYS)
+    if not limits_map:
+        raise SpecError(lw, f"lists no motion parameter that may change; list some of "
+                            f"{', '.join(DESIGN_KEYS)}")
+    limits = tuple((key, _limit(limits_map, lw, key)) for key in DESIGN_KEYS
+                   if key in limits_map)
+    current = _motion_values(motion)
+    for key, (lo, hi) in limits:
+        a, b = current[key]
+        if a < lo - 1e-12 * max(1.0, abs(lo)) or b > hi + 1e-12 * max(1.0, abs(hi)):
+            shown = f"{a:g}" if a == b else f"[{a:g}, {b:g}]"
+            raise SpecError(child_where(limits_map, lw, key),
+                            f"run '{name}' has {key} {shown}, outside its limits "
+                            f"[{lo:g}, {hi:g}]")
+    doc = mapping.get("doc")
+    return DesignSpace(name, limits,
+                       "" if doc is None else expect_str(doc, child_where(mapping, where,
+                                                                          "doc")).strip(),
+                       where)
+
+
 # --------------------------------------------------------------------------- entry points
 
 
@@ -607,22 +737,27 @@ def parse_scenario(doc: YMap, where: Where) -> Scenario:
         and key path.
     """
     check_keys(doc, where, required=("scenario", "platen", "runs"),
-               optional=("doc", "extends", "coordination", "reference"))
+               optional=("doc", "extends", "coordination", "reference", "design"))
     name = expect_name(doc["scenario"], child_where(doc, where, "scenario"), "a scenario name")
     coordination = None
     if "coordination" in doc:
         coordination = _coordination(doc["coordination"], child_where(doc, where, "coordination"))
     runs_where = child_where(doc, where, "runs")
     text = doc.get("doc")
+    runs = _runs(doc["runs"], runs_where, coordination is not None)
+    design = None
+    if doc.get("design") is not None:
+        design = _design(doc["design"], child_where(doc, where, "design"), runs)
     return Scenario(
         name=name,
         platen=_platen(doc["platen"], child_where(doc, where, "platen")),
-        runs=_runs(doc["runs"], runs_where, coordination is not None),
+        runs=runs,
         coordination=coordination,
         reference=_reference(doc.get("reference"), child_where(doc, where, "reference")),
         doc="" if text is None else expect_str(text, child_where(doc, where, "doc")).strip(),
         source=where.file,
         runs_where=runs_where,
+        design=design,
     )
 
 

@@ -11,8 +11,8 @@ Code run inside :func:`counting` is counted; outside it nothing is recorded::
 A *pass* is one evaluation of the per-observation functions over a whole dataset, chunk
 by chunk, by a method of :class:`~symcal.solvers.objective.Objective`:
 
-* a **residual** pass evaluates residuals only (``cost``, ``residual_covariance``,
-  ``residuals`` and what is built on it, such as ``cost_terms``);
+* a **residual** pass evaluates residuals only (``cost``, ``cost_terms``,
+  ``residual_covariance``, ``residuals``);
 * a **linearised** pass evaluates residuals and their Jacobian and reduces them to the
   normal equations (``normal_equations``);
 * an **R** pass evaluates residuals and Jacobian and reduces them to an R factor

@@ -14,10 +14,9 @@ import time
 
 import numpy as np
 
-from symcal.data import Dataset
 from symcal.linalg import rank_tolerance
 from symcal.solvers.base import SolverOutput
-from symcal.solvers.objective import Objective
+from symcal.solvers.objective import Objective, Source
 
 
 def min_norm_step(r: np.ndarray, c: np.ndarray, scales: np.ndarray, rows: int) -> np.ndarray:
@@ -28,7 +27,7 @@ def min_norm_step(r: np.ndarray, c: np.ndarray, scales: np.ndarray, rows: int) -
     return scales * z
 
 
-def solve_linear(objective: Objective, dataset: Dataset, theta0: np.ndarray) -> SolverOutput:
+def solve_linear(objective: Objective, dataset: Source, theta0: np.ndarray) -> SolverOutput:
     """Minimise an objective that is linear in its free parameters, in closed form.
 
     Parameters

@@ -6,7 +6,9 @@
   converge in few iterations.  Jᵀg and JᵀJ are accumulated with BLAS per chunk, so no
   N × n Jacobian is stored and the expression graph never grows with N.
 * Cost, gradient and Hessian reach IPOPT through CasADi callbacks that share one
-  evaluation per iterate; line-search trials evaluate residuals only.
+  evaluation per iterate.  A trial point is evaluated with its derivatives (one pass per
+  accepted iteration); after a rejected trial, trials evaluate residuals only until one
+  is accepted.
 * IPOPT works on x = θ_free / scale (each parameter's nominal magnitude), with bounds.
 * A failed solve returns its last iterate, marked failed; it is never a silent success.
 * Ctrl-C (KeyboardInterrupt, or the command line's SIGTERM, a subclass of it) inside a
@@ -29,10 +31,9 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from symcal.data import Dataset
 from symcal.solvers import instrument
 from symcal.solvers.base import SolverOutput
-from symcal.solvers.objective import Objective
+from symcal.solvers.objective import Objective, Source
 
 #: IPOPT's return statuses in words; the boolean says whether the estimate can be used.
 PRINT_LEVEL = 0
@@ -120,7 +121,7 @@ class _Stop:
 class _Oracle:
     """Cost, gradient and Gauss-Newton Hessian of the scaled problem, cached per iterate."""
 
-    def __init__(self, objective: Objective, dataset: Dataset, theta0: np.ndarray) -> None:
+    def __init__(self, objective: Objective, dataset: Source, theta0: np.ndarray) -> None:
         self.objective = objective
         self.dataset = dataset
         self.base = np.array(theta0, dtype=float)
@@ -133,6 +134,8 @@ class _Oracle:
         self.evaluations = 0
         self.best: tuple[float, np.ndarray] | None = None   # lowest cost seen, at x
         self.nonfinite = 0                                  # evaluations giving NaN/inf
+        self.trial_linearised = True    # evaluate trial points with their derivatives
+        self.trials: set[bytes] = set()  # trial points evaluated since the last accepted
 
     def _seen(self, x: np.ndarray, cost: float) -> None:
         if not math.isfinite(cost):
@@ -147,18 +150,32 @@ class _Oracle:
         return theta
 
     def cost(self, x: np.ndarray) -> float:
+        """The scaled cost at ``x``.  A trial point is evaluated with its derivatives (one
+        linearised pass, not a residual pass and then a linearised one): a Gauss-Newton
+        step is nearly always accepted, and IPOPT then asks for the gradient and Hessian
+        at that point.  After a rejected trial the next one is evaluated by a residual
+        pass only, until a trial is accepted again."""
         key = x.tobytes()
         if key == self.key and self.terms is not None:
             return self.terms[0] / self.cost_scale
         if key not in self.costs:
             if len(self.costs) > 64:
                 self.costs.clear()
-            self.costs[key] = self.objective.cost(self.dataset, self.theta(x))
-            self._seen(x, self.costs[key])
+            if self.trials:             # the previous trial was not accepted
+                self.trial_linearised = False
+            if self.trial_linearised:
+                self.costs[key] = self._terms(x)[0]
+            else:
+                self.costs[key] = self.objective.cost(self.dataset, self.theta(x))
+                self._seen(x, self.costs[key])
+            self.trials.add(key)
         return self.costs[key] / self.cost_scale
 
     def _terms(self, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         key = x.tobytes()
+        if key in self.trials:          # derivatives asked at a trial point: accepted
+            self.trials.clear()
+            self.trial_linearised = True
         if key != self.key:
             self.evaluations += 1
             cost, jtg, jtj = self.objective.normal_equations(self.dataset, self.theta(x))
@@ -321,7 +338,7 @@ def _ipopt_round(
 
 def solve_ipopt(
     objective: Objective,
-    dataset: Dataset,
+    dataset: Source,
     theta0: np.ndarray,
     progress: Callable[[str], None] | None = None,
     max_iter: int = 200,

@@ -1,22 +1,50 @@
 """The least-squares objective of one solve: chosen constraints, chosen free parameters.
 
 J(θ) = Σ_obs Σ_k (g_k(θ, u)/σ_k)².  Everything is built symbolically for ONE observation
-and evaluated over all of them with CasADi ``map`` (serial), in chunks, so the graph never
-grows with N and memory is bounded.
+(once per process for a problem's stage) and evaluated over all of them with CasADi
+``map`` (serial), in chunks, so the graph never grows with N and memory is bounded.  Every
+method is one pass over the data (:mod:`symcal.solvers.passes`) on an executor
+(:mod:`symcal.solvers.executor`): the chunks of an in-memory dataset on threads for large
+N, or the shards of a partitioned one (:mod:`symcal.shards`) on Dask workers.
 """
 
 from __future__ import annotations
 
+import copy
+import weakref
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import casadi as ca
 import numpy as np
-import scipy.linalg
 
+from symcal import jit
 from symcal.data import Dataset
-from symcal.numeric import Mapped, chunks, mapped
+from symcal.errors import SolveError
+from symcal.numeric import Mapped, chunks, shared_mapped
 from symcal.problem import Problem
+from symcal.shards import ShardedDataset
 from symcal.solvers import instrument
+from symcal.solvers.executor import Executor, SerialExecutor, current, default_executor
+from symcal.solvers.passes import Kind, Pass, run_pass
+
+#: What a pass reads: a dataset in memory, or one kept as shards on disk.
+Source = Dataset | ShardedDataset
+
+
+@dataclass(frozen=True)
+class _Built:
+    """What an objective builds: its residual, Jacobian and mapped functions."""
+
+    g: ca.SX
+    jac: ca.SX
+    mapped: dict[str, Mapped]
+
+
+#: Per problem (while it lives), what its objectives built, by (constraints, free
+#: parameters, whitening): a problem's stages and repeated solves build each once.
+_BUILT: weakref.WeakKeyDictionary[Problem, dict[Any, Any]] = weakref.WeakKeyDictionary()
 
 
 @dataclass(frozen=True, eq=False)
@@ -34,12 +62,23 @@ class Objective:
     whiten
         Optional ``n_g × n_g`` matrix T: the cost becomes Σ ‖T g‖², e.g. T = S^-½ for an
         estimated covariance S between the constraints of one observation.
+    row_weights
+        Optional ``N × n_g`` factors multiplying each residual row and its Jacobian row
+        (the cost becomes Σ (w g)²): the square roots of the weights of an iteratively
+        reweighted solve (:mod:`symcal.solvers.robust`); see :meth:`with_row_weights`.
+    executor
+        Who runs the passes (:mod:`symcal.solvers.executor`).  None: the executor of
+        an enclosing ``executor.using`` block; else in-memory data by
+        :func:`~symcal.solvers.executor.default_executor` (threads for large N), and a
+        partitioned dataset shard after shard in this process.
     """
 
     problem: Problem
     constraints: tuple[str, ...]
     free: np.ndarray
     whiten: np.ndarray | None = None
+    row_weights: np.ndarray | None = None
+    executor: Executor | None = None
     g: ca.SX = field(init=False, repr=False)
     jac: ca.SX = field(init=False, repr=False)
     _cache: dict[str, Mapped] = field(default_factory=dict, init=False, repr=False)
@@ -47,12 +86,31 @@ class Objective:
     def __post_init__(self) -> None:
         free = np.asarray(self.free, dtype=bool)
         object.__setattr__(self, "free", free)
-        quantities = [self.problem.constraint(n) for n in self.constraints]
-        g = ca.vertcat(*(q.sx / q.sigma for q in quantities))
-        if self.whiten is not None:
-            g = ca.mtimes(ca.DM(self.whiten), g)
-        object.__setattr__(self, "g", g)
-        object.__setattr__(self, "jac", ca.jacobian(g, self.theta_free))
+        key = (tuple(self.constraints), free.tobytes(),
+               None if self.whiten is None else np.asarray(self.whiten, float).tobytes())
+        built = _BUILT.setdefault(self.problem, {})
+        if key not in built:            # once per process for a problem's stage
+            quantities = [self.problem.constraint(n) for n in self.constraints]
+            g = ca.vertcat(*(q.sx / q.sigma for q in quantities))
+            if self.whiten is not None:
+                g = ca.mtimes(ca.DM(self.whiten), g)
+            built[key] = _Built(g, ca.jacobian(g, self.theta_free), {})
+        shared = built[key]
+        object.__setattr__(self, "g", shared.g)
+        object.__setattr__(self, "jac", shared.jac)
+        object.__setattr__(self, "_cache", shared.mapped)
+
+    def with_row_weights(self, row_weights: np.ndarray | None) -> Objective:
+        """This objective with other per-row factors (None: none), sharing its built
+        functions (no CasADi function is built again)."""
+        twin = copy.copy(self)
+        object.__setattr__(twin, "row_weights",
+                           None if row_weights is None else np.asarray(row_weights, float))
+        return twin
+
+    def _factor(self, part: slice) -> np.ndarray | float:
+        """Per-row factors of the observations ``part`` (``m × n_g``), or 1."""
+        return 1.0 if self.row_weights is None else self.row_weights[part]
 
     @property
     def theta_free(self) -> ca.SX:
@@ -76,12 +134,16 @@ class Objective:
 
     def nonlinear(self) -> list[str]:
         """Constraints of the cost that are not linear in the free parameters."""
-        theta_free = self.theta_free
-        return [n for n in self.constraints
-                if not ca.is_linear(self.problem.constraint(n).sx, theta_free)]
+        key = ("nonlinear", self.free.tobytes(), tuple(self.constraints))
+        memo = _BUILT.setdefault(self.problem, {})
+        if key not in memo:
+            theta_free = self.theta_free
+            memo[key] = [n for n in self.constraints
+                         if not ca.is_linear(self.problem.constraint(n).sx, theta_free)]
+        return list(memo[key])
 
     def accumulate_r(
-        self, dataset: Dataset, theta: np.ndarray, transform: np.ndarray | None = None
+        self, dataset: Source, theta: np.ndarray, transform: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, float, int]:
         """R factor of the weighted Jacobian and the reduced residual at ``theta``.
 
@@ -96,51 +158,38 @@ class Objective:
         (R, c, tail, rows)
             ``‖J δ + g‖² = ‖R δ + c‖² + tail`` for every step δ of the free parameters,
             J and g the weighted Jacobian and residual at ``theta``; ``rows`` counts the
-            residual rows.  Accumulated chunk by chunk (TSQR).
+            residual rows.  Accumulated chunk by chunk (TSQR: one QR per chunk, the
+            chunks' R factors combined in order).
         """
         instrument.record_pass("r", "accumulate_r", dataset.n)
-        fn = self._mapped("linearised", [self.g, self.jac.T])
-        n, ng = int(self.free.sum()), self.g.shape[0]
-        u = dataset.matrix(self.problem.columns)
-        r_aug = np.zeros((0, n + 1))
-        rows = 0
-        for part in chunks(dataset.n):
-            g0, jt = fn.chunk(theta, u[:, part])
-            m = g0.shape[0]
-            jac = jt.reshape(m, ng, n)
-            if transform is not None:
-                g0 = g0 @ transform.T
-                jac = np.einsum("ab,mbn->man", transform, jac)
-            block = np.column_stack([jac.reshape(m * ng, n), g0.reshape(m * ng)])
-            r_aug = scipy.linalg.qr(np.vstack([r_aug, block]), mode="r",
-                                    check_finite=False)[0][: n + 1]
-            rows += m * ng
+        n = int(self.free.sum())
+        out = self._pass("r", "linearised", dataset, theta, transform)
+        r_aug, rows = out if out is not None else (np.zeros((0, n + 1)), 0)
         if r_aug.shape[0] < n + 1:
             r_aug = np.vstack([r_aug, np.zeros((n + 1 - r_aug.shape[0], n + 1))])
         return r_aug[:n, :n], r_aug[:n, n], float(r_aug[n, n] ** 2), rows
 
-    def residual_covariance(self, dataset: Dataset, theta: np.ndarray, rank: int) -> np.ndarray:
+    def residual_covariance(self, dataset: Source, theta: np.ndarray, rank: int) -> np.ndarray:
         """Covariance between the weighted constraints of one observation (``n_g × n_g``),
         estimated from the residuals at ``theta`` with ``rank`` degrees of freedom used."""
         instrument.record_pass("residual", "residual_covariance", dataset.n)
-        fn = self._mapped("residual", [self.g])
-        g = fn(theta, dataset.matrix(self.problem.columns))[0]
-        rows = g.size
-        return (g.T @ g) / dataset.n * rows / max(rows - rank, 1)
+        gram, count = self._pass("gram", "residual", dataset, theta)
+        rows = count * self.g.shape[0]
+        return gram / count * rows / max(rows - rank, 1)
 
     def residuals(self, dataset: Dataset, theta: np.ndarray) -> np.ndarray:
-        """Weighted residuals at ``theta``, ``N × n_g``."""
+        """Weighted residuals at ``theta``, ``N × n_g`` (in-memory data only)."""
         instrument.record_pass("residual", "residuals", dataset.n)
-        fn = self._mapped("residual", [self.g])
-        return fn(theta, dataset.matrix(self.problem.columns))[0]
+        return np.asarray(self._pass("residuals", "residual", dataset, theta))
 
-    def cost_terms(self, dataset: Dataset, theta: np.ndarray) -> dict[str, float]:
+    def cost_terms(self, dataset: Source, theta: np.ndarray) -> dict[str, float]:
         """Σ (g_k/σ_k)² of each constraint of the cost at ``theta``."""
-        g = self.residuals(dataset, theta)
-        return {name: float(np.sum(g[:, k] ** 2)) for k, name in enumerate(self.constraints)}
+        instrument.record_pass("residual", "cost_terms", dataset.n)
+        terms = self._pass("terms", "residual", dataset, theta)
+        return {name: float(terms[k]) for k, name in enumerate(self.constraints)}
 
     def normal_equations(
-        self, dataset: Dataset, theta: np.ndarray
+        self, dataset: Source, theta: np.ndarray
     ) -> tuple[float, np.ndarray, np.ndarray]:
         """``(Σ g², Jᵀg, JᵀJ)`` of the weighted residual at ``theta``, by chunks.
 
@@ -148,28 +197,48 @@ class Objective:
         reduced with BLAS, so memory stays bounded whatever N is.
         """
         instrument.record_pass("linearised", "normal_equations", dataset.n)
-        fn = self._mapped("linearised", [self.g, self.jac.T])
-        n, ng = int(self.free.sum()), self.g.shape[0]
-        u = dataset.matrix(self.problem.columns)
-        cost, jtg, jtj = 0.0, np.zeros(n), np.zeros((n, n))
-        for part in chunks(dataset.n):
-            g0, jt = fn.chunk(theta, u[:, part])
-            m = g0.shape[0]
-            jac, res = jt.reshape(m * ng, n), g0.reshape(m * ng)
-            cost += float(res @ res)
-            jtg += jac.T @ res
-            jtj += jac.T @ jac
-        return cost, jtg, jtj
+        out = self._pass("normal", "linearised", dataset, theta)
+        if out is None:
+            n = int(self.free.sum())
+            return 0.0, np.zeros(n), np.zeros((n, n))
+        return float(out[0]), out[1], out[2]
 
-    def cost(self, dataset: Dataset, theta: np.ndarray) -> float:
+    def cost(self, dataset: Source, theta: np.ndarray) -> float:
         """Σ (g/σ)² at ``theta`` (residuals only, no derivatives)."""
         instrument.record_pass("residual", "cost", dataset.n)
-        fn = self._mapped("residual", [self.g])
+        with np.errstate(over="ignore", invalid="ignore"):  # an inf cost is an answer
+            return float(self._pass("cost", "residual", dataset, theta) or 0.0)
+
+    def _pass(self, kind: Kind, fn_name: str, dataset: Source, theta: np.ndarray,
+              transform: np.ndarray | None = None) -> Any:
+        """One pass of ``kind`` over ``dataset`` (see :mod:`symcal.solvers.passes`): its
+        chunks on :func:`~symcal.solvers.executor.default_executor`, or its shards on
+        :attr:`executor` (serial when None)."""
+        fn = (self._mapped("linearised", [self.g, self.jac.T]) if fn_name == "linearised"
+              else self._mapped("residual", [self.g]))
+        use, build = jit.wanted(dataset.n)
+        if use:                         # compiled (cached on disk), when a compiler is found
+            fn = jit.fast(fn, build)
+        task = Pass(kind, fn, np.ascontiguousarray(theta, dtype=float),
+                    (self.g.shape[0], int(self.free.sum())), tuple(self.problem.columns),
+                    transform)
+        if isinstance(dataset, ShardedDataset):
+            if self.row_weights is not None:
+                raise SolveError("per-row weights are not available on a partitioned "
+                                 "dataset")
+            return run_pass(task, dataset.shards,
+                            self.executor or current() or SerialExecutor())
         u = dataset.matrix(self.problem.columns)
-        return float(sum(np.sum(fn.chunk(theta, u[:, part])[0] ** 2)
-                         for part in chunks(dataset.n)))
+        weights = self.row_weights
+        pieces: Iterable[Any] = (u[:, part] if weights is None else (u[:, part], weights[part])
+                                 for part in chunks(dataset.n))
+        ambient = current()
+        executor = self.executor or (ambient if ambient is not None and not ambient.remote
+                                     else default_executor(dataset.n))
+        return run_pass(task, pieces, executor)
 
     def _mapped(self, name: str, outputs: list[ca.SX]) -> Mapped:
         if name not in self._cache:
-            self._cache[name] = mapped(self.problem.theta, self.problem.u, outputs, name)
+            self._cache[name] = shared_mapped(self.problem.theta, self.problem.u, outputs,
+                                              name)
         return self._cache[name]

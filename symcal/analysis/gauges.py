@@ -1,0 +1,550 @@
+"""Gauges: the symmetries that make a calibration ill-posed, found before the solve.
+
+A *gauge* is a curve in parameter space along which the constraints either stay the same
+or change only by a fixed linear map of themselves, on every observation and whatever the
+data:
+
+- **offset**: a constant direction leaves every constraint unchanged (parameters that
+  enter only through a difference, e.g. two encoders' zeros);
+- **scale**: the constraints are homogeneous in a set of parameters,
+  ``g(λ^w·θ_S) = λ^k·g(θ_S)``: whatever fits, a scaled copy fits too, and a least-squares
+  solve slides down to the trivial point where the whole set is zero;
+- **rotation**: the constraints turn together (``g → R(α)·g``), so the cost
+  ``Σ‖g‖²`` is unchanged although no single constraint is, e.g. a base frame's angle
+  turned together with a point expressed in it;
+- **symmetry**: any other such curve (the constraints unchanged along a direction that
+  depends on where one is, or changed by another fixed map).
+
+All of them share one infinitesimal test, checked at the start and at a few random
+points of the parameter space (within the bounds): a tangent ``t(θ)`` and a constant
+matrix ``K`` (``n_g × n_g``, one observation's constraints) with
+
+    ``J(θ, u_i)·t(θ) = K·g(θ, u_i)``   for every observation i,
+
+``K = 0`` for offsets and invariances, ``K = I`` for a homogeneity (then ``t = w∘θ``, the
+Euler relation), ``K`` antisymmetric for a rotation.  The Jacobian is the model's own,
+noise-free one at random points, so a symmetry found here is exact whatever the noise in
+the data; :mod:`symcal.linalg` decides what is numerically zero.  The test uses a bounded,
+evenly spread sample of the observations (:data:`SAMPLE`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from symcal.analysis.identifiability import Combination, format_combination
+from symcal.analysis.identifiability import _rref_rows as _rref
+from symcal.data import Dataset
+from symcal.linalg import EXACT_RTOL, common_null, null_basis, range_basis
+from symcal.numeric import Mapped, mapped
+from symcal.solvers.objective import Objective
+from symcal.units import internal_unit
+
+#: At most this many observations, evenly spread over the dataset, enter the test.
+SAMPLE = 256
+#: Random points (besides the start) at which the test is made.
+POINTS = 3
+#: Random points lie this many nominal scales (standard deviation) from the start.
+SPREAD = 0.3
+#: At random points the data are moved too, by this fraction of each column's spread: a
+#: gauge is an identity in the data, while a coincidence of these data (readings that fit a
+#: linear model exactly, so that ``J·(θ - θ*) = g``) is not, and must not be named.
+JITTER = 1e-3
+#: A homogeneous set has collapsed when its size (in nominal scales) fell below this
+#: fraction of its size at the start.
+COLLAPSE = 1e-6
+#: Kinds of gauge, in the order they are reported.
+KINDS = ("scale", "rotation", "offset", "symmetry")
+
+
+@dataclass(frozen=True)
+class Gauge:
+    """One gauge of a stage: what it moves, what it does to the constraints, the fix.
+
+    Attributes
+    ----------
+    kind
+        ``scale``, ``rotation``, ``offset`` or ``symmetry`` (see the module).
+    parameters
+        The free parameters it moves.
+    directions
+        Its direction(s) at the start, in parameter names (several for a group of offsets).
+    fix
+        What to do, in parameter names ("fix one of a1, a2, a3 or give a known length").
+    text
+        One line a person reads.
+    generator
+        ``K`` (row-major, ``n_g × n_g``): what the gauge does to one observation's
+        constraints (zero: nothing).
+    weights
+        Scale only: the power of λ each parameter is scaled by (1 for a plain scale).
+    degree
+        Scale only: ``k`` in ``g(λ^w θ) = λ^k g``.
+    """
+
+    kind: str
+    parameters: tuple[str, ...]
+    directions: tuple[Combination, ...]
+    fix: str
+    text: str
+    generator: tuple[tuple[float, ...], ...] = ()
+    weights: dict[str, float] | None = None
+    degree: float | None = None
+
+    @property
+    def dimension(self) -> int:
+        """Number of independent directions."""
+        return len(self.directions)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form."""
+        return {"kind": self.kind, "parameters": list(self.parameters),
+                "directions": [c.to_dict() for c in self.directions], "fix": self.fix,
+                "text": self.text, "generator": [list(r) for r in self.generator],
+                "weights": None if self.weights is None else dict(self.weights),
+                "degree": self.degree}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> Gauge:
+        """Inverse of :meth:`to_dict`."""
+        return cls(doc["kind"], tuple(doc["parameters"]),
+                   tuple(Combination.from_dict(c) for c in doc["directions"]), doc["fix"],
+                   doc["text"], tuple(tuple(r) for r in doc["generator"]),
+                   None if doc.get("weights") is None else dict(doc["weights"]),
+                   doc.get("degree"))
+
+
+def _names(names: list[str] | tuple[str, ...]) -> str:
+    return ", ".join(names)
+
+
+def _one_of(names: list[str]) -> str:
+    return names[0] if len(names) == 1 else f"one of {_names(names)}"
+
+
+def _combination(vector: np.ndarray, names: tuple[str, ...]) -> Combination:
+    """A direction in parameter units, largest coefficient 1, as a named combination."""
+    v = vector / np.max(np.abs(vector))
+    if v[np.flatnonzero(np.abs(v) > 1e-9)[0]] < 0:
+        v = -v
+    v = np.where(np.abs(v - np.round(v)) < 1e-6, np.round(v), v)
+    coeffs = {names[i]: float(f"{v[i]:.6g}") for i in np.flatnonzero(np.abs(v) > 1e-9)}
+    return Combination(coeffs, format_combination(coeffs))
+
+
+class _Sample:
+    """The stage's weighted constraints and their Jacobian on a sample of observations."""
+
+    def __init__(self, objective: Objective, data: Dataset) -> None:
+        problem = objective.problem
+        take = np.unique(np.linspace(0, data.n - 1, min(data.n, SAMPLE)).round().astype(int))
+        self.u = np.array([data.columns[c][take] if c in data.columns
+                           else np.full(take.size, np.nan) for c in problem.columns],
+                          dtype=float).reshape(len(problem.columns), take.size)
+        self.fn: Mapped = mapped(problem.theta, problem.u, [objective.g, objective.jac.T],
+                                 "gauges")
+        self.n = int(objective.free.sum())
+        self.ng = int(objective.g.shape[0])
+        self.index = objective.index
+        self.scales = objective.scales
+
+    def jittered(self, rng: np.random.Generator) -> np.ndarray:
+        """The sample's data, each column moved by :data:`JITTER` of its spread."""
+        with np.errstate(invalid="ignore"):
+            spread = np.nanstd(self.u, axis=1) if self.u.shape[1] else np.zeros(0)
+        spread = np.where(np.isfinite(spread), spread, 0.0)
+        with np.errstate(invalid="ignore"):
+            size = np.nanmax(np.abs(self.u), axis=1) if self.u.shape[1] else np.zeros(0)
+        size = np.where(np.isfinite(size) & (size > 0), size, 1.0)
+        spread = np.where(spread > 0, spread, size)   # a constant column moves too
+        return self.u + JITTER * spread[:, None] * rng.standard_normal(self.u.shape)
+
+    def at(self, theta: np.ndarray, u: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(g, J·D)``: stacked residuals (``m·n_g``) and the Jacobian in scaled units
+        (``m·n_g × n``) at ``theta`` (on ``u``, default the sample's data); None where
+        either is not finite."""
+        g, jt = self.fn(theta, self.u if u is None else u)
+        m = g.shape[0]
+        jac = jt.reshape(m, self.ng, self.n).reshape(m * self.ng, self.n)
+        g = g.reshape(m * self.ng)
+        if not (np.all(np.isfinite(g)) and np.all(np.isfinite(jac))):
+            return None
+        return g, jac * self.scales[None, :]
+
+    def lift(self, g: np.ndarray) -> np.ndarray:
+        """``G`` with ``G·vec(K) = (K g_i)_i`` stacked (vec row-major)."""
+        m = g.size // self.ng
+        gi = g.reshape(m, self.ng)
+        out = np.zeros((m, self.ng, self.ng * self.ng))
+        for a in range(self.ng):
+            out[:, a, a * self.ng:(a + 1) * self.ng] = gi
+        return out.reshape(m * self.ng, self.ng * self.ng)
+
+
+@dataclass(frozen=True)
+class _Point:
+    theta: np.ndarray   # full θ
+    g: np.ndarray
+    jac: np.ndarray     # scaled
+    null: np.ndarray    # rows: orthonormal null directions of jac (scaled units)
+
+
+def _points(sample: _Sample, objective: Objective, theta0: np.ndarray, seed: int
+            ) -> tuple[_Point | None, list[_Point]]:
+    """The start and up to :data:`POINTS` random points (within the bounds)."""
+    problem = objective.problem
+    lower = np.array([p.lower for p in problem.parameters])
+    upper = np.array([p.upper for p in problem.parameters])
+    rng = np.random.default_rng(seed)
+
+    def point(theta: np.ndarray, u: np.ndarray | None = None) -> _Point | None:
+        got = sample.at(theta, u)
+        if got is None:
+            return None
+        g, jac = got
+        return _Point(theta, g, jac, null_basis(jac, jac.shape[0]))
+
+    start = point(theta0)
+    points = []
+    for _ in range(POINTS):
+        z = rng.standard_normal(sample.n)
+        for shrink in (1.0, 0.3, 0.1, 0.03):
+            theta = theta0.copy()
+            theta[sample.index] += SPREAD * shrink * sample.scales * z
+            theta = np.clip(theta, lower, upper)
+            p = point(theta, sample.jittered(rng))
+            if p is not None:
+                points.append(p)
+                break
+    return start, points
+
+
+def _canonical_generators(basis: np.ndarray, ng: int) -> list[np.ndarray]:
+    """A readable basis of a subspace of generators ``K`` (columns of ``basis``, vec
+    row-major): the identity first if it belongs, then antisymmetric ones, then the rest."""
+    out: list[np.ndarray] = []
+    q = np.linalg.qr(basis)[0] if basis.size else basis
+    eye = np.eye(ng).reshape(-1) / np.sqrt(ng)
+    if q.size and np.linalg.norm(eye - q @ (q.T @ eye)) < 1e-6:
+        out.append(np.eye(ng).reshape(-1))
+        q = range_basis(q - np.outer(eye, eye @ q))
+    if q.size:
+        sym = np.zeros((ng * ng, ng * ng))
+        for a in range(ng):
+            for b in range(ng):
+                sym[a * ng + b, a * ng + b] += 0.5
+                sym[a * ng + b, b * ng + a] += 0.5
+        anti = null_basis(sym @ q, ng * ng)
+        for c in anti:
+            k = q @ c
+            out.append(k / np.max(np.abs(k)))
+        if anti.size:
+            q = range_basis(q - q @ (anti.T @ anti))
+        for c in q.T:
+            out.append(c / np.max(np.abs(c)))
+    return out
+
+
+def _tangent(point: _Point, sample: _Sample, k: np.ndarray) -> np.ndarray | None:
+    """``t`` (scaled units, orthogonal to the invariances) with ``J t = K g`` at a point;
+    None where ``K g`` is at rounding level (an exact fit)."""
+    rhs = sample.lift(point.g) @ k
+    if np.linalg.norm(rhs) <= EXACT_RTOL * max(float(np.linalg.norm(point.jac)), 1e-300):
+        return None
+    t = np.linalg.lstsq(point.jac, rhs, rcond=None)[0]
+    if point.null.size:
+        t = t - point.null.T @ (point.null @ t)
+    return t
+
+
+@dataclass(frozen=True)
+class GaugeAnalysis:
+    """The gauges of one stage, found before the solve.
+
+    Attributes
+    ----------
+    gauges
+        Every gauge, largest kind first (:data:`KINDS`).
+    points
+        Random points the test was made at (besides the start).
+    observations
+        Observations in the sample.
+    names
+        The stage's free parameters.
+    """
+
+    gauges: tuple[Gauge, ...]
+    points: int
+    observations: int
+    names: tuple[str, ...]
+
+    @property
+    def dimension(self) -> int:
+        """Number of independent gauge directions."""
+        return sum(g.dimension for g in self.gauges)
+
+    def collapse(self, theta_start: np.ndarray, theta_end: np.ndarray,
+                 objective: Objective) -> str | None:
+        """Why the solve failed, when it slid onto the trivial point of a scale gauge
+        (every parameter of a homogeneous set gone to zero); None otherwise."""
+        scales = dict(zip(objective.names, objective.scales, strict=True))
+        index = objective.problem.index
+        for gauge in self.gauges:
+            if gauge.kind != "scale" or not gauge.degree or gauge.degree <= 0:
+                continue
+            idx = [index[n] for n in gauge.parameters]
+            sc = np.array([scales[n] for n in gauge.parameters])
+            before = float(np.linalg.norm(theta_start[idx] / sc))
+            after = float(np.linalg.norm(theta_end[idx] / sc))
+            if before > 0 and after < COLLAPSE * before:
+                return (f"failed: the solve collapsed onto the trivial point of a gauge: "
+                        f"{_names(gauge.parameters)} all went to zero (their size fell to "
+                        f"{after / before:.2g} of its start), where the constraints, "
+                        f"homogeneous in them, vanish whatever the data; {gauge.fix}")
+        return None
+
+    def directions(self, objective: Objective, data: Dataset, theta: np.ndarray
+                   ) -> np.ndarray:
+        """The gauges' directions at ``theta`` (``k × n_free``, parameter units): what
+        the identifiability analysis counts as exactly undeterminable there."""
+        n = len(self.names)
+        if not self.gauges:
+            return np.zeros((0, n))
+        sample = _Sample(objective, data)
+        got = sample.at(theta)
+        if got is None:
+            return np.zeros((0, n))
+        g, jac = got
+        here = _Point(theta, g, jac, null_basis(jac, jac.shape[0]))
+        scales = sample.scales
+        explicit: list[np.ndarray] = []
+        implicit = 0
+        for gauge in self.gauges:
+            if gauge.kind == "offset":
+                explicit += [np.array([c.coefficients.get(m, 0.0) for m in self.names])
+                             / scales for c in gauge.directions]
+            elif gauge.kind == "scale" and gauge.weights is not None:
+                w = np.array([gauge.weights.get(m, 0.0) for m in self.names])
+                explicit.append(w * theta[objective.index] / scales)
+            elif gauge.generator and np.any(np.asarray(gauge.generator)):
+                t = _tangent(here, sample, np.asarray(gauge.generator).reshape(-1))
+                if t is None:
+                    implicit += 1
+                else:
+                    explicit.append(t)
+            else:
+                implicit += gauge.dimension
+        rows = [v / np.linalg.norm(v) for v in explicit if np.linalg.norm(v) > 0]
+        basis = range_basis(np.array(rows).T) if rows else np.zeros((n, 0))
+        if implicit:
+            projected = jac - (jac @ basis) @ basis.T
+            vt = np.linalg.svd(projected)[2] if jac.shape[0] >= n else \
+                np.linalg.svd(np.vstack([projected, np.zeros((n - jac.shape[0], n))]))[2]
+            extra = [v for v in vt[::-1] if np.linalg.norm(basis.T @ v) < 0.5][:implicit]
+            basis = range_basis(np.column_stack([basis, *extra])) if extra else basis
+        return (basis * scales[:, None]).T
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form."""
+        return {"gauges": [g.to_dict() for g in self.gauges], "points": self.points,
+                "observations": self.observations, "names": list(self.names)}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> GaugeAnalysis:
+        """Inverse of :meth:`to_dict`."""
+        return cls(tuple(Gauge.from_dict(g) for g in doc["gauges"]), doc["points"],
+                   doc["observations"], tuple(doc["names"]))
+
+
+def _group_offsets(rows: np.ndarray, names: tuple[str, ...]) -> list[Gauge]:
+    """Constant null directions (parameter units, RREF rows) as one gauge per group of
+    parameters that share them."""
+    n = rows.shape[1]
+    parent = list(range(n))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for row in rows:
+        idx = np.flatnonzero(np.abs(row) > 1e-9)
+        for j in idx[1:]:
+            parent[find(int(j))] = find(int(idx[0]))
+    groups: dict[int, list[int]] = {}
+    for r, row in enumerate(rows):
+        groups.setdefault(find(int(np.flatnonzero(np.abs(row) > 1e-9)[0])), []).append(r)
+    out = []
+    for members in groups.values():
+        sub = rows[members]
+        involved = [names[i] for i in np.flatnonzero(np.any(np.abs(sub) > 1e-9, axis=0))]
+        pivots = [names[int(np.flatnonzero(np.abs(r) > 1e-9)[0])] for r in sub]
+        d = len(members)
+        if d == 1:
+            fix = f"fix {_one_of(involved)}"
+        else:
+            fix = f"fix {d} of {_names(involved)} (e.g. {_names(pivots)})"
+        directions = tuple(_combination(r, names) for r in sub)
+        along = " or ".join(c.text for c in directions)
+        text = (f"offset: {_names(involved)} enter the constraints only in combinations: "
+                f"moving them along {along} changes no constraint; {fix}")
+        out.append(Gauge("offset", tuple(involved), directions, fix, text))
+    return out
+
+
+def _covariant(points: list[_Point], sample: _Sample) -> list[np.ndarray]:
+    """Generators ``K ≠ 0`` with ``J t = K g`` solvable at every random point."""
+    ng = sample.ng
+    if not points or any(p.g.size < sample.n + ng * ng + 1 for p in points):
+        return []
+    lifted = [sample.lift(p.g) for p in points]
+    residual = []
+    for p, big_g in zip(points, lifted, strict=True):
+        q = range_basis(p.jac)
+        residual.append(big_g - q @ (q.T @ big_g))
+    _, sg, vgt = np.linalg.svd(np.vstack(lifted), full_matrices=False)
+    keep = sg > EXACT_RTOL * max(float(sg[0]) if sg.size else 0.0, 1e-300)
+    if not keep.any():
+        return []
+    whiten = vgt[keep].T / sg[keep][None, :]          # vec(K) = whiten @ c
+    _, s, vt = np.linalg.svd(np.vstack(residual) @ whiten, full_matrices=False)
+    s_full = np.concatenate([s, np.zeros(vt.shape[1] - s.size)])
+    null = vt[s_full <= EXACT_RTOL]
+    if not null.size:
+        return []
+    return _canonical_generators(whiten @ null.T, ng)
+
+
+def find_gauges(objective: Objective, data: Dataset, theta: np.ndarray, seed: int = 0
+                ) -> GaugeAnalysis:
+    """The gauges of a stage (its constraints and free parameters) on its data.
+
+    Parameters
+    ----------
+    objective
+        The stage's objective (constraints, free parameters, weights).
+    data
+        The dataset it is solved on (a bounded sample of it is used).
+    theta
+        The full parameter vector at the start.
+    seed
+        Seed of the random points.
+
+    Returns
+    -------
+    GaugeAnalysis
+        Every gauge found, in parameter names, with the fix.
+    """
+    names = objective.names
+    n = len(names)
+    if n == 0 or data.n == 0:
+        return GaugeAnalysis((), 0, 0, names)
+    sample = _Sample(objective, data)
+    start, points = _points(sample, objective, theta, seed)
+    if not points:
+        return GaugeAnalysis((), 0, sample.u.shape[1], names)
+    scales = sample.scales
+    gauges: list[Gauge] = []
+    # scale and rotation first: what K ≠ 0 does
+    generators = _covariant(points, sample)
+    reference = start if start is not None else points[0]
+    units = {p.name: p.unit for p in objective.problem.parameters}
+    for k in generators:
+        gauges.append(_covariant_gauge(k, points, reference, sample, names, units))
+    # invariances (K = 0): constant ones are offsets, the rest symmetries
+    d_inv = min(p.null.shape[0] for p in points)
+    if d_inv:
+        const = common_null([p.null for p in points], n)
+        if const.size:
+            rows = _rref(const * scales[None, :])
+            gauges += _group_offsets(rows, names)
+        varying = d_inv - const.shape[0]
+        if varying > 0:
+            gauges.append(_varying_gauge(varying, const, reference, points[0], names,
+                                         scales))
+    gauges.sort(key=lambda g: KINDS.index(g.kind))
+    return GaugeAnalysis(tuple(gauges), len(points), sample.u.shape[1], names)
+
+
+def _varying_gauge(count: int, const: np.ndarray, reference: _Point, fallback: _Point,
+                   names: tuple[str, ...], scales: np.ndarray) -> Gauge:
+    """Invariances whose direction depends on the point, named at the start."""
+    directions = []
+    for point in (reference, fallback):
+        null = point.null
+        if const.size and null.size:
+            null = null - (null @ const.T) @ const
+        basis = range_basis(null.T) if null.size else np.zeros((len(names), 0))
+        if basis.shape[1] >= count:
+            directions = list(_rref((basis[:, :count] * scales[:, None]).T))
+            break
+    involved = [names[i] for i in np.flatnonzero(
+        np.any(np.abs(np.array(directions)) > 1e-9, axis=0))] if directions else list(names)
+    fix = f"fix {_one_of(involved)}" if count == 1 else f"fix {count} of {_names(involved)}"
+    combos = tuple(_combination(d, names) for d in directions)
+    text = (f"symmetry: moving {_names(involved)} together along a curve that depends on "
+            f"where they are leaves every constraint unchanged; {fix}")
+    return Gauge("symmetry", tuple(involved), combos, fix, text)
+
+
+def _covariant_gauge(k: np.ndarray, points: list[_Point], reference: _Point,
+                     sample: _Sample, names: tuple[str, ...], units: Mapping[str, str]
+                     ) -> Gauge:
+    """A generator K ≠ 0 as a scale, a rotation or a symmetry."""
+    ng = sample.ng
+    k = np.where(np.abs(k) > 1e-9 * np.max(np.abs(k)), k, 0.0)
+    lower = k.reshape(ng, ng)[np.tril_indices(ng)]
+    lead = lower[np.flatnonzero(lower)[0]] if np.any(lower) else k[np.flatnonzero(k)[0]]
+    k = k * np.sign(lead)      # the rotation generator as [[0, -1], [1, 0]]
+    kmat = k.reshape(ng, ng)
+    generator = tuple(tuple(float(f"{x:.12g}") + 0.0 for x in row) for row in kmat)
+    scales = sample.scales
+    tangents = [t * scales for t in (_tangent(p, sample, k) for p in points)
+                if t is not None]
+    here = _tangent(reference, sample, k)
+    t0 = here * scales if here is not None else tangents[0]
+    support = np.any(np.abs(np.array(tangents)) > 1e-9 * np.max(np.abs(tangents)), axis=0)
+    involved = [names[i] for i in np.flatnonzero(support)]
+    if np.allclose(kmat, np.eye(ng)):
+        ratios = np.array([t / p.theta[sample.index] for t, p in
+                           zip(tangents, points, strict=True)])
+        ratios = np.where(support[None, :], ratios, 0.0)
+        if np.allclose(ratios, ratios[0], rtol=1e-6, atol=1e-9) and np.all(
+                np.isfinite(ratios)):
+            r = ratios[0]
+            degree = 1.0 / float(np.max(np.abs(r)))
+            weights = {names[i]: float(f"{r[i] * degree:.6g}")
+                       for i in np.flatnonzero(support)}
+            degree = float(f"{degree:.6g}")
+            lengths = all(internal_unit(units.get(m, "")) == "mm" for m in involved)
+            fix = (f"fix {_one_of(involved)} or give "
+                   + ("a known length" if lengths else "one of them a known value"))
+            power = "" if all(abs(w - 1) < 1e-9 for w in weights.values()) else (
+                " (powers " + ", ".join(f"{m}: {w:g}" for m, w in weights.items()) + ")")
+            text = (f"scale: the constraints are homogeneous of degree {degree:g} in "
+                    f"{_names(involved)}{power}: scaling them all fits as well, down to "
+                    f"the trivial point where they are all zero; {fix}")
+            return Gauge("scale", tuple(involved), (_combination(t0, names),), fix, text,
+                         generator, weights, degree)
+    # anchors: parameters moved by the same amount at every point (the frame's angle)
+    stacked = np.array(tangents)
+    anchors = [names[i] for i in np.flatnonzero(support)
+               if np.allclose(stacked[:, i], stacked[0, i], rtol=1e-6, atol=1e-12)]
+    if np.allclose(kmat, -kmat.T):
+        fix = f"fix {_one_of(anchors or involved)} or give a known direction"
+        text = (f"rotation: turning {_names(anchors or involved)} together with "
+                f"{_names([m for m in involved if m not in anchors]) or 'nothing else'} "
+                f"turns the constraints together and leaves the cost unchanged; {fix}")
+        return Gauge("rotation", tuple(involved), (_combination(t0, names),), fix, text,
+                     generator)
+    fix = f"fix {_one_of(anchors or involved)}"
+    text = (f"symmetry: moving {_names(involved)} together changes the constraints only "
+            f"by a fixed linear map of themselves; {fix}")
+    return Gauge("symmetry", tuple(involved), (_combination(t0, names),), fix, text,
+                 generator)

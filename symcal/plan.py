@@ -1,0 +1,258 @@
+"""Predicted uncertainty of a planned motion: the Fisher information before any data.
+
+For the motion a scenario describes, :func:`predict` states what the calibration's last
+stage would report on data simulated from it, with nothing recorded:
+
+1. the run is simulated *without noise* (the simulator's own geometry, sensor errors and
+   hidden effects), at the scenario's true parameters (:func:`operating_point`);
+2. the noise model is the scenario's (:func:`symcal.simulate.input_noise`): each
+   observation's constraints get the covariance ``S_i = G_i Σ G_iᵀ``, ``G_i = ∂g/∂u`` (exact,
+   symbolic) and ``Σ`` the columns' noise variances; what the model cannot fit (a
+   Gauss-Newton refit of the noiseless data, evaluated on the problem's own model) adds
+   its covariance, since the calibration estimates ``S`` from its residuals;
+3. the constraints are weighted as :func:`symcal.solve` weights them (``weighting:
+   estimated`` whitens each observation by ``S``; equal weights keep ``g/σ``), and the
+   covariance is the one :func:`symcal.analysis.identifiability.analyse` gives the solve:
+   ``(JᵀJ)⁺`` and the sandwich ``(JᵀJ)⁺ (Σ J_iᵀ S J_i) (JᵀJ)⁺`` with the same rank rule.
+
+The solve uses no errors-in-variables model (the inputs' noise reaches it only through the
+residual covariance), so neither does the prediction.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from symcal.analysis.identifiability import Identifiability, Uncertainty, analyse
+from symcal.data import Dataset, make_dataset
+from symcal.datasets import needed_columns
+from symcal.errors import SymcalError
+from symcal.linalg import numerical_rank, sqrt_psd, whitening
+from symcal.numeric import mapped
+from symcal.problem import Problem, Stage
+from symcal.simulate import Scenario, input_noise, simulate_run, truth
+from symcal.solvers.objective import Objective
+from symcal.suggest import did_you_mean
+from symcal.units import size
+
+
+@dataclass(frozen=True, eq=False)
+class Prediction:
+    """What a calibration on a planned motion would report, before any data.
+
+    Attributes
+    ----------
+    scenario
+        The scenario the motion comes from.
+    run
+        The run whose motion is the calibration data.
+    n
+        Its number of observations.
+    stage
+        The calibration stage predicted (the last; its free parameters and constraints).
+    identifiability, uncertainty
+        Rank, condition number, null space, identifiable combinations; standard errors
+        and correlations, as the calibration's :class:`~symcal.result.StageResult` has them.
+    residual_std
+        Predicted standard deviation of each constraint of the stage, noise and misfit
+        (display unit, with ``units``).
+    residual_noise
+        Its part from the noise alone (display unit).
+    units
+        Display unit of each constraint and free parameter.
+    covariance
+        ``S``: covariance of one observation's weighted constraints (``g/σ``).
+    """
+
+    scenario: Scenario
+    run: str
+    n: int
+    stage: Stage
+    identifiability: Identifiability
+    uncertainty: Uncertainty
+    residual_std: dict[str, float]
+    residual_noise: dict[str, float]
+    units: dict[str, str]
+    covariance: np.ndarray
+
+    @property
+    def se(self) -> dict[str, float | None]:
+        """Predicted standard error of each free parameter (its unit; None: only in a
+        combination)."""
+        return dict(self.uncertainty.se)
+
+
+def operating_point(problem: Problem, scenario: Scenario) -> np.ndarray:
+    """θ at which a plan is evaluated: the scenario's true parameters.
+
+    A true parameter is matched by its name (``l_x``) or, when that is not a parameter of
+    the problem, by the one parameter whose last part it is (``h`` → ``cs.h``); the other
+    parameters keep their initial values.
+    """
+    theta = np.array([p.value for p in problem.parameters])
+    names = problem.parameter_names
+    for name, value in truth(scenario)["parameters"].items():
+        if name in problem.index:
+            theta[problem.index[name]] = value
+            continue
+        matches = [n for n in names if n.rsplit(".", 1)[-1] == name]
+        if len(matches) == 1:
+            theta[problem.index[matches[0]]] = value
+    return theta
+
+
+def quiet(scenario: Scenario) -> Scenario:
+    """The scenario without noise (no reading noise, no quantization, exact angles)."""
+    platen = dataclasses.replace(scenario.platen, noise=0.0, quantization=0.0)
+    coord = scenario.coordination
+    coord = None if coord is None else dataclasses.replace(coord, noise=0.0)
+    return dataclasses.replace(scenario, platen=platen, coordination=coord)
+
+
+def design_run(problem: Problem, scenario: Scenario) -> str:
+    """The run whose motion is the calibration data: the one the scenario's ``design``
+    section names, else the one the problem's ``calibration`` dataset simulates, else
+    ``calibration``."""
+    if scenario.design is not None:
+        return scenario.design.run
+    spec = problem.datasets.get("calibration")
+    if spec is not None and getattr(spec, "run", None):
+        return str(spec.run)
+    return "calibration"
+
+
+def last_stage(problem: Problem) -> tuple[Stage, np.ndarray]:
+    """The stage whose uncertainty the calibration reports, and its free-parameter mask."""
+    stage = problem.stages[-1]
+    for name in stage.constraints:
+        if getattr(problem.constraint(name), "loss", None) is not None:
+            raise SymcalError(f"design: constraint '{name}' of stage '{stage.name}' has a "
+                              "robust loss; predicted uncertainties assume least squares")
+    return stage, np.array([p.name in stage.free for p in problem.parameters])
+
+
+def noise_matrix(problem: Problem, scenario: Scenario) -> np.ndarray:
+    """Diagonal covariance of the columns ``problem.columns`` (a column the simulator does
+    not write is taken as exact)."""
+    sigma = input_noise(scenario)
+    return np.diag([sigma.get(c, 0.0) ** 2 for c in problem.columns])
+
+
+def input_jacobian(objective: Objective) -> Any:
+    """``∂(g/σ)/∂u`` of one observation, mapped over observations (``n_g × n_u``)."""
+    problem = objective.problem
+    return mapped(problem.theta, problem.u, [ca.jacobian(objective.g, problem.u)], "dg_du")
+
+
+def noise_covariance(objective: Objective, data: Dataset, theta: np.ndarray,
+                     columns_cov: np.ndarray) -> np.ndarray:
+    """Mean over observations of ``G_i Σ G_iᵀ`` (the weighted constraints' noise)."""
+    problem = objective.problem
+    ng, nu = objective.g.shape[0], len(problem.columns)
+    flat = input_jacobian(objective)(theta, data.matrix(problem.columns))[0]
+    g_u = flat.reshape(-1, nu, ng).transpose(0, 2, 1)   # CasADi vec is column-major
+    return np.einsum("mau,uv,mbv->ab", g_u, columns_cov, g_u) / data.n
+
+
+def misfit_covariance(objective: Objective, data: Dataset, theta: np.ndarray,
+                      transform: np.ndarray | None) -> np.ndarray:
+    """Covariance of what a Gauss-Newton refit of noiseless data leaves: the model's own
+    misfit to the simulated courier, which the calibration's residuals carry too."""
+    weighted = objective if transform is None else Objective(
+        objective.problem, objective.constraints, objective.free, transform)
+    r, c, _, _ = weighted.accumulate_r(data, theta)
+    step = -np.linalg.lstsq(r, c, rcond=None)[0]
+    refit = theta.copy()
+    refit[objective.index] += step
+    g = objective.residuals(data, refit)
+    return (g.T @ g) / data.n
+
+
+def covariance_of(objective: Objective, data: Dataset, theta: np.ndarray, cov: np.ndarray,
+                  weighting: str) -> tuple[Identifiability, Uncertainty]:
+    """Identifiability and uncertainty the solve reports when one observation's weighted
+    constraints have covariance ``cov`` (weights and sandwich as in :func:`symcal.solve`)."""
+    ng = cov.shape[0]
+    transform = whitening(cov)[0] if weighting == "estimated" and ng > 1 else None
+    solved = objective if transform is None else Objective(
+        objective.problem, objective.constraints, objective.free, transform)
+    r, _, _, rows = solved.accumulate_r(data, theta)
+    rank = numerical_rank(r, rows, solved.scales)
+    dof = max(rows - rank, 1)
+    values = theta[solved.index]
+    if ng == 1:
+        return analyse(r, rows, float(cov[0, 0]) * dof, solved.names, solved.scales, values)
+    seen = cov if transform is None else transform @ cov @ transform.T
+    meat = solved.accumulate_r(data, theta, sqrt_psd(seen).T)[0]
+    return analyse(r, rows, float(dof), solved.names, solved.scales, values, meat)
+
+
+def noiseless_data(problem: Problem, scenario: Scenario, run: str, seed: int) -> Dataset:
+    """The run simulated without noise, as the calibration dataset."""
+    columns = simulate_run(quiet(scenario), run, seed=seed)
+    return make_dataset("calibration", f"{scenario.name} run '{run}' without noise",
+                        columns, needed_columns(problem))
+
+
+def predict(problem: Problem, scenario: Scenario, run: str | None = None, seed: int = 0,
+            misfit: bool = True) -> Prediction:
+    """Predicted uncertainty of the calibration on a scenario's planned motion.
+
+    Parameters
+    ----------
+    problem
+        The calibration problem (its last stage is predicted).
+    scenario
+        The courier, its noise and its motions.
+    run
+        The run used as calibration data (default: :func:`design_run`).
+    seed
+        Seed of the run's poses (its noise is not drawn).
+    misfit
+        Add the covariance of the model's misfit to the simulated courier to the noise's
+        (what the calibration's residuals carry); False: noise alone.
+
+    Returns
+    -------
+    Prediction
+        Standard errors, identifiability and condition number, predicted residuals.
+
+    Raises
+    ------
+    SymcalError
+        If the run does not exist (did-you-mean), the problem's columns are not all
+        simulated, or a constraint of the stage has a robust loss.
+    """
+    run = design_run(problem, scenario) if run is None else run
+    if run not in scenario.run_names:
+        raise SymcalError(f"scenario '{scenario.name}' has no run '{run}'"
+                          f"{did_you_mean(run, scenario.run_names)}; runs: "
+                          f"{', '.join(scenario.run_names)}")
+    stage, free = last_stage(problem)
+    data = noiseless_data(problem, scenario, run, seed)
+    theta = operating_point(problem, scenario)
+    objective = Objective(problem, stage.constraints, free)
+    noise = noise_covariance(objective, data, theta, noise_matrix(problem, scenario))
+    cov = noise
+    if misfit:
+        ng = noise.shape[0]
+        first = whitening(noise)[0] if problem.weighting == "estimated" and ng > 1 else None
+        cov = noise + misfit_covariance(objective, data, theta, first)
+    ident, unc = covariance_of(objective, data, theta, cov, problem.weighting)
+    units: dict[str, str] = {}
+    std: dict[str, float] = {}
+    floor: dict[str, float] = {}
+    for k, name in enumerate(stage.constraints):
+        q = problem.constraint(name)
+        shown = q.sigma / size(q.unit)
+        units[name] = q.unit
+        std[name] = float(np.sqrt(cov[k, k]) * shown)
+        floor[name] = float(np.sqrt(noise[k, k]) * shown)
+    for p in problem.parameters:
+        units[p.name] = p.unit
+    return Prediction(scenario, run, data.n, stage, ident, unc, std, floor, units, cov)

@@ -1,0 +1,154 @@
+"""The chunk passes over the data: one task per piece, reduced in the order of the pieces.
+
+A piece is a block of observations (``n_u × m``, a chunk of an in-memory dataset) or a
+shard of a partitioned dataset (:class:`symcal.shards.Shard`, read by whoever runs the
+task).  :class:`Pass` is the task: it evaluates a :class:`~symcal.numeric.Mapped`
+function chunk by chunk and reduces the piece to something small; :func:`run_pass` maps
+it with an executor (:mod:`symcal.solvers.executor`) and reduces the pieces' results in
+their order, so that every executor gives the same result, bit for bit, on the same
+pieces.  The kinds:
+
+* ``cost``: Σ g²;
+* ``terms``: Σ g_k² per constraint k;
+* ``normal``: ``(Σ g², Jᵀg, JᵀJ)``;
+* ``r``: the R factor of ``[J | g]`` (a TSQR: one QR per chunk, combined in order);
+* ``gram``: ``(gᵀg, observations)``, g as an ``m × n_g`` matrix;
+* ``residuals``: g itself, ``m × n_g`` (in-memory data only: its size grows with N).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol
+
+import numpy as np
+
+from symcal.numeric import Mapped, chunks
+from symcal.solvers.executor import Executor
+
+Kind = Literal["cost", "terms", "normal", "r", "gram", "residuals"]
+
+
+class Piece(Protocol):
+    """A shard of a partitioned dataset: read by the task that processes it."""
+
+    def read(self, columns: tuple[str, ...]) -> np.ndarray:
+        """The columns of the shard, ``len(columns) × rows``."""
+        ...
+
+
+def _qr_r(a: np.ndarray) -> np.ndarray:
+    """The R factor of ``a`` (``min(rows, cols) × cols``), by LAPACK's ``geqrf`` on a
+    column-major copy (``a`` itself when it is already column-major: it is overwritten)."""
+    from scipy.linalg import lapack
+
+    a = np.asfortranarray(a, dtype=float)
+    qr, _, _, info = lapack.dgeqrf(a, overwrite_a=True)
+    if info != 0:  # pragma: no cover - LAPACK reports an illegal argument only
+        raise ArithmeticError(f"LAPACK dgeqrf failed (info {info})")
+    k = min(a.shape)
+    return np.triu(qr[:k])
+
+
+@dataclass(frozen=True, eq=False)
+class Pass:
+    """One pass's task: evaluate ``fn`` on a piece and reduce it (picklable for Dask).
+
+    Attributes
+    ----------
+    kind
+        What the piece is reduced to (see the module's docstring).
+    fn
+        ``fn(θ, u) -> (g,)`` or ``(g, vec(Jᵀ))`` per observation.
+    theta
+        The parameters.
+    shape
+        ``(n_g, n_free)``.
+    columns
+        The problem's columns, in the order of ``u`` (to read a shard).
+    transform
+        Optional ``n_g × n_g`` matrix applied to each observation's g and J (``r``).
+    """
+
+    kind: Kind
+    fn: Mapped
+    theta: np.ndarray
+    shape: tuple[int, int]
+    columns: tuple[str, ...]
+    transform: np.ndarray | None = None
+
+    def __call__(self, piece: np.ndarray | tuple[np.ndarray, np.ndarray] | Piece) -> Any:
+        """The piece's reduction: a block ``u``, a block with per-row factors
+        ``(u, w)`` (``w`` is ``m × n_g``), or a shard to read."""
+        w: np.ndarray | None = None
+        if isinstance(piece, tuple):
+            u, w = piece
+        else:
+            u = piece if isinstance(piece, np.ndarray) else piece.read(self.columns)
+        out: Any = None
+        # a NaN or infinite cost is an answer (the solver steps back), not a warning; set
+        # here, in the thread that evaluates (numpy's error state is per thread)
+        with np.errstate(over="ignore", invalid="ignore"):
+            for part in chunks(u.shape[1]):
+                value = self._chunk(u[:, part], None if w is None else w[part])
+                out = value if out is None else reduce_two(self.kind, out, value)
+        return out
+
+    def _chunk(self, u: np.ndarray, w: np.ndarray | None) -> Any:
+        outs = self.fn.evaluate(self.theta, u)
+        g = outs[0] if w is None else outs[0] * w
+        m = g.shape[0]
+        if self.kind == "cost":
+            return float(np.sum(g * g))
+        if self.kind == "terms":
+            return np.sum(g * g, axis=0)
+        if self.kind == "gram":
+            return g.T @ g, m
+        if self.kind == "residuals":
+            return g.copy()
+        ng, n = self.shape
+        jac = outs[1].reshape(m, ng, n)
+        if w is not None:
+            jac = jac * w[:, :, None]
+        if self.kind == "normal":
+            jac2, res = jac.reshape(m * ng, n), g.reshape(m * ng)
+            return float(res @ res), jac2.T @ res, jac2.T @ jac2
+        if self.transform is not None:
+            g = g @ self.transform.T
+            jac = np.einsum("ab,mbn->man", self.transform, jac)
+        block = np.empty((m * ng, n + 1), order="F")     # column-major for LAPACK
+        block[:, :n] = jac.reshape(m * ng, n)
+        block[:, n] = g.reshape(m * ng)
+        return _qr_r(block), m * ng
+
+
+def reduce_two(kind: Kind, a: Any, b: Any) -> Any:
+    """The reduction of two consecutive pieces' results (``a`` first)."""
+    if kind == "cost":
+        return a + b
+    if kind == "terms":
+        return a + b
+    if kind == "gram":
+        return a[0] + b[0], a[1] + b[1]
+    if kind == "residuals":
+        return np.concatenate([a, b], axis=0)
+    if kind == "normal":
+        return a[0] + b[0], a[1] + b[1], a[2] + b[2]
+    n1 = a[0].shape[1]
+    return _qr_r(np.vstack([a[0], b[0]]))[:n1], a[1] + b[1]
+
+
+def run_pass(task: Pass, pieces: Iterable[np.ndarray | Piece], executor: Executor) -> Any:
+    """Map ``task`` over ``pieces`` with ``executor``; reduce the results in order.
+
+    ``residuals`` results are concatenated once at the end (not pairwise).
+    """
+    if task.kind == "residuals":
+        parts = list(executor.map(task, pieces))
+        ng = task.shape[0]
+        return np.concatenate(parts, axis=0) if parts else np.empty((0, ng))
+    out: Any = None
+    for value in executor.map(task, pieces):
+        out = value if out is None else reduce_two(task.kind, out, value)
+    return out

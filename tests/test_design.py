@@ -1,0 +1,250 @@
+"""Experiment design (issue 17): predicted uncertainty of a planned motion, optimised
+motions within the courier's limits, checked against Monte-Carlo calibrations."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import yaml
+from conftest import ROOT
+
+import symcal
+from symcal.cli import main
+from symcal.data import make_dataset
+from symcal.datasets import needed_columns
+from symcal.design import design, parse_target, with_motion
+from symcal.errors import SpecError, SymcalError
+from symcal.plan import predict, quiet
+from symcal.problem import load_problem
+from symcal.simulate import load_scenario, simulate_run
+from symcal.simulate.motion import ideal_columns
+
+PROBLEM = ROOT / "problems" / "dual_sensor_calibration.yaml"
+SCENARIO = ROOT / "problems" / "scenarios" / "courier_dual.yaml"
+MOUNT = ("l_x", "l_y", "cs.h")
+
+
+@pytest.fixture(scope="module")
+def problem():
+    return load_problem(PROBLEM)
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    return load_scenario(SCENARIO)
+
+
+def _variant(tmp_path, text: str):
+    path = tmp_path / "variant.yaml"
+    path.write_text(f"scenario: variant\nextends: {SCENARIO}\n{text}")
+    return path
+
+
+# ----------------------------------------------------------------------- scenario language
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("design: {run: calibraton, limits: {n: [1, 10]}}",
+     "design.run: no run named 'calibraton' (did you mean 'calibration'?); runs: "
+     "calibration, flyby"),
+    ("design: {run: flyby, limits: {n: [1, 400]}}",
+     "design.run: run 'flyby' is a line; only a scatter run can be designed"),
+    ("design: {run: calibration, limits: {theta_deg: [-1, 1]}}",
+     "design.limits.theta_deg: run 'calibration' has theta_deg [-1.5, 1.5], outside its "
+     "limits [-1, 1]"),
+    ("design: {run: calibration, limits: {dwell: [0, 2]}}",
+     "design.limits.dwell: dwell is a share of the poses: its limits must lie within [0, 1], "
+     "found [0, 2]"),
+    ("design: {run: calibration, limits: {n: [10.5, 1000]}}",
+     "design.limits.n: n's limits must be whole numbers from 1 to"),
+    ("design: {run: calibration, limits: {n: [2000, 1000]}}",
+     "design.limits.n: range [lo, hi] must have lo <= hi, found [2000, 1000]"),
+    ("design: {run: calibration, limits: {speed: [1, 2]}}",
+     "design.limits.speed: unknown key 'speed'"),
+    ("design: {run: calibration, limits: {theta_deg: ~, dwell: ~, n: ~}}",
+     "design.limits: lists no motion parameter that may change"),
+    ("runs: {calibration: {scatter: {dwell: 1.5}}}",
+     "dwell is a share of the poses: expected a number from 0 to 1, found 1.5"),
+])
+def test_bad_design_sections_are_refused_with_file_and_line(tmp_path, text, message):
+    path = _variant(tmp_path, text)
+    with pytest.raises(SpecError) as err:
+        load_scenario(path)
+    assert message in str(err.value)
+    assert "variant.yaml:3" in str(err.value)
+
+
+def test_dwell_puts_a_share_at_the_ends_and_keeps_the_positions(scenario):
+    run = "calibration"
+    plain = simulate_run(scenario, run, seed=3, n=2000)
+    values = {"x": (0.0, 2.032), "y": (0.0, 2.032), "theta_deg": (-1.5, 1.5), "dwell": 0.6,
+              "n": 1000}
+    dwelling = simulate_run(with_motion(scenario, run, values), run, seed=3, n=2000)
+    ends = np.isclose(np.abs(dwelling["theta_ref"]), np.deg2rad(1.5), rtol=0, atol=1e-15)
+    assert abs(ends.mean() - 0.6) < 0.04            # binomial sd 0.011
+    assert abs(np.mean(dwelling["theta_ref"][ends] > 0) - 0.5) < 0.05
+    same = ~ends
+    np.testing.assert_array_equal(dwelling["theta_ref"][same], plain["theta_ref"][same])
+
+
+def test_the_symbolic_readings_are_the_simulators_for_an_ideal_courier(scenario):
+    segments = tuple((0.0,) * 9 for _ in range(4))
+    platen = dataclasses.replace(scenario.platen, segments=segments,
+                                 effects=dataclasses.replace(scenario.platen.effects,
+                                                             lateral=None))
+    ideal = quiet(dataclasses.replace(scenario, platen=platen))
+    cols = simulate_run(ideal, "calibration", seed=5, n=50)
+    motion = ideal.runs[0].motion
+    import casadi as ca
+
+    pose = ca.SX.sym("pose", 3)
+    out = ideal_columns(ideal, motion, pose[0], pose[1], pose[2], 0.0)
+    names = ["p1", "p2", "p3", "p4", "psi_x", "psi_y", "x_ref", "y_ref"]
+    fn = ca.Function("f", [pose], [ca.vertcat(*(out[c] for c in names))])
+    # the motion's own pose is the coordination sensor's centre: undo the pivot
+    th = cols["theta_ref"]
+    sx = cols["x_ref"] - np.cos(th) * 90.0 + np.sin(th) * 5.0
+    sy = cols["y_ref"] - np.sin(th) * 90.0 - np.cos(th) * 5.0
+    got = np.array(fn(np.vstack([sx, sy, th]))).reshape(len(names), -1)
+    for k, name in enumerate(names):
+        np.testing.assert_allclose(got[k], cols[name], rtol=0, atol=1e-12)
+
+
+# ----------------------------------------------------------------------- targets
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("l_x", "--target l_x: expected NAME=VALUE with an optional unit, e.g. l_x=5um"),
+    ("l_z=5um", "--target l_z=5um: the problem has no parameter 'l_z' (did you mean"),
+    ("l_x=-5um", "--target l_x=-5um: a standard error must be positive"),
+    ("l_x=5s", "--target l_x=5s: 's' is not a unit of l_x, which is in 'mm'"),
+])
+def test_bad_targets_are_refused(problem, text, message):
+    with pytest.raises(SymcalError) as err:
+        parse_target(text, problem)
+    assert str(err.value).startswith(message)
+
+
+def test_targets_convert_to_the_parameters_unit(problem):
+    assert parse_target("l_x=5um", problem).value == pytest.approx(0.005)
+    assert parse_target("l_x = 0.005", problem).value == pytest.approx(0.005)
+
+
+def test_an_unidentifiable_target_is_refused(problem, scenario):
+    with pytest.raises(SymcalError) as err:
+        design(problem, scenario, targets=(parse_target("o_x=1um", problem),))
+    assert str(err.value).startswith("--target o_x=1um: 'o_x' is determined only in a "
+                                     "combination")
+
+
+# ----------------------------------------------------------------------- the command line
+
+
+def test_cli_prediction_json_shape(capsys):
+    code = main(["design", str(PROBLEM), "--scenario", str(SCENARIO), "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert code == 0
+    assert set(doc) == {"parameters", "binding", "scenario"}
+    assert doc["binding"] == [] and doc["scenario"] is None
+    assert set(doc["parameters"]["l_x"]) == {"predicted_se", "baseline_se"}
+    assert doc["parameters"]["l_x"]["predicted_se"] == doc["parameters"]["l_x"]["baseline_se"]
+    assert 0.01 < doc["parameters"]["l_x"]["baseline_se"] < 0.05      # mm: 10-50 um
+    assert doc["parameters"]["o_x"]["baseline_se"] is None            # only in combination
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--target", "l_x=5um"], "--target and --criterion choose a motion: they need "
+                              "--optimize"),
+    (["--out", "x"], "--out x writes the optimised scenario: it needs --optimize"),
+])
+def test_cli_option_errors(capsys, argv, message):
+    code = main(["design", str(PROBLEM), "--scenario", str(SCENARIO), *argv])
+    assert code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_a_scenario_without_design_section_is_refused(problem):
+    plain = ROOT / "problems" / "scenarios" / "courier_dual_clean.yaml"
+    sc = dataclasses.replace(load_scenario(plain), design=None)
+    with pytest.raises(SymcalError) as err:
+        design(problem, sc)
+    assert "has no 'design' section" in str(err.value)
+
+
+# ----------------------------------------------------------------------- Monte Carlo
+
+
+def _monte_carlo(problem, scenario, seeds):
+    values = []
+    for seed in seeds:
+        data = make_dataset("calibration", "mc", simulate_run(scenario, "calibration",
+                                                              seed=seed),
+                            needed_columns(problem))
+        result = symcal.solve(problem, {"calibration": data})
+        assert result.success
+        values.append([result.params[name] for name in MOUNT])
+    return np.std(np.array(values), axis=0, ddof=1)
+
+
+@pytest.mark.slow
+def test_designed_motion_meets_its_target_and_predictions_match_monte_carlo(problem,
+                                                                           scenario, tmp_path,
+                                                                           capsys):
+    # the design: l_x within 20 um with the fewest observations, within the limits
+    code = main(["design", str(PROBLEM), "--scenario", str(SCENARIO), "--optimize",
+                 "--target", "l_x=20um", "--out", str(tmp_path / "d"), "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert code == 0
+    assert doc["scenario"] == str(tmp_path / "d" / "scenario.yaml")
+    lx = doc["parameters"]["l_x"]
+    assert lx["predicted_se"] <= 0.020 < lx["baseline_se"]
+    designed = load_scenario(tmp_path / "d" / "scenario.yaml")    # loadable, simulate-able
+    motion = designed.runs[0].motion
+    assert motion.n < 1000                                         # fewer observations
+    assert (tmp_path / "d" / "motion.png").stat().st_size > 1000
+    # Monte Carlo: default and designed motions, calibrated on 50 seeds each
+    seeds = range(200, 250)
+    for sc in (scenario, designed):
+        predicted = predict(problem, sc)
+        spread = _monte_carlo(problem, sc, seeds)
+        for name, mc in zip(MOUNT, spread, strict=True):
+            if sc is designed and name == "l_y":
+                # known gap: with every pose at +-1.5 deg the explicit model's misfit is
+                # not noise-like for l_y; the spread exceeds the prediction by ~26 % and
+                # the SE the calibration itself reports by ~20 % (see the issue report)
+                assert predicted.se[name] < mc < 1.5 * predicted.se[name]
+                continue
+            assert mc == pytest.approx(predicted.se[name], rel=0.2), (sc.name, name)
+        if sc is designed:
+            assert spread[0] <= 0.020 * 1.1     # the target, within the MC's own spread
+
+
+@pytest.mark.slow
+def test_the_bundled_target_reports_its_binding_limits(problem, scenario):
+    out = design(problem, scenario, targets=(parse_target("l_x=5um", problem),))
+    assert out.met == {"l_x": False}
+    assert set(out.binding) >= {"theta_deg <= 1.5", "theta_deg >= -1.5", "dwell <= 1",
+                                "n <= 1000"}
+    assert out.after["n"] == 1000 and out.after["dwell"] == pytest.approx(1.0, abs=1e-6)
+    best = out.final.se["l_x"]
+    assert best < 0.5 * out.baseline.se["l_x"]                # 29.5 -> 12.9 um
+    assert out.needed_n > 5000
+    for name in ("l_y", "cs.h"):                             # nothing else gets worse
+        assert out.final.se[name] <= 1.05 * out.baseline.se[name]
+    dumped = yaml.safe_load(out.scenario_yaml(SCENARIO, SCENARIO.parent))
+    assert dumped["runs"]["calibration"]["scatter"]["theta_deg"] == [-1.5, 1.5]
+
+
+@pytest.mark.slow
+def test_diagnose_points_to_design_when_a_direction_is_poorly_determined(problem):
+    from symcal.diagnose import diagnose
+    from symcal.report import diagnosis_verdict
+
+    verdict = diagnosis_verdict(diagnose(symcal.solve(problem)))
+    pointer = [line for line in verdict if line.startswith("poorly determined")]
+    assert len(pointer) == 1
+    assert "l_x" in pointer[0] and "symcal design" in pointer[0]
+    assert "--scenario " + str(SCENARIO) in pointer[0]
