@@ -272,7 +272,13 @@ def run_stage(
         rank = numerical_rank(out.r_factor, out.rows, scales)
         cov_g = objective.residual_covariance(data, out.theta, rank)
         meat = objective.accumulate_r(data, out.theta, sqrt_psd(cov_g).T)[0]
-    exact_null = gauges.directions(plain, data, out.theta)
+    exact_null, held = gauges.confirmed(plain, data, out.theta)
+    if len(held.gauges) < len(gauges.gauges):
+        gone = [g.text.split(":")[0] + " of " + ", ".join(g.parameters)
+                for g in gauges.gauges if g not in held.gauges]
+        notes.append(f"the {'; '.join(gone)} found before the solve does not hold at the "
+                     "estimate: a degeneracy of the region the start lies in, not a gauge")
+        gauges = held
     ident, unc = analyse(out.r_factor, out.rows, out.rss, names, scales, out.theta[idx],
                          meat, exact_null)
     if out.success and ident.rank == 0:

@@ -161,6 +161,20 @@ def test_recovery_within_three_standard_errors(seed, tmp_path) -> None:
         assert expected[name] == truth["parameters"][name]
 
 
+def test_noiseless_data_are_solved_to_the_digits_the_files_keep(tmp_path) -> None:
+    """Noiseless readings (rounded to the 10 digits of the CSV): a success, not a stall,
+    with every parameter at the truth to the rounding of the readings; the nothing-fixed
+    problem still names both gauges."""
+    truth = _simulate(tmp_path, "--seed", "3", "--noise", "0")
+    result = symcal.solve(FIXED, _data(tmp_path))
+    assert result.success, result.stages[-1].message
+    expected = truth["gauge_fixed"]
+    for p in result.parameters:
+        assert abs(p.value - expected[p.name]) < 1e-8, (p.name, p.value, expected[p.name])
+    free = symcal.solve(FREE, _data(tmp_path))
+    assert {g.kind for g in free.stages[-1].gauges.gauges} >= {"scale", "rotation"}
+
+
 @pytest.mark.slow
 def test_diagnose_quiet_on_clean_data_and_finds_a_planted_gain(tmp_path) -> None:
     clean = diagnose(symcal.solve(FIXED))

@@ -64,7 +64,8 @@ def tool(truth: dict[str, float], phi: np.ndarray) -> np.ndarray:
     return np.column_stack([np.cos(c) @ a, np.sin(c) @ a])
 
 
-def simulate(seed: int, gains: dict[str, float]) -> dict[str, np.ndarray]:
+def simulate(seed: int, gains: dict[str, float], noise: float = NOISE
+             ) -> dict[str, np.ndarray]:
     """Every run as an ``N × 4`` table (t, q1, q2, q3)."""
     rng = np.random.default_rng(seed)
     offsets = np.array([TRUTH[f"e{i}.offset"] for i in (1, 2, 3)])
@@ -75,7 +76,7 @@ def simulate(seed: int, gains: dict[str, float]) -> dict[str, np.ndarray]:
         phi = joint_angles(TRUTH, t, phase)
         assert np.allclose(tool(TRUTH, phi), [TRUTH["px"], TRUTH["py"]], atol=1e-12)
         q = (phi - offsets[None, :]) / (1 + gain[None, :])
-        q = q + NOISE * rng.standard_normal(q.shape)
+        q = q + noise * rng.standard_normal(q.shape)
         tables[name] = np.column_stack([t, q])
     return tables
 
@@ -98,7 +99,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     parser.add_argument("--gain", action="append", default=[], metavar="eI=G",
                         help="a gain error G of encoder I, e.g. e2=0.002 (0.2 %%)")
+    parser.add_argument("--noise", type=float, default=NOISE, metavar="RAD",
+                        help=f"encoder noise, standard deviation in rad (default {NOISE:g}; "
+                             "0: noiseless, up to the 10 digits the files keep)")
     args = parser.parse_args(argv)
+    if not args.noise >= 0:
+        parser.error(f"--noise {args.noise}: give a standard deviation of at least 0")
     gains = {}
     for item in args.gain:
         name, _, value = item.partition("=")
@@ -107,10 +113,10 @@ def main(argv: list[str] | None = None) -> int:
         gains[name] = float(value)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    for name, table in simulate(args.seed, gains).items():
+    for name, table in simulate(args.seed, gains, args.noise).items():
         np.savetxt(out / f"{name}.csv", table, delimiter=",", header="t,q1,q2,q3",
                    comments="", fmt="%.10g")
-    doc = {"seed": args.seed, "noise_rad": NOISE, "gains": gains, "parameters": TRUTH,
+    doc = {"seed": args.seed, "noise_rad": args.noise, "gains": gains, "parameters": TRUTH,
            "gauge_fixed": gauge_fixed(TRUTH)}
     (out / "truth.json").write_text(json.dumps(doc, indent=2) + "\n")
     print(f"wrote {', '.join(f'{n}.csv' for n in RUNS)} and truth.json to {out}")

@@ -31,7 +31,7 @@ evenly spread sample of the observations (:data:`SAMPLE`).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -312,18 +312,29 @@ class GaugeAnalysis:
                    ) -> np.ndarray:
         """The gauges' directions at ``theta`` (``k × n_free``, parameter units): what
         the identifiability analysis counts as exactly undeterminable there."""
+        return self.confirmed(objective, data, theta)[0]
+
+    def confirmed(self, objective: Objective, data: Dataset, theta: np.ndarray
+                  ) -> tuple[np.ndarray, GaugeAnalysis]:
+        """The gauges' directions at ``theta`` and the analysis reduced to the gauges that
+        hold there.  A symmetry without a known tangent (found only as a null direction
+        of the Jacobian at the start and the random points) holds at ``theta`` only where
+        the Jacobian is null along it to :data:`symcal.linalg.EXACT_RTOL`; one that does
+        not was a degeneracy of the region the start lies in (an exponential term that
+        vanishes there, say), not a symmetry, and must not hide a direction the data
+        determine."""
         n = len(self.names)
         if not self.gauges:
-            return np.zeros((0, n))
+            return np.zeros((0, n)), self
         sample = _Sample(objective, data)
         got = sample.at(theta)
         if got is None:
-            return np.zeros((0, n))
+            return np.zeros((0, n)), self
         g, jac = got
         here = _Point(theta, g, jac, null_basis(jac, jac.shape[0]))
         scales = sample.scales
         explicit: list[np.ndarray] = []
-        implicit = 0
+        implicit: list[Gauge] = []
         for gauge in self.gauges:
             if gauge.kind == "offset":
                 explicit += [np.array([c.coefficients.get(m, 0.0) for m in self.names])
@@ -334,20 +345,33 @@ class GaugeAnalysis:
             elif gauge.generator and np.any(np.asarray(gauge.generator)):
                 t = _tangent(here, sample, np.asarray(gauge.generator).reshape(-1))
                 if t is None:
-                    implicit += 1
+                    implicit.append(gauge)
                 else:
                     explicit.append(t)
             else:
-                implicit += gauge.dimension
+                implicit.append(gauge)
         rows = [v / np.linalg.norm(v) for v in explicit if np.linalg.norm(v) > 0]
         basis = range_basis(np.array(rows).T) if rows else np.zeros((n, 0))
+        kept = [gauge for gauge in self.gauges if gauge not in implicit]
         if implicit:
             projected = jac - (jac @ basis) @ basis.T
-            vt = np.linalg.svd(projected)[2] if jac.shape[0] >= n else \
-                np.linalg.svd(np.vstack([projected, np.zeros((n - jac.shape[0], n))]))[2]
-            extra = [v for v in vt[::-1] if np.linalg.norm(basis.T @ v) < 0.5][:implicit]
+            _, sv, vt = (np.linalg.svd(projected) if jac.shape[0] >= n else np.linalg.svd(
+                np.vstack([projected, np.zeros((n - jac.shape[0], n))])))
+            top = float(np.linalg.norm(jac, 2)) or 1.0
+            extra: list[np.ndarray] = []
+            for gauge in implicit:
+                room = [i for i in range(len(sv) - 1, -1, -1)
+                        if np.linalg.norm(basis.T @ vt[i]) < 0.5
+                        and not any(abs(vt[i] @ e) > 0.5 for e in extra)]
+                chosen = room[:gauge.dimension]
+                if len(chosen) == gauge.dimension and all(
+                        sv[i] <= EXACT_RTOL * top for i in chosen):
+                    extra += [vt[i] for i in chosen]
+                    kept.append(gauge)
             basis = range_basis(np.column_stack([basis, *extra])) if extra else basis
-        return (basis * scales[:, None]).T
+        held = self if len(kept) == len(self.gauges) else replace(
+            self, gauges=tuple(g for g in self.gauges if g in kept))
+        return (basis * scales[:, None]).T, held
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form."""

@@ -24,7 +24,9 @@ on the exact Jacobian from CasADi's AD.
   best one seen.
 * **Status.** Success only when a first-order test holds at the final iterate: a
   Gauss–Newton step would lower the cost by less than ``GN_DECREMENT`` of itself (with the
-  held bounds: the projected problem), or the fit is exact (the residual vanished, or fell
+  held bounds: the projected problem), or, once no step lowers the cost, that decrease is
+  within the cost's rounding noise or the step is below ``XTOL`` of the parameters, or
+  the fit is exact (the residual vanished, or fell
   below ``EXACT_FIT`` of the starting residual, where rounding dominates).  Divergence,
   NaN/inf in the Jacobian, the iteration limit and a stall (the region shrank to nothing
   without the test holding) are failures that say so.
@@ -56,6 +58,9 @@ NOISE_FACTOR = 4.0
 #: The cost is a sum of rounded squares: its relative rounding is at least this many
 #: machine epsilons, measured or not (a step's predicted decrease below it is lost in it).
 ROUNDING_FLOOR = 16.0
+#: Converged when no step lowers the cost and the Gauss–Newton step is shorter than this
+#: fraction of the parameters (‖D x‖): they are determined to rounding.
+XTOL = 1e-12
 #: An exact fit: the residual norm fell below this fraction of the starting one.
 EXACT_FIT = 1e-12
 #: Stalled when the trust radius falls below this fraction of ‖D x‖ (or of 1).
@@ -146,8 +151,8 @@ class _Steps:
         step[self.free] = z / self.d[self.free]
         trial = np.clip(self.x + step, self.lower, self.upper)
         taken = trial - self.x
-        model = self.lin.r_x @ taken + self.lin.c
-        predicted = float(self.lin.c @ self.lin.c - model @ model)
+        change = self.lin.r_x @ taken   # ‖c‖² - ‖c + change‖², without cancellation
+        predicted = float(-2.0 * (self.lin.c @ change) - change @ change)
         return trial, predicted, float(np.linalg.norm(self.d * taken))
 
     def rejected(self, cost: float, predicted: float, size: float) -> None:
@@ -158,6 +163,13 @@ class _Steps:
     def verdict(self) -> tuple[bool, str, str]:
         """Success, status and words once no step lowers the cost any more."""
         promised = self.decrement * self.lin.cost
+        step = float(np.linalg.norm(self.a / self.s))
+        size = float(np.linalg.norm(self.d * self.x))
+        if size > 0 and step <= XTOL * size:
+            return True, "converged_to_rounding", (
+                f"converged to rounding: no step lowers the cost and a Gauss-Newton step "
+                f"would move the parameters by {step / size:.2g} of themselves, below "
+                f"{XTOL:g}")
         noise = max(self.noise, ROUNDING_FLOOR * np.finfo(float).eps * self.lin.cost)
         if promised <= NOISE_FACTOR * noise:
             self.noise = noise
