@@ -59,21 +59,30 @@ class Round:
 @dataclass(frozen=True)
 class Improvement:
     """The outcome of :func:`improve`: the kept rounds (round 0 is the starting problem),
-    whether the last diagnosis was quiet, the final problem file, and what was tried and
-    rejected (label → reason)."""
+    whether the last diagnosis was quiet, the final problem file, what was tried and
+    rejected (label → reason), and the significant candidates of the last diagnosis that
+    are aliased with the parameters already there (label → reason).
+
+    Quiet means no *calibratable* candidate is left: a candidate the last round tried, with
+    every member of its group, and found nearly aliased with existing parameters (their
+    standard errors grow more than :data:`INFLATION` times) cannot be determined by these
+    constraints; it is reported apart, as the diagnosis reports candidates only a
+    reference reveals."""
 
     rounds: tuple[Round, ...]
     quiet: bool
     final_problem: Path
     rejected: tuple[tuple[str, str], ...]
     last: Diagnosis
+    aliased: tuple[tuple[str, str], ...] = ()
 
     def to_dict(self) -> dict:
         """``{"rounds": [...], "quiet": ..., "final_problem": ...}`` (plus what was
         rejected and why)."""
         return {"rounds": [r.to_dict() for r in self.rounds], "quiet": self.quiet,
                 "final_problem": str(self.final_problem),
-                "rejected": [{"label": label, "reason": why} for label, why in self.rejected]}
+                "rejected": [{"label": label, "reason": why} for label, why in self.rejected],
+                "aliased": [{"label": label, "reason": why} for label, why in self.aliased]}
 
 
 def held_out_change(new: Result, old: Result, kind: str | None = None) -> float:
@@ -289,9 +298,11 @@ def improve(
     rounds = [Round(0, None, Path(problem), result, len(diag.significant))]
     rejected: list[tuple[str, str]] = []
     say(f"round 0: {current.name}: {len(diag.significant)} significant candidate(s)")
+    last_try = len(rejected)
     for k in range(1, max_rounds + 1):
         if not diag.significant:
             break
+        last_try = len(rejected)
         kept = None
         tried = {label for label, _ in rejected}
         name = f"{Path(problem).stem}_round{k}"
@@ -309,6 +320,7 @@ def improve(
         if kept is None:
             break
         label, path, result = kept
+        last_try = len(rejected)
         diag = diagnose(result, alpha)
         rounds.append(Round(k, label, path, result, len(diag.significant)))
         say(f"round {k}: added {label}: {len(diag.significant)} significant candidate(s) left")
@@ -318,4 +330,19 @@ def improve(
                              f"extends: {base.as_posix()}\n"
                              f"doc: the last revision symcal improve kept ({len(rounds) - 1} "
                              "round(s))\n")
-    return Improvement(tuple(rounds), not diag.significant, final, tuple(rejected), diag)
+    aliased = _aliased(diag, rejected[last_try:])
+    left = [c for c in diag.significant if c.label not in dict(aliased)]
+    return Improvement(tuple(rounds), not left, final, tuple(rejected), diag, aliased)
+
+
+def _aliased(diag: Diagnosis, tried: list[tuple[str, str]]) -> tuple[tuple[str, str], ...]:
+    """The last diagnosis's significant candidates that the last round found aliased with
+    existing parameters, themselves and every member of their group tried."""
+    why = dict(tried)
+    out = []
+    for cand in diag.significant:
+        members = [cand.label, *cand.indistinguishable[:GROUP - 1]]
+        reasons = [why.get(m, "") for m in members]
+        if all(r.startswith("it is nearly aliased") for r in reasons):
+            out.append((cand.label, reasons[0]))
+    return tuple(out)

@@ -25,6 +25,7 @@ in the same order, contraction into fused multiply-adds disabled).
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import os
 import shutil
@@ -34,6 +35,7 @@ import threading
 from pathlib import Path
 
 import casadi as ca
+import numpy as np
 
 from symcal.errors import SymcalError
 from symcal.files import atomic_write_bytes, atomic_write_text
@@ -42,12 +44,12 @@ from symcal.numeric import Mapped, from_serialized
 #: Passes over at least this many observations use the compiled function (``auto``).
 JIT_MIN = 131_072
 #: Version of the cache's layout and key.
-FORMAT = 1
+FORMAT = 2
 #: Compiler flags: no fused multiply-add contraction, so results keep IEEE operations.
 FLAGS = ("-O1", "-fPIC", "-shared", "-ffp-contract=off")
 
 _LOCK = threading.Lock()
-_LOADED: dict[str, ca.Function] = {}
+_LOADED: dict[str, ctypes.CDLL] = {}
 _FAILED: set[str] = set()
 
 
@@ -89,10 +91,43 @@ def _digest(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
+#: Name of the loop over observations appended to the generated code.
+ENTRY = "symcal_map"
+
+
 def _source(fn: ca.Function) -> str:
+    """CasADi's C code of ``fn`` and a loop calling it on ``n`` observations: θ shared,
+    observation i's inputs at ``u + i·n_u``, its outputs at ``out_k + i·nnz_k``."""
     cg = ca.CodeGenerator(f"{fn.name()}.c", {"with_header": False})
     cg.add(fn)
-    return str(cg.dump())
+    nu = fn.nnz_in(1)
+    strides = [fn.nnz_out(k) for k in range(fn.n_out())]
+    calls = "\n".join(f"    res[{k}] = out[{k}] + i * {s};" for k, s in enumerate(strides))
+    return str(cg.dump()) + f"""
+int {ENTRY}(casadi_int n, const casadi_real* theta, const casadi_real* u,
+            casadi_real** out, casadi_real* w, casadi_int* iw) {{
+  const casadi_real* arg[{max(fn.sz_arg(), 2)}];
+  casadi_real* res[{max(fn.sz_res(), len(strides))}];
+  casadi_int i;
+  arg[0] = theta;
+  for (i = 0; i < n; ++i) {{
+    arg[1] = u + i * {nu};
+{calls}
+    if ({fn.name()}(arg, res, iw, w, 0)) return 1;
+  }}
+  return 0;
+}}
+"""
+
+
+def _load(path: Path) -> ctypes.CDLL:
+    """The library at ``path`` with its loop's signature declared."""
+    lib = ctypes.CDLL(str(path))
+    entry = getattr(lib, ENTRY)
+    entry.restype = ctypes.c_int
+    entry.argtypes = [ctypes.c_longlong, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                      ctypes.c_void_p, ctypes.c_void_p]
+    return lib
 
 
 def _trusted(path: Path) -> bool:
@@ -122,17 +157,17 @@ def _key(serialized: bytes, cc: str) -> str:
     return _digest(head + b"\0" + serialized)
 
 
-def compiled(fn: ca.Function, serialized: bytes, build: bool = True) -> ca.Function | None:
-    """The compiled twin of ``fn`` (same inputs and outputs), loaded from the disk cache
-    or, when ``build``, compiled now; None when there is no compiler, compiling fails, or
-    it is not cached and ``build`` is False.
+def compiled(fn: ca.Function, serialized: bytes, build: bool = True) -> ctypes.CDLL | None:
+    """The compiled library of ``fn`` (its loop :data:`ENTRY`), loaded from the disk cache
+    or, when ``build``, compiled now; None when there is no compiler, ``fn``'s name is not
+    a C identifier, compiling fails, or it is not cached and ``build`` is False.
 
     ``serialized`` is ``fn``'s CasADi serialisation: the cache is keyed by it (with the
     format, CasADi version, compiler and flags), so a problem built again from the same
     YAML finds its functions.
     """
     cc = compiler()
-    if cc is None:
+    if cc is None or not fn.name().isidentifier():
         return None
     key = _key(serialized, cc)
     with _LOCK:
@@ -147,24 +182,57 @@ def compiled(fn: ca.Function, serialized: bytes, build: bool = True) -> ca.Funct
                     return None
                 _build(_source(fn), fn.name(), cc, target)
             try:
-                loaded = ca.external(fn.name(), str(target))
-            except RuntimeError:            # trusted bytes that do not load: rebuild once
+                loaded = _load(target)
+            except (OSError, AttributeError):   # trusted bytes that do not load: rebuild
                 _build(_source(fn), fn.name(), cc, target)
-                loaded = ca.external(fn.name(), str(target))
-        except (OSError, RuntimeError, subprocess.SubprocessError):
+                loaded = _load(target)
+        except (OSError, AttributeError, subprocess.SubprocessError):
             _FAILED.add(key)
             return None
         _LOADED[key] = loaded
         return loaded
 
 
-class CompiledMapped(Mapped):
-    """A :class:`~symcal.numeric.Mapped` evaluated by compiled code; pickles as its
-    interpreted source, which the receiving process compiles (or loads from its cache)."""
+class _Work:
+    """One thread's buffers for the compiled loop."""
 
-    def __init__(self, source: Mapped, fn: ca.Function) -> None:
-        super().__init__(fn)
+    def __init__(self, fn: ca.Function, size: int) -> None:
+        self.size = size
+        self.u = np.empty((size, fn.nnz_in(1)))
+        self.outs = [np.empty((size, fn.nnz_out(k))) for k in range(fn.n_out())]
+        self.pointers = (ctypes.c_void_p * len(self.outs))(
+            *(o.ctypes.data for o in self.outs))
+        self.w = np.empty(max(int(fn.sz_w()), 1))
+        self.iw = np.empty(max(int(fn.sz_iw()), 1), dtype=np.int64)
+
+
+class CompiledMapped(Mapped):
+    """A :class:`~symcal.numeric.Mapped` evaluated by compiled code, called through
+    ctypes (which releases the GIL: threads evaluate chunks on different cores); pickles
+    as its interpreted source, which the receiving process compiles or loads from its
+    cache."""
+
+    def __init__(self, source: Mapped, lib: ctypes.CDLL) -> None:
+        super().__init__(source.fn)
         self.source = source
+        self.lib = lib
+        self._entry = getattr(lib, ENTRY)
+        self._serialized = source.serialized()
+
+    def evaluate(self, theta: np.ndarray, u: np.ndarray) -> list[np.ndarray]:
+        """As :meth:`Mapped.evaluate`: views of this thread's buffers."""
+        n = u.shape[1]
+        work: _Work | None = getattr(self._local, "work", None)
+        if work is None or work.size < n:
+            work = _Work(self.fn, max(n, 1))
+            self._local.work = work
+        th = np.ascontiguousarray(theta, dtype=float)
+        work.u[:n] = u.T
+        status = self._entry(n, th.ctypes.data, work.u.ctypes.data, work.pointers,
+                             work.w.ctypes.data, work.iw.ctypes.data)
+        if status:  # pragma: no cover - generated SX code does not fail
+            raise ArithmeticError(f"compiled {self.fn.name()} failed (status {status})")
+        return [out[:n] for out in work.outs]
 
     def __reduce__(self) -> tuple[object, tuple[bytes]]:
         return fast_from_serialized, (self.source.serialized(),)
@@ -181,10 +249,10 @@ def fast(mapped: Mapped, build: bool = True) -> Mapped:
     twin = _TWINS.get(id(mapped))
     if twin is not None and getattr(twin, "source", None) is mapped:
         return twin
-    fn = compiled(mapped.fn, mapped.serialized(), build)
-    if fn is None:
+    lib = compiled(mapped.fn, mapped.serialized(), build)
+    if lib is None:
         return mapped
-    twin = CompiledMapped(mapped, fn)
+    twin = CompiledMapped(mapped, lib)
     _TWINS[id(mapped)] = twin
     return twin
 

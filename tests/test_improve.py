@@ -320,6 +320,33 @@ def test_coordination_gain_is_named_by_its_channels_and_fixed(tmp_path) -> None:
 
 
 @pytest.mark.slow
+def test_improve_fixes_the_coordination_gain_and_ends_quiet(tmp_path) -> None:
+    """The 2 % y-channel gain, through `improve`: one round, at the floor on the
+    calibration and the fly-by, the coefficient (-h·g: the model corrects the reading)
+    within 3 standard errors; what stays significant is aliased with l_x (its standard
+    error would grow many times) and is reported apart, so the loop ends quiet."""
+    scenario = _dual(gain_y=0.02)
+    data = _data(scenario, seed=67)
+    result = improve(DUAL_IMPLICIT, tmp_path / "out", data, max_rounds=3)
+    assert [r.added for r in result.rounds] == [None, "cs.c_y += a term linear in psi_y"]
+    assert result.quiet
+    assert all(why.startswith("it is nearly aliased with the parameters already there: "
+                              "the standard error of l_x grows")
+               for _, why in result.aliased)
+    assert {a["label"] for a in result.to_dict()["aliased"]} == {
+        label for label, _ in result.aliased}
+    final = result.rounds[-1].result
+    floors = noise_floor(scenario)
+    dof = np.sqrt(final.uncertainty.dof / final.rows)
+    for s in final.statistics:
+        if s.name in ("g_x", "g_y", "g_p"):
+            floor = floors[f"{s.name}_std"] * (dof if s.dataset == "calibration" else 1)
+            assert s.after.std < 1.10 * floor, (s.name, s.dataset)
+    gain = next(p for p in final.parameters if p.name == "cs.lin_psi_y")
+    assert abs(gain.value - (-50.0 * 0.02)) < 3 * gain.se
+
+
+@pytest.mark.slow
 def test_improve_never_replaces_a_file_it_did_not_write(tmp_path, capsys) -> None:
     """A user's own file in --out is refused before any work and left as it was; a folder
     symcal wrote can be used again."""

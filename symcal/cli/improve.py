@@ -63,13 +63,17 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write(plain_json(result.to_dict()))
     else:
         lines = [f"symcal improve: {len(result.rounds) - 1} round(s) kept; "
-                 + ("the diagnosis is quiet" if result.quiet
+                 + (("the diagnosis is quiet" + (
+                     " (what is left is aliased with the parameters already there)"
+                     if result.aliased else "")) if result.quiet
                     else "the diagnosis is not quiet (nothing else pays)"), ""]
         for r in result.rounds:
             what = r.added or "(the starting problem)"
             lines.append(f"  round {r.index}: {what}  [{r.problem_file}]")
         for label, why in result.rejected:
             lines.append(f"  not kept: {label}: {why}")
+        for label, why in result.aliased:
+            lines.append(f"  real but not calibratable by these constraints: {label}: {why}")
         lines += ["", ladder_report(rungs).rstrip(), "",
                   f"final problem: {result.final_problem}",
                   f"wrote the revisions, ladder.txt, ladder.json and ladder.png to {out}"]
