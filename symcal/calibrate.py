@@ -23,59 +23,13 @@ from symcal.problem import Problem, Stage, load_problem
 from symcal.result import ConstraintCost, DatasetInfo, ParameterResult, Result, StageResult
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.linear import solve_linear
-from symcal.solvers.nlp import solve_ipopt
 from symcal.solvers.objective import Objective
 from symcal.solvers.robust import RowLosses, row_losses, sandwich_meat, solve_robust
-from symcal.solvers.trust_region import solve_trust_region
+from symcal.solvers.stage import ipopt, lm, out_of_bounds, solve_stage
 from symcal.suggest import did_you_mean
 from symcal.units import DISPLAY_UNITS
 
 Progress = Callable[[str], None] | None
-
-
-def _out_of_bounds(problem: Problem, theta: np.ndarray, free: np.ndarray) -> list[str]:
-    return [p.name for p, v, f in zip(problem.parameters, theta, free, strict=True)
-            if f and not p.lower <= v <= p.upper]
-
-
-def _solve_stage(
-    objective: Objective, data: Dataset, theta: np.ndarray, method: str,
-    progress: Progress, label: str, options: SolveOptions,
-) -> tuple[SolverOutput, list[str]]:
-    nonlinear = objective.nonlinear()
-    notes: list[str] = []
-    if method == "linear" and nonlinear:
-        raise SolveError(f"stage '{label}': method 'linear' was asked for, but constraint(s) "
-                         f"{', '.join(nonlinear)} are not linear in its free parameters")
-    if nonlinear and method == "auto":
-        twin = objective.problem.explicit
-        if twin is not None:
-            explicit = Objective(twin, objective.constraints, objective.free)
-            if not explicit.nonlinear():
-                theta = solve_linear(explicit, data, theta).theta
-                notes.append("started from the explicit model's closed-form estimate")
-        method = "lm"
-    if method == "lm":
-        return solve_trust_region(objective, data, theta, progress, options.max_iter,
-                                  label=label), notes
-    if method == "ipopt":
-        return _ipopt(objective, data, theta, progress, label, options), notes
-    out = solve_linear(objective, data, theta)
-    outside = _out_of_bounds(objective.problem, out.theta, objective.free)
-    if outside and method == "auto":
-        notes.append(f"the closed-form estimate put {', '.join(outside)} outside its bounds; "
-                     "solved again with IPOPT, which respects them")
-        return _ipopt(objective, data, theta, progress, label, options), notes
-    if outside:
-        notes.append(f"{', '.join(outside)} lie(s) outside the bounds: the closed form "
-                     "does not apply bounds")
-    return out, notes
-
-
-def _ipopt(objective: Objective, data: Dataset, theta: np.ndarray, progress: Progress,
-           label: str, options: SolveOptions) -> SolverOutput:
-    return solve_ipopt(objective, data, theta, progress, options.max_iter, options.tol,
-                       label=label, extra=options.ipopt)
 
 
 def _robust(
@@ -89,19 +43,18 @@ def _robust(
 
     def inner(weighted: Objective, start: np.ndarray) -> SolverOutput:
         if not path:
-            out, first = _solve_stage(weighted, data, start, method, progress, label, options)
+            out, first = solve_stage(weighted, data, start, method, progress, label, options)
             notes.extend(first)
             path.append(out.method)
             return out
         if path[0] == "linear":
             out = solve_linear(weighted, data, start)
-            if not _out_of_bounds(objective.problem, out.theta, objective.free):
+            if not out_of_bounds(objective, out.theta):
                 return out
             path[0] = "ipopt"
         if path[0] == "lm":
-            return solve_trust_region(weighted, data, start, progress, options.max_iter,
-                                      label=label)
-        return _ipopt(weighted, data, start, progress, label, options)
+            return lm(weighted, data, start, progress, label, options)
+        return ipopt(weighted, data, start, progress, label, options)
 
     robust = solve_robust(objective, data, theta, losses, inner, progress, label)
     return robust.output, notes, robust.weights
@@ -150,7 +103,7 @@ def _reweighted(
                                   "singular; kept equal weights")
     whitened = Objective(objective.problem, objective.constraints, objective.free,
                          whitening(cov)[0])
-    second, _ = _solve_stage(whitened, data, first.theta, method, progress, label, options)
+    second, _ = solve_stage(whitened, data, first.theta, method, progress, label, options)
     merged = SolverOutput(
         second.theta, second.free, second.method, second.success, second.status,
         second.message + "; weighted by the estimated covariance of the constraints",
@@ -247,7 +200,7 @@ def run_stage(
     losses = row_losses(plain)
     weights = None
     if losses is None:
-        out, notes = _solve_stage(plain, data, theta, method, progress, stage.name, options)
+        out, notes = solve_stage(plain, data, theta, method, progress, stage.name, options)
     elif problem.weighting == "estimated":
         raise SymcalError(f"stage '{stage.name}': {losses.texts[0]} is a robust loss, which "
                           "weighting 'estimated' does not support: remove one of them")

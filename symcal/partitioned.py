@@ -5,9 +5,11 @@ CSV shards); every pass over it (cost, normal equations, TSQR, residual covarian
 one task per shard on an executor (:mod:`symcal.solvers.executor`: Dask workers, threads
 or this process), each returning a small reduction, so memory is bounded per worker and
 the lead never holds the log.  The solvers are the ones of :func:`symcal.solve` (closed
-form, IPOPT with the Gauss-Newton Hessian, ``lm``), with the same choice of method per
-stage and the same estimated weighting, so the estimate equals the one of the same solve
-on the log in memory (to rounding: the shards are reduced in another grouping).
+form, ``lm``, IPOPT with the Gauss-Newton Hessian), with the same choice of method per
+stage (``auto``: the closed form when linear, else ``lm`` from the explicit model's
+closed-form estimate when there is one) and the same estimated weighting, so the
+estimate equals the one of the same solve on the log in memory (to rounding: the shards
+are reduced in another grouping).  Robust losses (which reweight every row) are refused.
 
 What it gives is the estimate, each stage's solver outcome and its identifiability and
 standard errors from the R factor; the fit statistics and plots of a full
@@ -35,9 +37,8 @@ from symcal.progress import Bars, Meter, meter
 from symcal.shards import ShardedDataset, open_shards
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.executor import Executor, SerialExecutor, current, using
-from symcal.solvers.linear import solve_linear
-from symcal.solvers.nlp import solve_ipopt
 from symcal.solvers.objective import Objective, Source
+from symcal.solvers.stage import solve_stage
 
 T = TypeVar("T")
 
@@ -124,46 +125,18 @@ class _Metered:
             yield value
 
 
-def _stage_output(objective: Objective, data: Source, theta: np.ndarray, method: str,
-                  progress: Callable[[str], None] | None, label: str,
-                  options: SolveOptions) -> tuple[SolverOutput, list[str]]:
-    """The solve of one stage, chosen as :func:`symcal.solve` chooses it."""
-    nonlinear = objective.nonlinear()
-    notes: list[str] = []
-    if method == "linear" and nonlinear:
-        raise SolveError(f"stage '{label}': method 'linear' was asked for, but constraint(s) "
-                         f"{', '.join(nonlinear)} are not linear in its free parameters")
-    if method == "lm":
-        raise SolveError(f"stage '{label}': method 'lm' is not available on a partitioned "
-                         "log; use auto, linear or ipopt")
-    if method == "ipopt" or nonlinear:
-        twin = objective.problem.explicit
-        if nonlinear and method == "auto" and twin is not None:
-            explicit = Objective(twin, objective.constraints, objective.free)
-            if not explicit.nonlinear():
-                theta = solve_linear(explicit, data, theta).theta
-                notes.append("IPOPT started from the explicit model's closed-form estimate")
-        return solve_ipopt(objective, data, theta, progress, options.max_iter, options.tol,
-                           label=label, extra=options.ipopt), notes
-    out = solve_linear(objective, data, theta)
-    outside = [p.name for p, v, f in zip(objective.problem.parameters, out.theta,
-                                         objective.free, strict=True)
-               if f and not p.lower <= v <= p.upper]
-    if outside and method == "auto":
-        notes.append(f"the closed-form estimate put {', '.join(outside)} outside its bounds; "
-                     "solved again with IPOPT, which respects them")
-        return solve_ipopt(objective, data, theta, progress, options.max_iter, options.tol,
-                           label=label, extra=options.ipopt), notes
-    return out, notes
-
-
 def _run_stage(problem: Problem, stage: Stage, data: Source, theta: np.ndarray,
                options: SolveOptions, progress: Callable[[str], None] | None
                ) -> PartitionedStage:
     free = np.array([p.name in stage.free for p in problem.parameters])
+    robust = [n for n in stage.constraints if problem.constraint(n).loss is not None]
+    if robust:
+        raise SolveError(f"stage '{stage.name}': constraint(s) {', '.join(robust)} have a "
+                         "robust loss, which reweights every row; a partitioned log is "
+                         "solved with squared losses only")
     objective = Objective(problem, stage.constraints, free)
     method = options.method or stage.method
-    out, notes = _stage_output(objective, data, theta, method, progress, stage.name, options)
+    out, notes = solve_stage(objective, data, theta, method, progress, stage.name, options)
     if problem.weighting == "estimated" and len(stage.constraints) > 1 and out.success:
         rank = numerical_rank(out.r_factor, out.rows, objective.scales)
         cov = objective.residual_covariance(data, out.theta, rank)
@@ -172,7 +145,7 @@ def _run_stage(problem: Problem, stage: Stage, data: Source, theta: np.ndarray,
                          "kept equal weights")
         else:
             objective = Objective(problem, stage.constraints, free, whitening(cov)[0])
-            second, more = _stage_output(objective, data, out.theta, method, progress,
+            second, more = solve_stage(objective, data, out.theta, method, progress,
                                          stage.name, options)
             out = SolverOutput(second.theta, second.free, second.method, second.success,
                                second.status, second.message + "; weighted by the "
@@ -224,7 +197,8 @@ def solve_partitioned(
     DataError
         If the shards cannot be read or lack a needed column (named by file).
     SolveError
-        If a stage asks for what a partitioned log cannot do (method ``lm``).
+        If a stage asks for the closed form on constraints that are not linear, or has a
+        constraint with a robust loss.
     """
     problem = problem if isinstance(problem, Problem) else load_problem(problem)
     options = options or problem.options

@@ -205,18 +205,14 @@ def test_designed_motion_meets_its_target_and_predictions_match_monte_carlo(prob
     motion = designed.runs[0].motion
     assert motion.n < 1000                                         # fewer observations
     assert (tmp_path / "d" / "motion.png").stat().st_size > 1000
-    # Monte Carlo: default and designed motions, calibrated on 50 seeds each
-    seeds = range(200, 250)
+    # Monte Carlo: default and designed motions, calibrated on 60 seeds each (the SD of
+    # 60 draws has a relative standard error of 9 %; on 300-400 seeds the ratios MC /
+    # predicted are 0.94-1.07 for both motions, each 95 % interval containing 1 +- 0.15)
+    seeds = range(200, 260)
     for sc in (scenario, designed):
         predicted = predict(problem, sc)
         spread = _monte_carlo(problem, sc, seeds)
         for name, mc in zip(MOUNT, spread, strict=True):
-            if sc is designed and name == "l_y":
-                # known gap: with every pose at +-1.5 deg the explicit model's misfit is
-                # not noise-like for l_y; the spread exceeds the prediction by ~26 % and
-                # the SE the calibration itself reports by ~20 % (see the issue report)
-                assert predicted.se[name] < mc < 1.5 * predicted.se[name]
-                continue
             assert mc == pytest.approx(predicted.se[name], rel=0.2), (sc.name, name)
         if sc is designed:
             assert spread[0] <= 0.020 * 1.1     # the target, within the MC's own spread

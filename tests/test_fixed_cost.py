@@ -217,3 +217,29 @@ def test_a_compiled_pass_equals_the_interpreted_pass(dual, cache, monkeypatch) -
     assert list(cache.glob("*.so"))
     for a, b in zip(fast, plain, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.max(np.abs(b)))
+
+
+@needs_cc
+def test_compiled_functions_are_safe_to_share_between_threads(cache) -> None:
+    """Each thread has its own work buffers: concurrent compiled evaluations at different
+    θ give what the interpreter gives for each."""
+    import threading
+
+    fn, theta, u = _small()
+    compiled = jit.fast(fn, build=True)
+    thetas = [theta * (1 + 0.1 * k) for k in range(4)]
+    expected = [fn(t, u) for t in thetas]
+    got: dict[int, list[np.ndarray]] = {}
+
+    def work(k: int) -> None:
+        for _ in range(20):
+            got[k] = compiled(thetas[k], u)
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for k in range(4):
+        for a, b in zip(got[k], expected[k], strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)

@@ -128,6 +128,14 @@ def _method_notes(report: dict[str, Any], settings: Settings) -> list[str]:
         "`accumulate_r`, ...).",
         "- Final J = Σ g² (mm², equal weights) of every method's estimate, evaluated with the "
         "same numpy residual; 'rel.' is (J − J_best)/J_best at that N.",
+        "- symcal's passes run on one thread per core from 32768 observations on, and its "
+        "one-observation functions are compiled (`symcal.jit`) once per run into the run's "
+        "own cache (job *startup*): timed rows use them from the cache, as every solve after "
+        "the first of a problem on a machine does.  'symcal, 1 thread, interpreted' is the "
+        "same default path with `SYMCAL_THREADS=1 SYMCAL_JIT=off`: symcal as it was before "
+        "issue 16 but for the fewer passes per iteration.",
+        "- The machine is shared: other work may run at the same time (load at start and "
+        "end in the header); times are wall times of that moment.",
         "- The numpy residuals of `bench/peers.py` agree with symcal's at a perturbed test "
         "point to "
         + ", ".join(f"{v:.1e} mm ({p})" for p, v in report["residual_check"].items()) + ".",

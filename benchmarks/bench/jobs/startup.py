@@ -62,14 +62,37 @@ def _command(args: list[str], ctx: Run, runs: int) -> dict[str, Any]:
     return {"seconds": statistics.median(times), "times": times, "exit": code}
 
 
+#: What a ``symcal solve`` process spends before solving, each in a fresh interpreter.
+PARTS = {
+    "interpreter": "pass",
+    "import symcal.calibrate": "import symcal.calibrate",
+    "pint's unit registry": "from symcal.units import registry; registry()",
+}
+
+
+def _parts(ctx: Run) -> dict[str, float]:
+    """Seconds of each of :data:`PARTS` (median of 3 fresh processes, start included)."""
+    out = {}
+    for label, code in PARTS.items():
+        times = []
+        for _ in range(3):
+            start = time.perf_counter()
+            subprocess.run([sys.executable, "-c", code], capture_output=True, cwd=ROOT,
+                           env=child_env(ctx.settings.blas_threads))
+            times.append(time.perf_counter() - start)
+        out[label] = statistics.median(times)
+    return out
+
+
 def run(ctx: Run) -> JobSummary:
     """Time the two commands; compile the functions."""
     compiled = run_child({"kind": NAME}, ctx.settings, timeout=600)
     result = {"help": _command(["--help"], ctx, 5),
-              "solve": _command(["solve", SOLVE, "--quiet"], ctx, 3), "jit": compiled}
+              "solve": _command(["solve", SOLVE, "--quiet"], ctx, 3), "jit": compiled,
+              "parts": _parts(ctx)}
     ctx.report["startup"] = result
     failures = [f"{k} exited {v['exit']}" for k, v in result.items()
-                if k != "jit" and v["exit"] != 0]
+                if k in ("help", "solve") and v["exit"] != 0]
     if "error" in compiled:
         failures.append(f"compile: {compiled['error']}")
     note = (f"symcal --help {result['help']['seconds']:.2f} s, symcal solve §3.1 "
@@ -92,6 +115,11 @@ def table(report: dict[str, Any]) -> list[str]:
              f"{', '.join(f'{t:.3f}' for t in r['help']['times'])} |",
              f"| `symcal solve {SOLVE} --quiet` | {r['solve']['seconds']:.3f} s | "
              f"{', '.join(f'{t:.3f}' for t in r['solve']['times'])} |", ""]
+    parts = r.get("parts", {})
+    if parts:
+        lines += ["Start-up parts, each in a fresh interpreter (median of 3, interpreter "
+                  "start included): " + ", ".join(f"{k} {v:.3f} s" for k, v in parts.items())
+                  + ".", ""]
     jit = r["jit"]
     if "error" in jit:
         return [*lines, f"Compiling the functions failed: {jit['error']}"]
