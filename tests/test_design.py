@@ -205,17 +205,26 @@ def test_designed_motion_meets_its_target_and_predictions_match_monte_carlo(prob
     motion = designed.runs[0].motion
     assert motion.n < 1000                                         # fewer observations
     assert (tmp_path / "d" / "motion.png").stat().st_size > 1000
-    # Monte Carlo: default and designed motions, calibrated on 60 seeds each (the SD of
-    # 60 draws has a relative standard error of 9 %; on 300-400 seeds the ratios MC /
-    # predicted are 0.94-1.07 for both motions, each 95 % interval containing 1 +- 0.15)
-    seeds = range(200, 260)
-    for sc in (scenario, designed):
-        predicted = predict(problem, sc)
-        spread = _monte_carlo(problem, sc, seeds)
-        for name, mc in zip(MOUNT, spread, strict=True):
-            assert mc == pytest.approx(predicted.se[name], rel=0.2), (sc.name, name)
-        if sc is designed:
-            assert spread[0] <= 0.020 * 1.1     # the target, within the MC's own spread
+    # Monte Carlo on the designed motion (the default one: the next test)
+    spread = _assert_monte_carlo_matches(problem, designed)
+    assert spread[1] <= 0.020 * 1.1     # l_x: the target, within the MC's own spread
+
+
+def _assert_monte_carlo_matches(problem, sc):
+    # 100 seeds: the SD of 100 draws has a relative standard error of 7 %.  On 300-400
+    # seeds the ratios MC / predicted are 0.94-1.07 on both motions (each 95 % interval
+    # within 1 +- 0.15); over sliding windows of 100 seeds they range 0.84-1.27, so a
+    # window can fail the 20 % criterion by chance (about 1 in 10)
+    predicted = predict(problem, sc)
+    spread = _monte_carlo(problem, sc, range(100))
+    for name, mc in zip(MOUNT, spread, strict=True):
+        assert mc == pytest.approx(predicted.se[name], rel=0.2), (sc.name, name)
+    return spread
+
+
+@pytest.mark.slow
+def test_predictions_match_monte_carlo_on_the_default_motion(problem, scenario):
+    _assert_monte_carlo_matches(problem, scenario)
 
 
 @pytest.mark.slow

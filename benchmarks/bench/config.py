@@ -31,13 +31,15 @@ PROBLEMS: dict[str, dict[str, Any]] = {
         "scenario": "problems/scenarios/courier_dual.yaml",
         "title": "§3.2 dual-sensor calibration: nonlinear, 49 parameters, "
                  "cost Σ g_x² + g_y² + g_p²",
-        "methods": ("symcal", "symcal_serial", "least_squares", "bfgs", "symcal_analysis"),
+        "methods": ("symcal", "symcal_serial", "symcal_ipopt", "least_squares", "bfgs",
+                    "symcal_analysis"),
     },
 }
 
 LABELS = {
     "symcal": "symcal (default path)",
     "symcal_serial": "symcal, 1 thread, interpreted",
+    "symcal_ipopt": "symcal, IPOPT path",
     "floor": "numpy Γ + lstsq (floor)",
     "least_squares": "scipy least_squares, FD Jacobian",
     "bfgs": "scipy BFGS, FD gradient",

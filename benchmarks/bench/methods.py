@@ -47,15 +47,16 @@ class Outcome:
 Method = Callable[[np.ndarray], Outcome]
 
 
-def symcal_solver(problem: str, cols: Columns) -> Method:
-    """symcal's default path for the single stage: ``Objective`` and the closed form
-    (linear) or IPOPT (nonlinear), which is what ``solve()`` runs for a stage."""
+def symcal_solver(problem: str, cols: Columns, method: str = "auto") -> Method:
+    """symcal's default path for the single stage: ``Objective`` and the method choice of
+    ``solve()`` (``symcal.solvers.stage``: closed form when linear, else ``lm``), or the
+    method given (``ipopt``: the IPOPT row)."""
     from symcal.data import make_dataset
     from symcal.datasets import needed_columns
+    from symcal.language.options import SolveOptions
     from symcal.solvers.instrument import counting
-    from symcal.solvers.linear import solve_linear
-    from symcal.solvers.nlp import solve_ipopt
     from symcal.solvers.objective import Objective
+    from symcal.solvers.stage import solve_stage
 
     prob = single_stage_problem(problem)
     stage = prob.stages[0]
@@ -65,10 +66,8 @@ def symcal_solver(problem: str, cols: Columns) -> Method:
     def run(theta0: np.ndarray) -> Outcome:
         with counting() as counts:
             objective = Objective(prob, stage.constraints, free)
-            if objective.nonlinear():
-                out = solve_ipopt(objective, data, theta0)
-            else:
-                out = solve_linear(objective, data, theta0)
+            out, _ = solve_stage(objective, data, theta0, method, None, stage.name,
+                                 SolveOptions())
         return Outcome(out.theta, out.iterations, f"{out.method}: {out.message}",
                        counts.passes, dict(counts.by_method), list(counts.decrements))
 
@@ -137,6 +136,8 @@ def method(problem: str, name: str, cols: Columns, cap: float) -> Method:
         return symcal_solver(problem, cols)
     if name == "symcal_serial":
         return serial(symcal_solver(problem, cols))
+    if name == "symcal_ipopt":
+        return symcal_solver(problem, cols, "ipopt")
     if name == "symcal_analysis":
         return symcal_analysis(problem, cols)
     return peer(problem, name, cols, cap)
