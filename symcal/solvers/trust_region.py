@@ -26,7 +26,9 @@ on the exact Jacobian from CasADi's AD.
   Gauss–Newton step would lower the cost by less than ``GN_DECREMENT`` of itself (with the
   held bounds: the projected problem), or, once no step lowers the cost, that decrease is
   within the cost's rounding noise or the step is below ``XTOL`` of the parameters, or
-  the fit is exact (the residual vanished, or fell
+  the fit is exact.  Converged to rounding, the last Gauss–Newton step (from R, finer
+  than the cost) is taken when the cost stays within its noise, so the estimate does not
+  depend on the order the passes reduce in (the residual vanished, or fell
   below ``EXACT_FIT`` of the starting residual, where rounding dominates).  Divergence,
   NaN/inf in the Jacobian, the iteration limit and a stall (the region shrank to nothing
   without the test holding) are failures that say so.
@@ -183,6 +185,27 @@ class _Steps:
             f"({self.noise / self.lin.cost:.2g} of it): the point is not stationary")
 
 
+def _polish(steps: _Steps, x: np.ndarray, lin: _Linearisation,
+            linearise: Callable[[np.ndarray], _Linearisation]
+            ) -> tuple[np.ndarray, _Linearisation]:
+    """Converged to rounding: take the last Gauss–Newton step, which the cost can no longer
+    judge, when the cost stays within its rounding noise.  The step comes from the
+    accumulated R factor, which resolves the minimum more finely than the cost does, so
+    the estimate no longer depends on where rounding stopped the search (the same data in
+    shards or in memory give the same estimate)."""
+    z = -(steps.vt.T @ (steps.a / steps.s))
+    step = np.zeros(len(x))
+    step[steps.free] = z / steps.d[steps.free]
+    trial = np.clip(x + step, steps.lower, steps.upper)
+    if not np.any(trial != x):
+        return x, lin
+    polished = linearise(trial)
+    if polished.finite and polished.cost <= lin.cost + NOISE_FACTOR * max(
+            steps.noise, ROUNDING_FLOOR * np.finfo(float).eps * lin.cost):
+        return trial, polished
+    return x, lin
+
+
 def solve_trust_region(
     objective: Objective,
     dataset: Dataset,
@@ -277,6 +300,8 @@ def solve_trust_region(
                 break
             if radius <= STALL * max(float(np.linalg.norm(d * x)), 1.0):
                 ok, status, words = step_out.verdict()
+                if ok:
+                    x, lin = _polish(step_out, x, lin, linearise)
                 break
             trial, predicted, size = step_out.trial(radius)
             iterations += 1
