@@ -53,6 +53,10 @@ SAMPLES = 256
 E_POWER = 16
 _DEG = math.pi / 180.0
 
+#: A limit binds when the design ends within this fraction of its range from it (and
+#: its multiplier is not zero).
+BOUND_TOL = 1e-3
+
 
 @dataclass(frozen=True)
 class Target:
@@ -419,11 +423,15 @@ def _optimise(model: _Model, variables: list[_Var], fixed: dict[str, object],
         best = float(xs[-1])
     active = []
     for i, v in enumerate(variables):
+        # an interior point stops just inside an active bound (measured: 2e-5 of the
+        # width): a bound is binding when its multiplier is non-zero and the design is
+        # within BOUND_TOL of it; the design is then put on the bound itself
         width = max(v.upper - v.lower, 1e-12)
-        near_hi = v.upper - xs[i] <= 1e-6 * width
-        near_lo = xs[i] - v.lower <= 1e-6 * width
+        near_hi = v.upper - xs[i] <= BOUND_TOL * width
+        near_lo = xs[i] - v.lower <= BOUND_TOL * width
         if (near_hi or near_lo) and abs(lam[i]) > 1e-9:
             active.append(v.bound_text(near_hi))
+            xs[i] = v.upper if near_hi else v.lower
     out = {v.label: float(xs[i]) for i, v in enumerate(variables)}
     return out, active, best, status
 

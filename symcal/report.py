@@ -552,6 +552,19 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     return lines
 
 
+def _shown(path: object) -> str:
+    """A path as a command line would take it: relative to the current folder when it
+    lies below it, else as it is."""
+    import os
+
+    text = str(path)
+    try:
+        rel = os.path.relpath(text)
+    except ValueError:
+        return text
+    return text if rel.startswith("..") else rel
+
+
 def design_pointer(result: Result) -> list[str]:
     """A verdict line pointing to ``symcal design`` when the last stage leaves a nearly
     flat direction (a parameter poorly determined by this motion), naming the scenario
@@ -563,9 +576,10 @@ def design_pointer(result: Result) -> list[str]:
         return []
     spec = result.problem.datasets.get("calibration")
     scenario = getattr(spec, "scenario", None) if spec is not None else None
-    where = f"--scenario {scenario}" if scenario else "--scenario SCENARIO.yaml"
+    where = f"--scenario {_shown(scenario)}" if scenario else "--scenario SCENARIO.yaml"
     return [f"poorly determined by this motion: {near[0][0].text} (singular value "
-            f"{near[0][1]:.1g} of the largest); 'symcal design {result.problem.path} {where} "
+            f"{near[0][1]:.1g} of the largest); 'symcal design "
+            f"{_shown(result.problem.path)} {where} "
             "--optimize --target NAME=SE' predicts another motion's standard errors before "
             "recording it"]
 
