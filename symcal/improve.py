@@ -187,11 +187,14 @@ def _best_of_group(
 def siblings(diag: Diagnosis, lead: Candidate) -> tuple[Candidate, ...]:
     """The same effect in the lead's sibling instances (instances of the same model file):
     for each, its most significant candidate of the same kind, order and period on the
-    same output, when the diagnosis finds one significant.  One physical effect of a
-    sensor model (a lateral dependence of every platen segment) is then added to every
-    instance that shows it in one round, each with its own coefficients.  None while the
-    model has an approximation of its own (an implicit variant): its residue, significant
-    or not, looks like the same effect in every sibling."""
+    same output, when the diagnosis finds one significant, on a variable no other member
+    uses (two siblings' terms in the same variable are alike in a constraint where both
+    sensors enter, as the segments of one axis do in g_p: one of them is an alias).  One
+    physical effect of a sensor model (a lateral dependence of every platen segment) is
+    then added to every instance that shows it in one round, each with its own
+    coefficients.  None while the model has an approximation of its own (an implicit
+    variant): its residue, significant or not, looks like the same effect in every
+    sibling."""
     problem = diag.result.problem
     inst, _, output = lead.output.partition(".")
     if inst not in problem.instances or diag.variant is not None:
@@ -199,14 +202,17 @@ def siblings(diag: Diagnosis, lead: Candidate) -> tuple[Candidate, ...]:
     model = problem.instances[inst].model.path
     shape = (lead.basis.kind, lead.basis.order, lead.basis.period, bool(lead.basis.angle))
     found: dict[str, Candidate] = {}
+    used = {lead.basis.variable}
     for cand in diag.significant:
         other, _, out = cand.output.partition(".")
         if (other != inst and other not in found and out == output
+                and cand.basis.variable not in used
                 and other in problem.instances
                 and problem.instances[other].model.path == model
                 and (cand.basis.kind, cand.basis.order, cand.basis.period,
                      bool(cand.basis.angle)) == shape):
             found[other] = cand
+            used.add(cand.basis.variable)
     return tuple(found.values())
 
 
@@ -304,13 +310,18 @@ def improve(
             break
         last_try = len(rejected)
         kept = None
-        tried = {label for label, _ in rejected}
         name = f"{Path(problem).stem}_round{k}"
 
         def say_round(line: str, k: int = k) -> None:
             say(f"round {k}: {line}")
 
-        for lead in [c for c in diag.significant if c.label not in tried][:TRIES]:
+        # every round tries its leads afresh: what did not pay against the last model
+        # may pay against this one (the approximation once the effect is in, say)
+        leads = list(diag.significant)
+        # the model's own approximation is a known defect, not a hypothesis: it goes
+        # first, and the effects are then looked for in the model that has it right
+        leads.sort(key=lambda c: c.basis.kind != "approximation")
+        for lead in leads[:TRIES]:
             single = _best_of_group(diag, lead, directory, name, datasets, result,
                                     rejected, say_round)
             kept = _try_siblings(diag, lead, single, directory, name, datasets, result,

@@ -10,7 +10,8 @@ import sys
 import pytest
 from conftest import ROOT
 
-JOBS = ("starts", "assemble", "data", "profile", "blas", "fleet", "solve")
+JOBS = ("starts", "startup", "assemble", "data", "profile", "blas", "fleet", "hugelog",
+        "solve")
 BENCHMARKS = ROOT / "benchmarks"
 
 
@@ -46,8 +47,8 @@ def test_quick_run_prints_every_job() -> None:
         row = re.search(rf"^\| {job} \| (\d+) \| (\d+) \| ", out, re.MULTILINE)
         assert row, (job, out[-2000:])
         assert int(row.group(1)) > 0 and int(row.group(2)) == 0, row.group(0)
-    # one table row per method of each problem, none of them failed or skipped
-    assert len(re.findall(r"^\| 200 \| ", out, re.MULTILINE)) == 9
+    # one table row per method of each problem (5 linear, 6 dual), none failed or skipped
+    assert len(re.findall(r"^\| 200 \| ", out, re.MULTILINE)) == 11
     assert "**skipped**" not in out
     assert "nothing written" in out
     assert results.stat().st_mtime_ns == before

@@ -377,22 +377,35 @@ instances:
 expressions: {{tx: null, ty: null, tt: null}}
 implicit: null
 """
+NO_LATERAL_EXPLICIT = """problem: dual_no_lateral_explicit
+extends: {root}/problems/dual_sensor_calibration.yaml
+doc: the dual problem without the lateral terms of eq. (9)
+instances:
+  s1: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}}}}
+  s2: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}}}}
+  s3: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}}}}
+  s4: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}}}}
+"""
 
 
 @pytest.mark.slow
-def test_lateral_dependence_in_the_dual_problem_is_found_and_fixed(tmp_path) -> None:
+@pytest.mark.parametrize(("start", "seed"), [("implicit", 8), ("implicit", 5),
+                                             ("explicit", 8)])
+def test_lateral_dependence_in_the_dual_problem_is_found_and_fixed(start, seed,
+                                                                    tmp_path) -> None:
     """The dual problem without eq. (9), on data with the lateral terms of every segment:
-    the same effect shows in the four sibling segments, so one round adds it to each
-    (its harmonic of the perpendicular pair's reading); quiet at the floor, on the
-    calibration and the fly-by, each coefficient within 3 standard errors of eq. (9)."""
-    start = tmp_path / "no_lateral.yaml"
-    start.write_text(NO_LATERAL.format(root=ROOT.as_posix()))
+    the same effect shows in the four sibling segments, so a round adds it to each that
+    shows it (its harmonic of the perpendicular pair's reading; starting explicit, the
+    model's own approximation first); quiet at the floor on the calibration and the
+    fly-by in 2 rounds at most, each coefficient within 3 standard errors of eq. (9)."""
+    first = tmp_path / "no_lateral.yaml"
+    text = NO_LATERAL if start == "implicit" else NO_LATERAL_EXPLICIT
+    first.write_text(text.format(root=ROOT.as_posix()))
     scenario = load_scenario(PROBLEMS / "scenarios" / "courier_dual_clean.yaml")
-    data = _data(scenario, seed=8)
-    result = improve(start, tmp_path / "out", data, max_rounds=3)
-    assert result.quiet and len(result.rounds) == 2
-    added = result.rounds[1].added
-    assert added is not None
+    data = _data(scenario, seed=seed)
+    result = improve(first, tmp_path / "out", data, max_rounds=3)
+    assert result.quiet and len(result.rounds) - 1 <= 2, [r.added for r in result.rounds]
+    added = " ".join(r.added or "" for r in result.rounds)
     for term in ("s1.p_hat += harmonic 1 of s4.u", "s2.p_hat += harmonic 1 of s1.u",
                  "s3.p_hat += harmonic 1 of s2.u", "s4.p_hat += harmonic 1 of s3.u"):
         assert term in added
