@@ -69,6 +69,11 @@ EXACT_FIT = 1e-12
 STALL = 1e-15
 #: Diverged when a parameter exceeds this many nominal scales.
 DIVERGED = 1e15
+#: The last Gauss–Newton step is taken when the cost stays within this fraction of
+#: itself (far above the rounding of a sum of squares, far below a real increase).
+POLISH = 1e-12
+#: Machine epsilon of the floats the cost is summed in.
+EPS = float(np.finfo(float).eps)
 #: A step is accepted when it achieves this fraction of its predicted decrease.
 ACCEPT = 1e-4
 
@@ -200,8 +205,8 @@ def _polish(steps: _Steps, x: np.ndarray, lin: _Linearisation,
     if not np.any(trial != x):
         return x, lin
     polished = linearise(trial)
-    if polished.finite and polished.cost <= lin.cost + NOISE_FACTOR * max(
-            steps.noise, ROUNDING_FLOOR * np.finfo(float).eps * lin.cost):
+    if polished.finite and polished.cost <= lin.cost + max(
+            NOISE_FACTOR * steps.noise, POLISH * lin.cost):
         return trial, polished
     return x, lin
 
@@ -291,6 +296,14 @@ def solve_trust_region(
             size = float(np.linalg.norm(d * x))
             radius = size if size > 0 else 1.0
         step_out = _Steps(lin, x, lower, upper, free, d, s, a, vt, decrement)
+        if iterations > 0 and decrement <= NOISE_FACTOR * ROUNDING_FLOOR * EPS:
+            ok, status = True, "converged_to_rounding"
+            words = (f"converged to rounding: a Gauss-Newton step would lower the cost by "
+                     f"{decrement:.2g} of itself, within the rounding of a sum of squares "
+                     f"({NOISE_FACTOR * ROUNDING_FLOOR:g} machine epsilons)")
+            x, lin = _polish(step_out, x, lin, linearise)
+            break
+        fresh = True   # the first trial of a linearisation is evaluated with derivatives
         while not step_out.accepted:
             if iterations >= max_iter:
                 status, words = "iteration_limit", (
@@ -305,9 +318,16 @@ def solve_trust_region(
                 break
             trial, predicted, size = step_out.trial(radius)
             iterations += 1
+            ahead: _Linearisation | None = None
             with np.errstate(over="ignore", invalid="ignore"):  # inf/NaN: a rejected trial
-                cost = (objective.cost(dataset, theta_of(trial)) if predicted > 0
-                        else math.nan)
+                if predicted <= 0:
+                    cost = math.nan
+                elif fresh:   # most first trials are taken: one pass instead of two
+                    ahead = linearise(trial)
+                    cost = ahead.cost if ahead.finite else math.nan
+                else:
+                    cost = objective.cost(dataset, theta_of(trial))
+            fresh = False
             ratio = (lin.cost - cost) / predicted if math.isfinite(cost) else -math.inf
             if ratio < 0.25:
                 radius = 0.25 * min(radius, size) if size > 0 else 0.25 * radius
@@ -317,7 +337,7 @@ def solve_trust_region(
                 progress(f"  {label}: iteration {iterations:3d}  cost {lin.cost:.6e}  "
                          f"trial {cost:.6e}  step {size:.3e} (scaled)  ratio {ratio:.3g}")
             if ratio > ACCEPT:
-                candidate = linearise(trial)
+                candidate = ahead if ahead is not None else linearise(trial)
                 if candidate.finite:
                     step_out.accepted = True
                     x, lin = trial, candidate
