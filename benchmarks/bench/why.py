@@ -64,11 +64,12 @@ def _largest(rows: list[Row], d: Record, lin: Record, nb: int) -> list[str]:
         t = sym_dual[nb]
         est = _estimate(t["passes_by"], d, chunks_big)
         lines.append(
-            f"- Dual, N = {fmt_n(nb)}: {t['seconds']:.1f} s for {t['iterations']} IPOPT "
-            f"iterations and {t['evaluations']} passes ({_by(t['passes_by'])}).  Those "
+            f"- Dual, N = {fmt_n(nb)}: {t['seconds']:.1f} s for {t['iterations']} `lm` "
+            f"trial steps and {t['evaluations']} passes ({_by(t['passes_by'])}).  Those "
             f"passes at the per-chunk times above (one thread), × {chunks_big} chunks, come "
             f"to {est:.1f} s of work, shared by the passes' threads (one per core, "
-            "`symcal.solvers.executor`); the rest is IPOPT itself and the reductions.")
+            "`symcal.solvers.executor`); the rest is the solver itself and the "
+            "reductions.")
     if nb in sym_lin and nb in floor:
         lines.append(
             f"- Linear, N = {fmt_n(nb)}: symcal {sym_lin[nb]['seconds']:.2f} s (one "
@@ -93,11 +94,11 @@ def _smallest(rows: list[Row], ds: Record, n0: int) -> list[str]:
         f"({_by(t['passes_by'])}) at {fmt_time(ds['normal_equations'])} per "
         f"`normal_equations`, {fmt_time(ds['cost'])} per `cost` and "
         f"{fmt_time(ds['accumulate_r'])} per `accumulate_r` make {fmt_time(est)}.  The "
-        f"remaining {fmt_time(max(t['seconds'] - est, 0.0))} is creating the IPOPT "
-        "solver and its iterations, and the first evaluation of the run (first "
+        f"remaining {fmt_time(max(t['seconds'] - est, 0.0))} is the solver's own work "
+        "(SVDs of R, trust-region steps) and the first evaluation of the run (first "
         f"`normal_equations` call: {fmt_time(ds['normal_equations_first'])}; an "
         "objective's functions are built once per process and problem, and repeated "
-        "solves reuse them).  least_squares took {fmt_time(peer['seconds'])} for "
+        f"solves reuse them).  least_squares took {fmt_time(peer['seconds'])} for "
         f"{peer['evaluations']} numpy residual evaluations "
         f"({fmt_time(peer['seconds'] / peer['evaluations'])} each), i.e. "
         f"{ratio:.1f}× symcal's time.",
@@ -105,15 +106,14 @@ def _smallest(rows: list[Row], ds: Record, n0: int) -> list[str]:
     if ratio < 30:
         lines.append(
             f"\nReaching 30× needs symcal at ≤ {fmt_time(peer['seconds'] / 30)}.  Its "
-            "passes are already one per IPOPT iteration (a trial point is evaluated with "
-            "its derivatives) plus the final TSQR; what is left is IPOPT's own work per "
-            "iteration and the Python callbacks around it.")
+            "passes are already one per accepted step (a first trial is evaluated with "
+            "its derivatives); what is left is the solver's own work per step.")
     return lines
 
 
 def _stalls(rows: list[Row]) -> list[str]:
     its = sorted(measured(rows, "dual", "symcal").items())
-    lines = ["", "### 3. IPOPT iterating on rounding noise", ""]
+    lines = ["", "### 3. Iterating on rounding noise", ""]
     lines.append("symcal's dual solve by N: " + "; ".join(
         f"N = {fmt_n(k)}: {r['iterations']} iterations, {r['evaluations']} passes, "
         f"{fmt_time(r['seconds'])}" for k, r in its) + ".")
@@ -125,18 +125,19 @@ def _stalls(rows: list[Row]) -> list[str]:
     k, r = max(stalled, key=lambda kr: kr[1]["evaluations"])
     lines += [
         "",
-        f"At N = {fmt_n(k)}, `symcal.solvers.nlp.solve_ipopt` tested the Gauss-Newton "
-        "decrement after every iteration.  It stops when a Gauss-Newton step would "
-        "lower the cost by less than `GN_DECREMENT` = 1e-14 of itself, and the "
-        "decrement went " + ", ".join(f"{v:.3g}" for v in r["decrements"]) + ".  "
-        "Once it hovers just above 1e-14, the cost is flat to rounding.  IPOPT's line "
-        "search then finds no decrease and backtracks through many residual-only passes "
-        f"per iteration: {r['evaluations']} passes for {r['iterations']} iterations "
-        f"here, against {its[0][1]['evaluations']} for {its[0][1]['iterations']} at "
-        f"N = {fmt_n(its[0][0])}.  1e-14 is at the level of the rounding error of a "
-        "sum of 3N squares.  Whether the decrement stalls depends on the data and on "
-        "the order of summation, so symcal's time at one N can be several times that "
-        "of its neighbours.  That is also why its fitted exponent over N ≥ 1e4 is "
+        f"At N = {fmt_n(k)}, the solver tested the Gauss-Newton decrement after every "
+        "accepted step; the decrement went "
+        + ", ".join(f"{v:.3g}" for v in r["decrements"]) + ".  "
+        "Near 1e-14 the cost is flat to rounding: trial steps find no decrease that "
+        "the cost can resolve, and each costs a residual-only pass "
+        f"({r['evaluations']} passes for {r['iterations']} steps here, against "
+        f"{its[0][1]['evaluations']} for {its[0][1]['iterations']} at "
+        f"N = {fmt_n(its[0][0])}).  1e-14 is at the level of the rounding error of a "
+        "sum of 3N squares (`lm` stops at 64 machine epsilons, then takes the last "
+        "Gauss-Newton step from R).  Whether the decrement lingers there depends on "
+        "the data and on the order of summation, so symcal's time at one N can be "
+        "several times that of its neighbours.  That is also why its fitted exponent "
+        "over N ≥ 1e4 can be "
         "below 1; time per pass is the fairer measure of growth.",
     ]
     return lines
@@ -201,8 +202,8 @@ def _issue16(report: dict[str, Any], nb: int, n0: int) -> list[str]:
             f"\nDual, N = {fmt_n(n0)}: {fmt_time(t['seconds'])} for {t['iterations']} "
             f"iterations and {t['evaluations']} passes.  Below 32768 observations a pass is "
             "one chunk on one thread; the compiled functions make a pass about 3× cheaper, "
-            "and what is left at this size is IPOPT's own work per iteration, its callbacks "
-            "into Python, and the final TSQR.")
+            "and what is left at this size is the solver's own work per step (an SVD of "
+            "the 49 × 49 factor R, the trust-region step) in Python.")
     start = report.get("startup", {})
     parts = start.get("parts", {})
     if start and parts:

@@ -39,16 +39,11 @@ class Piece(Protocol):
 
 
 def _qr_r(a: np.ndarray) -> np.ndarray:
-    """The R factor of ``a`` (``min(rows, cols) × cols``), by LAPACK's ``geqrf`` on a
-    column-major copy (``a`` itself when it is already column-major: it is overwritten)."""
-    from scipy.linalg import lapack
-
-    a = np.asfortranarray(a, dtype=float)
-    qr, _, _, info = lapack.dgeqrf(a, overwrite_a=True)
-    if info != 0:  # pragma: no cover - LAPACK reports an illegal argument only
-        raise ArithmeticError(f"LAPACK dgeqrf failed (info {info})")
-    k = min(a.shape)
-    return np.triu(qr[:k])
+    """The R factor of ``a`` (``min(rows, cols) × cols``): numpy's QR without Q (LAPACK
+    ``geqrf`` underneath; measured as fast as calling it through SciPy, whose import
+    would add 0.12 s to every command's start-up)."""
+    r: np.ndarray = np.linalg.qr(np.asarray(a, dtype=float), mode="r")  # type: ignore[assignment]
+    return r
 
 
 @dataclass(frozen=True, eq=False)
