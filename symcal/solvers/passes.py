@@ -38,12 +38,24 @@ class Piece(Protocol):
         ...
 
 
+#: Pieces of at least this many rows are factored by LAPACK through SciPy, which releases
+#: the GIL (numpy's QR holds it: measured, two threads no faster than one); smaller ones
+#: by numpy, so that a small solve never pays SciPy's 0.12 s import.
+LAPACK_ROWS = 4_096
+
+
 def _qr_r(a: np.ndarray) -> np.ndarray:
-    """The R factor of ``a`` (``min(rows, cols) × cols``): numpy's QR without Q (LAPACK
-    ``geqrf`` underneath; measured as fast as calling it through SciPy, whose import
-    would add 0.12 s to every command's start-up)."""
-    r: np.ndarray = np.linalg.qr(np.asarray(a, dtype=float), mode="r")  # type: ignore[assignment]
-    return r
+    """The R factor of ``a`` (``min(rows, cols) × cols``), by LAPACK's ``geqrf``."""
+    if a.shape[0] < LAPACK_ROWS:
+        r: np.ndarray = np.linalg.qr(np.asarray(a, dtype=float), mode="r")  # type: ignore[assignment]
+        return r
+    from scipy.linalg import lapack
+
+    f = np.asfortranarray(a, dtype=float)
+    qr, _, _, info = lapack.dgeqrf(f, overwrite_a=True)
+    if info != 0:  # pragma: no cover - LAPACK reports an illegal argument only
+        raise ArithmeticError(f"LAPACK dgeqrf failed (info {info})")
+    return np.triu(qr[:min(f.shape)])
 
 
 @dataclass(frozen=True, eq=False)
