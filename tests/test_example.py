@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 
+import pytest
 from conftest import ROOT
 
 from symcal.cli import main
@@ -16,6 +17,7 @@ def _run(capsys, *argv: str) -> str:
     return capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_walkthrough(capsys, tmp_path, monkeypatch) -> None:
     monkeypatch.chdir(ROOT)
     readme = (EXAMPLE / "README.md").read_text()

@@ -118,6 +118,7 @@ def _fitted(result: symcal.Result, case: str, scenario, seed: int
     return value, se, truth
 
 
+@pytest.mark.slow
 def test_clean_data_is_quiet_after_the_approximation(tmp_path) -> None:
     """No hidden effect: starting explicit, the model's own approximation is the one
     finding, switching to the implicit model reaches the floor and the diagnosis is
@@ -221,7 +222,8 @@ def _apply_printed(text: str, home: Path) -> Path:
     return next(p for p in files if p.parent == home)
 
 
-@pytest.mark.parametrize("case", ["drift", "angle-dependent gain"])
+@pytest.mark.parametrize("case", ["drift", pytest.param("angle-dependent gain",
+                                                        marks=pytest.mark.slow)])
 def test_printed_suggestions_load_and_carry_units(case, tmp_path) -> None:
     """Every printed suggestion, written literally as the comments say, loads and solves;
     coefficients carry the units of what they multiply; terms go into the error `e`."""
