@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import logging
-import os
 import time
 import uuid
 from collections.abc import Callable, Iterator, Mapping
@@ -37,6 +35,7 @@ from symcal.language.options import SolveOptions
 from symcal.problem import Problem, load_problem
 from symcal.progress import Bars, meter
 from symcal.result import file_hashes
+from symcal.solvers.executor import usable_cores
 from symcal.suggest import did_you_mean
 
 if TYPE_CHECKING:
@@ -44,19 +43,8 @@ if TYPE_CHECKING:
 
 #: Suffixes of a unit's data files, in the order they are looked for.
 SUFFIXES = (".csv", ".npz", ".parquet")
-#: Environment of the embedded cluster's workers: one BLAS thread each.
-WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
 #: What the client hears of each finished unit: ``on_unit(unit, document, report)``.
 UnitCallback = Callable[[str, Mapping[str, Any], str | None], None]
-
-
-def default_workers() -> int:
-    """Worker processes of the embedded cluster: one per core this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 # ------------------------------------------------------------------------ the fleet folder
@@ -283,23 +271,9 @@ def fleet_client(scheduler: str | None = None, workers: int | None = None) -> It
     SymcalError
         When the scheduler cannot be reached (exit code 2).
     """
-    from distributed import Client, LocalCluster
+    from symcal.solvers.dask_executor import dask_client
 
-    if scheduler is not None:
-        try:
-            client = Client(scheduler, timeout="20s")
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise SymcalError(f"--scheduler {excerpt(scheduler, 80)}: cannot reach the Dask "
-                              f"scheduler ({excerpt(exc, 120)})") from None
-        try:
-            yield client
-        finally:
-            client.close()
-        return
-    n = workers or default_workers()
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                      dashboard_address=None, silence_logs=logging.ERROR,
-                      env=dict(WORKER_ENV)) as cluster, Client(cluster) as client:
+    with dask_client(scheduler, workers, "--scheduler") as client:
         yield client
 
 
@@ -437,7 +411,7 @@ def solve_fleet(
         if scheduler is not None and not isinstance(scheduler, str):
             _run(scheduler, tasks, bars, finish)
         else:
-            local = min(workers or default_workers(), len(tasks))
+            local = min(workers or usable_cores(), len(tasks))
             with fleet_client(scheduler, local) as client:
                 _run(client, tasks, bars, finish)
     ordered = {u.name: docs[u.name] for u in units}

@@ -321,6 +321,17 @@ def test_coordination_gain_is_named_by_its_channels_and_fixed(tmp_path) -> None:
         assert again.stat(name).after.std < 1.10 * floors[f"{name}_std"] * dof, name
 
 
+def _assert_dual_at_floor(result: symcal.Result, scenario) -> None:
+    """g_x, g_y and g_p within 10 % of their noise floors on every dataset (on the
+    calibration data allowing for the degrees of freedom the fit used)."""
+    floors = noise_floor(scenario)
+    dof = np.sqrt(result.uncertainty.dof / result.rows)
+    for s in result.statistics:
+        if s.name in ("g_x", "g_y", "g_p"):
+            floor = floors[f"{s.name}_std"] * (dof if s.dataset == "calibration" else 1)
+            assert s.after.std < 1.10 * floor, (s.name, s.dataset)
+
+
 @pytest.mark.slow
 def test_improve_fixes_the_coordination_gain_and_ends_quiet(tmp_path) -> None:
     """The 2 % y-channel gain, through `improve`: one round, at the floor on the
@@ -338,12 +349,7 @@ def test_improve_fixes_the_coordination_gain_and_ends_quiet(tmp_path) -> None:
     assert {a["label"] for a in result.to_dict()["aliased"]} == {
         label for label, _ in result.aliased}
     final = result.rounds[-1].result
-    floors = noise_floor(scenario)
-    dof = np.sqrt(final.uncertainty.dof / final.rows)
-    for s in final.statistics:
-        if s.name in ("g_x", "g_y", "g_p"):
-            floor = floors[f"{s.name}_std"] * (dof if s.dataset == "calibration" else 1)
-            assert s.after.std < 1.10 * floor, (s.name, s.dataset)
+    _assert_dual_at_floor(final, scenario)
     gain = next(p for p in final.parameters if p.name == "cs.lin_psi_y")
     assert abs(gain.value - (-50.0 * 0.02)) < 3 * gain.se
 
@@ -412,12 +418,7 @@ def test_lateral_dependence_in_the_dual_problem_is_found_and_fixed(start, seed,
                  "s3.p_hat += harmonic 1 of s2.u", "s4.p_hat += harmonic 1 of s3.u"):
         assert term in added
     final = result.rounds[-1].result
-    floors = noise_floor(scenario)
-    dof = np.sqrt(final.uncertainty.dof / final.rows)
-    for s in final.statistics:
-        if s.name in ("g_x", "g_y", "g_p"):
-            floor = floors[f"{s.name}_std"] * (dof if s.dataset == "calibration" else 1)
-            assert s.after.std < 1.10 * floor, (s.name, s.dataset)
+    _assert_dual_at_floor(final, scenario)
     lateral = scenario.platen.effects.lateral
     params = {p.name: p for p in final.parameters}
     for i, other in enumerate(("s4", "s1", "s2", "s3")):

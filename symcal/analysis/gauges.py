@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from symcal.analysis.identifiability import Combination, format_combination
+from symcal.analysis.identifiability import Combination, format_combination, null_groups
 from symcal.analysis.identifiability import _rref_rows as _rref
 from symcal.data import Dataset
 from symcal.linalg import EXACT_RTOL, common_null, null_basis, range_basis
@@ -388,24 +388,11 @@ class GaugeAnalysis:
 def _group_offsets(rows: np.ndarray, names: tuple[str, ...]) -> list[Gauge]:
     """Constant null directions (parameter units, RREF rows) as one gauge per group of
     parameters that share them."""
-    n = rows.shape[1]
-    parent = list(range(n))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for row in rows:
-        idx = np.flatnonzero(np.abs(row) > 1e-9)
-        for j in idx[1:]:
-            parent[find(int(j))] = find(int(idx[0]))
-    groups: dict[int, list[int]] = {}
-    for r, row in enumerate(rows):
-        groups.setdefault(find(int(np.flatnonzero(np.abs(row) > 1e-9)[0])), []).append(r)
+    clean = np.where(np.abs(rows) > 1e-9, rows, 0.0)
+    pivots_of = [int(np.flatnonzero(row)[0]) for row in clean]
     out = []
-    for members in groups.values():
+    for group in null_groups(clean):
+        members = [r for r, pivot in enumerate(pivots_of) if pivot in group]
         sub = rows[members]
         involved = [names[i] for i in np.flatnonzero(np.any(np.abs(sub) > 1e-9, axis=0))]
         pivots = [names[int(np.flatnonzero(np.abs(r) > 1e-9)[0])] for r in sub]

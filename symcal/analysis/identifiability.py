@@ -177,8 +177,9 @@ def _rref_rows(basis: np.ndarray) -> np.ndarray:
     return m[:pivot_row]
 
 
-def _groups(null_rows: np.ndarray) -> list[np.ndarray]:
-    """Connected groups of parameters that share a null direction."""
+def null_groups(null_rows: np.ndarray) -> list[np.ndarray]:
+    """Connected groups of parameters (column indices) that share a null direction (a
+    row of ``null_rows``), in the order of their first parameter."""
     n = null_rows.shape[1]
     parent = list(range(n))
 
@@ -269,7 +270,7 @@ def analyse(
         else:
             se[name] = float(np.sqrt(max(cov[i, i], 0.0)))
     combos: list[Combination] = []
-    for group in _groups(null_rows):
+    for group in null_groups(null_rows):
         _, sg, vtg = np.linalg.svd(null_rows[:, group])
         k = int(np.sum(sg > 1e-9 * max(1.0, sg[0] if sg.size else 1.0)))
         for c in _rref_rows(vtg[k:]):

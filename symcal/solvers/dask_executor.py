@@ -63,11 +63,20 @@ class DaskExecutor:
 
 
 @contextlib.contextmanager
-def dask_executor(scheduler: str | None = None,
-                  workers: int | None = None) -> Iterator[DaskExecutor]:
-    """A :class:`DaskExecutor` on the scheduler at ``scheduler``, or on an embedded local
+def dask_client(scheduler: str | None = None, workers: int | None = None,
+                option: str | None = None) -> Iterator[Client]:
+    """A ``distributed.Client`` to the scheduler at ``scheduler``, or to an embedded local
     cluster of ``workers`` processes (default: one per usable core, one thread and one
     BLAS thread each), closed when the block ends.
+
+    Parameters
+    ----------
+    scheduler
+        Address of a running Dask scheduler (``tcp://host:8786``), or None.
+    workers
+        Worker processes of the local cluster.
+    option
+        The command-line option that named the scheduler, for the error message.
 
     Raises
     ------
@@ -80,14 +89,29 @@ def dask_executor(scheduler: str | None = None,
         try:
             client = Client(scheduler, timeout="20s")
         except (OSError, TimeoutError, ValueError) as exc:
-            raise SymcalError(f"cannot reach the Dask scheduler {excerpt(scheduler, 80)} "
-                              f"({excerpt(exc, 120)})") from None
+            named = f"{option} {excerpt(scheduler, 80)}: " if option else ""
+            raise SymcalError(f"{named}cannot reach the Dask scheduler "
+                              f"{excerpt(scheduler, 80)} ({excerpt(exc, 120)})") from None
         try:
-            yield DaskExecutor(client)
+            yield client
         finally:
             client.close()
         return
     with LocalCluster(n_workers=workers or usable_cores(), threads_per_worker=1,
                       processes=True, dashboard_address=None, silence_logs=logging.ERROR,
                       env=dict(WORKER_ENV)) as cluster, Client(cluster) as client:
+        yield client
+
+
+@contextlib.contextmanager
+def dask_executor(scheduler: str | None = None,
+                  workers: int | None = None) -> Iterator[DaskExecutor]:
+    """A :class:`DaskExecutor` on :func:`dask_client` (the same arguments).
+
+    Raises
+    ------
+    SymcalError
+        When the scheduler cannot be reached (exit code 2).
+    """
+    with dask_client(scheduler, workers) as client:
         yield DaskExecutor(client)
