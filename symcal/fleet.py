@@ -29,12 +29,12 @@ from typing import TYPE_CHECKING, Any
 
 from symcal.calibrate import solve
 from symcal.errors import DataError, SymcalError, excerpt
-from symcal.files import display_path
+from symcal.files import display_path, json_text
 from symcal.fleetsummary import failure_reason, summarise
 from symcal.language.options import SolveOptions
 from symcal.problem import Problem, load_problem
 from symcal.progress import Bars, meter
-from symcal.result import file_hashes
+from symcal.result import Result, file_hashes
 from symcal.solvers.executor import usable_cores
 from symcal.suggest import did_you_mean
 
@@ -144,6 +144,7 @@ class UnitTask:
     tol: float
     ipopt: tuple[tuple[str, Any], ...]
     drop_invalid: bool
+    report: Callable[[Result], str] | None = None
 
 
 #: Problems loaded in this (worker) process, by file, file hashes and weighting.
@@ -177,16 +178,18 @@ def _message(exc: BaseException) -> str:
 
 def solve_unit(task: UnitTask) -> dict[str, Any]:
     """Solve one unit (the Dask task): ``{"document": ..., "report": ...}`` with the
-    unit's ``symcal solve --json`` document and text report, or ``{"error": MESSAGE}``.
+    unit's ``symcal solve --json`` document and, when the task carries a renderer, its
+    text report; or ``{"error": MESSAGE}``.
 
     Never raises for a fault of the unit (its data, its solve): the message says what."""
-    from symcal.report import json_report, text_report
-
     try:
         problem = _problem_for(task)
         options = SolveOptions(task.method, task.max_iter, task.tol, dict(task.ipopt))
         result = solve(problem, dict(task.data), options, drop_invalid=task.drop_invalid)
-        return {"document": json.loads(json_report(result)), "report": text_report(result)}
+        outcome: dict[str, Any] = {"document": json.loads(json_text(result.to_dict()))}
+        if task.report is not None:
+            outcome["report"] = task.report(result)
+        return outcome
     except Exception as exc:  # noqa: BLE001 - one unit's fault is that unit's result
         return {"error": _message(exc)}
 
@@ -278,7 +281,8 @@ def fleet_client(scheduler: str | None = None, workers: int | None = None) -> It
 
 
 def _tasks(problem: Problem, units: list[Unit], data: Mapping[str, str | Path],
-           options: SolveOptions, drop_invalid: bool) -> dict[str, UnitTask]:
+           options: SolveOptions, drop_invalid: bool,
+           report: Callable[[Result], str] | None) -> dict[str, UnitTask]:
     hashes = tuple(sorted(file_hashes(problem).items()))
     shared = {name: str(Path(path).resolve()) for name, path in data.items()}
     out = {}
@@ -289,7 +293,7 @@ def _tasks(problem: Problem, units: list[Unit], data: Mapping[str, str | Path],
         out[unit.name] = UnitTask(unit.name, str(Path(problem.path).resolve()), hashes,
                                   problem.weighting, tuple(sorted(files.items())),
                                   options.method, options.max_iter, options.tol,
-                                  tuple(sorted(options.ipopt.items())), drop_invalid)
+                                  tuple(sorted(options.ipopt.items())), drop_invalid, report)
     return out
 
 
@@ -335,6 +339,7 @@ def solve_fleet(
     workers: int | None = None,
     bars: Bars | None = None,
     on_unit: UnitCallback | None = None,
+    report: Callable[[Result], str] | None = None,
 ) -> FleetResult:
     """Calibrate every unit of a fleet folder on Dask.
 
@@ -367,6 +372,9 @@ def solve_fleet(
     on_unit
         Called on this process as each unit finishes, with the unit's name, its
         document (or ``{"error": MESSAGE}``) and its text report (or None).
+    report
+        Renders a unit's text report on its worker (the command line passes
+        :func:`symcal.report.text_report`); None: no text reports.
 
     Returns
     -------
@@ -392,7 +400,7 @@ def solve_fleet(
     if workers is not None and workers < 1:
         raise SymcalError(f"workers: must be at least 1, found {workers}")
     units = find_units(problem, fleet)
-    tasks = _tasks(problem, units, data, options, drop_invalid)
+    tasks = _tasks(problem, units, data, options, drop_invalid, report)
     docs: dict[str, Mapping[str, Any]] = {}
     reports: dict[str, str] = {}
 

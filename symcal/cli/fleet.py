@@ -72,6 +72,7 @@ def run_fleet(args: argparse.Namespace) -> int:
     from symcal.fleet import find_units, solve_fleet
     from symcal.fleetreport import fleet_png, fleet_text
     from symcal.problem import load_problem
+    from symcal.report import text_report
 
     if args.workers is not None and args.workers < 1:
         raise SymcalError(f"--workers {args.workers}: must be at least 1")
@@ -101,7 +102,7 @@ def run_fleet(args: argparse.Namespace) -> int:
 
     result = solve_fleet(problem, fleet, data, options, drop_invalid=args.drop_invalid,
                          scheduler=args.scheduler, workers=args.workers, bars=bars,
-                         on_unit=on_unit)
+                         on_unit=on_unit, report=text_report)
     document = json_text(result.to_dict())
     text = fleet_text(result.summary, str(fleet))
     if out is not None:
