@@ -37,9 +37,9 @@ import scipy
 import scipy.optimize
 
 import symcal
-from symcal.datasets import load_datasets
+from symcal.base.numeric import mapped
+from symcal.data.loading import load_datasets
 from symcal.language.options import SolveOptions
-from symcal.numeric import mapped
 from symcal.solvers.objective import Objective
 
 NIST = Path(__file__).resolve().parent.parent / "tests" / "nist"

@@ -22,30 +22,31 @@ if "numpy" not in _sys.modules:
     for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         _os.environ.setdefault(_var, "1")
 
-from symcal.errors import DataError, SolveError, SpecError, SymcalError  # noqa: E402
+from symcal.base.errors import DataError, SolveError, SpecError, SymcalError  # noqa: E402
 
 # The rest of the API is imported on first use (PEP 562), so that ``import symcal.cli``
 # (``symcal --help``) does not load CasADi, SciPy, pint or Dask.
 _LAZY = {
-    "solve": "symcal.calibrate", "Dataset": "symcal.data", "read_table": "symcal.data",
-    "load_datasets": "symcal.datasets", "FleetResult": "symcal.fleet",
-    "solve_fleet": "symcal.fleet", "SolveOptions": "symcal.language.options",
-    "Problem": "symcal.problem", "load_problem": "symcal.problem",
-    "text_report": "symcal.report", "Result": "symcal.result",
-    "solve_partitioned": "symcal.partitioned", "open_shards": "symcal.shards",
+    "solve": "symcal.calibrate.solve", "Dataset": "symcal.data.dataset",
+    "read_table": "symcal.data.dataset",
+    "load_datasets": "symcal.data.loading", "FleetResult": "symcal.calibrate.fleet",
+    "solve_fleet": "symcal.calibrate.fleet", "SolveOptions": "symcal.language.options",
+    "Problem": "symcal.problem.compiler", "load_problem": "symcal.problem.compiler",
+    "text_report": "symcal.report.text", "Result": "symcal.calibrate.result",
+    "solve_partitioned": "symcal.calibrate.partitioned", "open_shards": "symcal.data.shards",
 }
 
 if _TYPE_CHECKING:
-    from symcal.calibrate import solve
-    from symcal.data import Dataset, read_table
-    from symcal.datasets import load_datasets
-    from symcal.fleet import FleetResult, solve_fleet
+    from symcal.calibrate.fleet import FleetResult, solve_fleet
+    from symcal.calibrate.partitioned import solve_partitioned
+    from symcal.calibrate.result import Result
+    from symcal.calibrate.solve import solve
+    from symcal.data.dataset import Dataset, read_table
+    from symcal.data.loading import load_datasets
+    from symcal.data.shards import open_shards
     from symcal.language.options import SolveOptions
-    from symcal.partitioned import solve_partitioned
-    from symcal.problem import Problem, load_problem
-    from symcal.report import text_report
-    from symcal.result import Result
-    from symcal.shards import open_shards
+    from symcal.problem.compiler import Problem, load_problem
+    from symcal.report.text import text_report
 
 
 def __getattr__(name: str) -> object:

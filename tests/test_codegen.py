@@ -3,7 +3,7 @@
 The generated functions are compiled with the system C compiler and evaluated on the
 first N_OBS observations of each problem's calibration dataset; every residual, every
 entry of the Jacobian and every instance output must agree with symcal's own evaluation
-of the problem's SX (``symcal.numeric.mapped``) to RTOL relative.  Values below 1 in
+of the problem's SX (``symcal.base.numeric.mapped``) to RTOL relative.  Values below 1 in
 symcal's internal units (mm, rad) are held to RTOL absolute instead: the residuals are
 differences of readings of order 1-100 mm, so their rounding is relative to those.
 """
@@ -25,11 +25,11 @@ import pytest
 from conftest import ROOT
 
 import symcal
-from symcal import codegen
-from symcal.calibrate import load_datasets
+from symcal.base.numeric import mapped
+from symcal.calibrate.solve import load_datasets
 from symcal.cli import codegen as cli_codegen
-from symcal.numeric import mapped
-from symcal.problem import Problem, Quantity
+from symcal.codegen import c as codegen
+from symcal.problem.compiler import Problem, Quantity
 
 PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"
 DUAL = ROOT / "problems" / "dual_sensor_calibration.yaml"

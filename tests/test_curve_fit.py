@@ -13,7 +13,7 @@ import pytest
 import scipy.optimize
 
 import symcal
-from symcal.errors import SpecError
+from symcal.base.errors import SpecError
 
 FIT = """\
 problem: decay

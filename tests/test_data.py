@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from symcal.data import make_dataset, read_table, write_table
-from symcal.errors import DataError
+from symcal.base.errors import DataError
+from symcal.data.dataset import make_dataset, read_table, write_table
 
 
 def _csv(tmp_path: Path, text: str) -> Path:

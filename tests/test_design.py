@@ -13,13 +13,13 @@ import yaml
 from conftest import ROOT
 
 import symcal
+from symcal.base.errors import SpecError, SymcalError
 from symcal.cli import main
-from symcal.data import make_dataset
-from symcal.datasets import needed_columns
-from symcal.design import design, parse_target, with_motion
-from symcal.errors import SpecError, SymcalError
-from symcal.plan import predict, quiet
-from symcal.problem import load_problem
+from symcal.data.dataset import make_dataset
+from symcal.data.loading import needed_columns
+from symcal.design.optimize import design, parse_target, with_motion
+from symcal.design.predict import predict, quiet
+from symcal.problem.compiler import load_problem
 from symcal.simulate import load_scenario, simulate_run
 from symcal.simulate.motion import ideal_columns
 
@@ -248,8 +248,8 @@ def test_the_bundled_target_reports_its_binding_limits(problem, scenario):
 
 @pytest.mark.slow
 def test_diagnose_points_to_design_when_a_direction_is_poorly_determined(problem):
-    from symcal.diagnose import diagnose
-    from symcal.report import diagnosis_verdict
+    from symcal.report.text import diagnosis_verdict
+    from symcal.revise.diagnose import diagnose
 
     verdict = diagnosis_verdict(diagnose(symcal.solve(problem)))
     pointer = [line for line in verdict if line.startswith("poorly determined")]

@@ -17,9 +17,9 @@ from conftest import ROOT
 
 import symcal
 from symcal.cli import main
-from symcal.data import make_dataset
-from symcal.diagnose import diagnose
-from symcal.effects import revised_problem
+from symcal.data.dataset import make_dataset
+from symcal.revise.diagnose import diagnose
+from symcal.revise.effects import revised_problem
 from symcal.simulate import load_scenario, noise_floor, simulate_run
 from symcal.simulate.scenario import AngleTerm, AxisNonlinearity, Drift, Effects, Harmonic, Lateral
 
@@ -151,7 +151,7 @@ def test_cli_diagnose_json_plots_report(tmp_path, capsys) -> None:
     scenario = _platen(CASES["extra 3rd harmonic in s2"][0])
     paths = {}
     for name, cols in _data(scenario, seed=34).items():
-        from symcal.data import write_table
+        from symcal.data.dataset import write_table
 
         paths[name] = tmp_path / f"{name}.csv"
         write_table(paths[name], dict(cols.columns))

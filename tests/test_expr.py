@@ -1,4 +1,5 @@
-"""Tests of symcal.expr: grammar, errors, safety limits, CasADi vs the pure-Python reference."""
+"""Tests of symcal.language.expr: grammar, errors, safety limits, CasADi vs the pure-Python
+reference."""
 
 from __future__ import annotations
 
@@ -12,8 +13,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from symcal.errors import SymcalError
-from symcal.expr import (
+from symcal.base.errors import SymcalError
+from symcal.language.expr import (
     FUNCTIONS,
     MAX_DEPTH,
     MAX_LENGTH,

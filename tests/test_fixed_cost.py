@@ -14,11 +14,11 @@ import pytest
 from conftest import ROOT
 
 import symcal
-from symcal import jit
-from symcal.data import make_dataset
-from symcal.datasets import needed_columns
-from symcal.errors import SymcalError
-from symcal.numeric import mapped
+from symcal.base import jit
+from symcal.base.errors import SymcalError
+from symcal.base.numeric import mapped
+from symcal.data.dataset import make_dataset
+from symcal.data.loading import needed_columns
 from symcal.simulate import load_scenario, simulate_run
 from symcal.solvers.instrument import counting
 from symcal.solvers.nlp import solve_ipopt
@@ -186,7 +186,7 @@ def test_concurrent_writers_leave_one_whole_entry(cache) -> None:
     """Two processes compiling the same function at once: each writes through a temporary
     file and a rename, so the entry is whole and trusted whichever wins."""
     code = ("import casadi as ca, numpy as np\n"
-            "from symcal import jit\nfrom symcal.numeric import mapped\n"
+            "from symcal.base import jit\nfrom symcal.base.numeric import mapped\n"
             "th, u = ca.SX.sym('th', 2), ca.SX.sym('u', 1)\n"
             "fn = mapped(th, u, [ca.cos(th[0] * u[0]) * th[1]], 'racer')\n"
             "out = jit.fast(fn, build=True)\n"

@@ -18,12 +18,12 @@ import pytest
 from conftest import ROOT, courier_data, write_csv
 
 import symcal
+from symcal.base.errors import DataError
+from symcal.base.progress import meter, terminal_bars, write_line
+from symcal.calibrate.fleet import find_units, solve_fleet
+from symcal.calibrate.fleet_summary import MAD_TO_SIGMA, OUTLIER_SCORE, summarise
 from symcal.cli import main
-from symcal.data import read_table, write_table
-from symcal.errors import DataError
-from symcal.fleet import find_units, solve_fleet
-from symcal.fleetsummary import MAD_TO_SIGMA, OUTLIER_SCORE, summarise
-from symcal.progress import meter, terminal_bars, write_line
+from symcal.data.dataset import read_table, write_table
 
 PROBLEM = ROOT / "problems" / "platen_self_calibration.yaml"
 NOISE = 0.5e-3

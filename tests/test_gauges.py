@@ -1,6 +1,6 @@
 """Gauges found before the solve (symcal/analysis/gauges.py) on small problems whose
 symmetries are known by construction, and the rank decision that counts them
-(symcal/linalg.py)."""
+(symcal/base/linalg.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import symcal
-from symcal.linalg import known_null_svd
+from symcal.base.linalg import known_null_svd
 
 
 def _problem(tmp: Path, constraint: str, parameters: dict[str, float], y,

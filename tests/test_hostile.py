@@ -24,10 +24,10 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
-from symcal import files
+from symcal.base import files
+from symcal.base.errors import SymcalError
 from symcal.cli import main
-from symcal.data import read_table
-from symcal.errors import SymcalError
+from symcal.data.dataset import read_table
 from symcal.language.yamlio import MAX_BYTES, load_yaml
 
 BASE = ROOT / "tests" / "bad_inputs" / "bad_max_iter"
@@ -148,7 +148,7 @@ def test_csv_read_in_small_blocks_equals_the_whole(toy: Path, monkeypatch) -> No
     messy = "\ufeff" + "\r\n".join(lines[:10] + ["", "   "] + lines[10:]) + "\r\n"
     (toy / "messy.csv").write_text(messy, encoding="utf-8", newline="")
     whole = np.loadtxt(toy / "data.csv", delimiter=",", skiprows=1)
-    monkeypatch.setattr("symcal.data.BLOCK_BYTES", 50)
+    monkeypatch.setattr("symcal.data.dataset.BLOCK_BYTES", 50)
     columns = read_table(toy / "messy.csv")
     assert list(columns) == ["t", "p1", "p2"]
     np.testing.assert_array_equal(np.column_stack(list(columns.values())), whole)
@@ -158,22 +158,22 @@ def test_csv_errors_name_the_line_in_a_later_block(toy: Path, monkeypatch) -> No
     lines = (toy / "data.csv").read_text().splitlines()
     lines[40] = lines[40].replace(",", ",x", 1)
     (toy / "bad.csv").write_text("\n".join(lines) + "\n")
-    monkeypatch.setattr("symcal.data.BLOCK_BYTES", 100)
+    monkeypatch.setattr("symcal.data.dataset.BLOCK_BYTES", 100)
     with pytest.raises(SymcalError, match=r"^bad.csv:41: column 'p1': 'x.*' is not a number$"):
         read_table(toy / "bad.csv")
 
 
 def test_a_csv_line_without_end_is_refused(toy: Path, monkeypatch) -> None:
-    monkeypatch.setattr("symcal.data.MAX_LINE_BYTES", 1000)
-    monkeypatch.setattr("symcal.data.BLOCK_BYTES", 300)
+    monkeypatch.setattr("symcal.data.dataset.MAX_LINE_BYTES", 1000)
+    monkeypatch.setattr("symcal.data.dataset.BLOCK_BYTES", 300)
     (toy / "long.csv").write_text("t,p1,p2\n" + "1," * 2000)
     with pytest.raises(SymcalError, match="^long.csv:2: a line is longer than 1000 bytes"):
         read_table(toy / "long.csv")
 
 
 def test_dataset_columns_are_read_only_without_a_copy(toy: Path) -> None:
-    from symcal.datasets import load_datasets
-    from symcal.problem import load_problem
+    from symcal.data.loading import load_datasets
+    from symcal.problem.compiler import load_problem
 
     data = load_datasets(load_problem("prob.yaml"))["calibration"]
     for column in data.columns.values():

@@ -12,11 +12,11 @@ import pytest
 from conftest import ROOT
 
 import symcal
-from symcal.data import make_dataset, read_table, write_table
-from symcal.datasets import needed_columns
-from symcal.errors import DataError
-from symcal.partitioned import solve_partitioned
-from symcal.shards import open_shards
+from symcal.base.errors import DataError
+from symcal.calibrate.partitioned import solve_partitioned
+from symcal.data.dataset import make_dataset, read_table, write_table
+from symcal.data.loading import needed_columns
+from symcal.data.shards import open_shards
 from symcal.simulate import load_scenario, simulate_run
 from symcal.solvers.executor import SerialExecutor, ThreadExecutor
 from symcal.solvers.objective import Objective

@@ -12,9 +12,9 @@ from conftest import ROOT
 
 import symcal
 from symcal.analysis.implicit import implicit_checks
+from symcal.base.errors import SpecError
 from symcal.cli import main
-from symcal.data import make_dataset
-from symcal.errors import SpecError
+from symcal.data.dataset import make_dataset
 from symcal.simulate import load_scenario, noise_floor, simulate_run, truth
 from symcal.solvers.objective import Objective
 

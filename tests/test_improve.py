@@ -19,11 +19,11 @@ from conftest import ROOT
 
 import symcal
 import symcal.simulate
+from symcal.base.numeric import mapped
 from symcal.cli import main
-from symcal.data import make_dataset
-from symcal.diagnose import diagnose
-from symcal.improve import improve
-from symcal.numeric import mapped
+from symcal.data.dataset import make_dataset
+from symcal.revise.diagnose import diagnose
+from symcal.revise.improve import improve
 from symcal.simulate import load_scenario, noise_floor, simulate_run
 from symcal.simulate.scenario import AngleTerm, Drift, Effects, Harmonic, Lateral
 
@@ -126,7 +126,7 @@ def test_clean_data_is_quiet_after_the_approximation(tmp_path) -> None:
     scenario = _scenario(Effects())
     data = _data(scenario, seed=61)
     result = improve(EXPLICIT, tmp_path / "explicit", data)
-    assert [r.added for r in result.rounds] == [None, symcal.diagnose.APPROXIMATION]
+    assert [r.added for r in result.rounds] == [None, symcal.revise.diagnose.APPROXIMATION]
     assert result.quiet
     final = result.rounds[-1].result
     assert _ratio(final, scenario, "calibration", 61) < 1.05
@@ -148,7 +148,7 @@ def test_one_hidden_effect_is_named_and_fixed(case, start, seed, tmp_path) -> No
     if start == "implicit" or first.significant[0].basis.kind != "approximation":
         assert _named(first, truth), labels
     else:   # the approximation first, then the effect
-        assert _named(first, symcal.diagnose.APPROXIMATION)
+        assert _named(first, symcal.revise.diagnose.APPROXIMATION)
     result = improve(problem, tmp_path / "out", data)
     assert result.quiet, [r.added for r in result.rounds]
     assert len(result.rounds) - 1 <= (3 if start == "explicit" else 2)
@@ -196,7 +196,7 @@ def test_predictions_are_what_solving_again_gives(case, start, tmp_path) -> None
         assert diag.variant is not None
         revised = diag.variant.problem
     else:
-        from symcal.effects import revised_problem
+        from symcal.revise.effects import revised_problem
 
         revised = revised_problem(problem, lead, tmp_path)
     again = symcal.solve(revised, data)
@@ -251,7 +251,7 @@ def test_symcal_improve_json_and_files(tmp_path, capsys) -> None:
     problem are overlays that load; the ladder is written."""
     scenario = _scenario(CASES["drift"][0])
     paths = {}
-    from symcal.data import write_table
+    from symcal.data.dataset import write_table
 
     for name, ds in _data(scenario, seed=65).items():
         paths[name] = write_table(tmp_path / f"{name}.csv", dict(ds.columns)) or \
@@ -294,7 +294,7 @@ def test_dual_clean_data_is_one_switch_from_quiet() -> None:
     data = _data(_dual(), seed=66)
     first = diagnose(symcal.solve(DUAL, data))
     lead = first.significant[0]
-    assert lead.label == symcal.diagnose.APPROXIMATION
+    assert lead.label == symcal.revise.diagnose.APPROXIMATION
     assert abs(lead.coefficient[0] - 1) < 3 * lead.coefficient_se[0]
     assert "extends: dual_sensor_calibration_implicit.yaml" in first.yaml[lead.label]
     assert not diagnose(symcal.solve(DUAL_IMPLICIT, data)).significant
@@ -312,7 +312,7 @@ def test_coordination_gain_is_named_by_its_channels_and_fixed(tmp_path) -> None:
     assert "cs.c_y += a term linear in psi_y" in (lead.label, *lead.indistinguishable)
     assert lead.basis.kind == "linear" and lead.output.startswith("cs.")
     assert "the c_x and c_y channels of cs disagree in gain" in diag.candidate_text(lead)
-    from symcal.effects import revised_problem
+    from symcal.revise.effects import revised_problem
 
     again = symcal.solve(revised_problem(diag.result.problem, lead, tmp_path), data)
     floors = noise_floor(scenario)

@@ -10,7 +10,7 @@ import pytest
 from conftest import ROOT
 
 import symcal
-from symcal.data import make_dataset
+from symcal.data.dataset import make_dataset
 from symcal.simulate import load_scenario, simulate_run
 from symcal.solvers import instrument
 from symcal.solvers.instrument import Counters, counting

@@ -10,8 +10,8 @@ import pytest
 from conftest import ROOT, basis, courier_data
 
 import symcal
-from symcal.data import make_dataset
-from symcal.errors import SolveError
+from symcal.base.errors import SolveError
+from symcal.data.dataset import make_dataset
 from symcal.solvers.objective import Objective
 
 PROBLEM = ROOT / "problems" / "platen_self_calibration.yaml"

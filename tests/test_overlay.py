@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import symcal
-from symcal.errors import SpecError
+from symcal.base.errors import SpecError
 from symcal.language.overlay import (
     MAX_DEPTH,
     extends_chain,

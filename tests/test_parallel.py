@@ -13,9 +13,9 @@ import pytest
 from conftest import ROOT
 
 import symcal
-from symcal.data import make_dataset
-from symcal.datasets import needed_columns
-from symcal.errors import SymcalError
+from symcal.base.errors import SymcalError
+from symcal.data.dataset import make_dataset
+from symcal.data.loading import needed_columns
 from symcal.simulate import load_scenario, simulate_run
 from symcal.solvers import executor as ex
 from symcal.solvers.nlp import solve_ipopt

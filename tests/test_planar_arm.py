@@ -21,9 +21,9 @@ import pytest
 from conftest import ROOT
 
 import symcal
+from symcal.calibrate.result import StageResult
 from symcal.cli import main
-from symcal.diagnose import diagnose
-from symcal.result import StageResult
+from symcal.revise.diagnose import diagnose
 
 EXAMPLE = ROOT / "examples" / "planar_arm"
 FREE = EXAMPLE / "problem.yaml"

@@ -1,4 +1,4 @@
-"""Figures and the HTML page of a diagnosis document (symcal.plots, symcal.htmlreport)."""
+"""Figures and the HTML page of a diagnosis document (symcal.report.plots, symcal.report.html)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from symcal import plots
-from symcal.htmlreport import html_report, write_html
+from symcal.report import plots
+from symcal.report.html import html_report, write_html
 
 ROOT = Path(__file__).resolve().parent.parent
 RHO = 1.016
@@ -288,7 +288,7 @@ def test_write_html(doc: dict, page: str, tmp_path: Path) -> None:
 
 
 def test_import_does_not_import_matplotlib() -> None:
-    code = ("import sys, symcal.plots, symcal.htmlreport; "
+    code = ("import sys, symcal.report.plots, symcal.report.html; "
             "sys.exit(1 if any(m.split('.')[0] == 'matplotlib' for m in sys.modules) else 0)")
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr

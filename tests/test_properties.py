@@ -10,8 +10,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import symcal
-from symcal.data import read_table
-from symcal.errors import SymcalError
+from symcal.base.errors import SymcalError
+from symcal.data.dataset import read_table
 
 SETTINGS = settings(max_examples=150, deadline=None,
                     suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -52,7 +52,7 @@ def test_random_structures_as_problem_and_model(tmp_path: Path, doc: object) -> 
     for path in ("m.yaml", "p.yaml"):
         try:
             if path == "m.yaml":
-                from symcal.language.model import load_model
+                from symcal.language.model_file import load_model
 
                 load_model(tmp_path / path)
             else:

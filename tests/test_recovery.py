@@ -10,7 +10,7 @@ import pytest
 from conftest import ROOT
 
 import symcal
-from symcal.data import make_dataset
+from symcal.data.dataset import make_dataset
 from symcal.simulate import load_scenario, noise_floor, simulate_run, truth
 from symcal.simulate.scenario import Effects, Lateral
 

@@ -1,6 +1,7 @@
 """Reports a person reads at a glance: unit symbols, display units on axes, the verdict,
 regressions flagged, noise floors, revisions labelled by file, no self-referential
-finding (symcal.report, symcal.plots, symcal.htmlreport, symcal.compare, symcal.units)."""
+finding (symcal.report.text, symcal.report.plots, symcal.report.html, symcal.revise.ladder,
+symcal.base.units)."""
 
 from __future__ import annotations
 
@@ -14,12 +15,12 @@ import pytest
 from conftest import ROOT, courier_data
 
 import symcal
-from symcal import plots
-from symcal.compare import compare, ladder_report, revision_labels, save_ladder_plot
-from symcal.data import make_dataset
-from symcal.diagnose import diagnose
-from symcal.htmlreport import html_report
-from symcal.report import (
+from symcal.base.units import axis_unit, symbol
+from symcal.calibrate.result import REGRESSION_TOLERANCE, Regression, regressions
+from symcal.data.dataset import make_dataset
+from symcal.report import plots
+from symcal.report.html import html_report
+from symcal.report.text import (
     diagnosis_document,
     diagnosis_report,
     diagnosis_verdict,
@@ -29,9 +30,9 @@ from symcal.report import (
     text_report,
     verdict_lines,
 )
-from symcal.result import REGRESSION_TOLERANCE, Regression, regressions
+from symcal.revise.diagnose import diagnose
+from symcal.revise.ladder import compare, ladder_report, revision_labels, save_ladder_plot
 from symcal.simulate import load_scenario, noise_floor
-from symcal.units import axis_unit, symbol
 
 PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"
 SCENARIOS = ROOT / "problems" / "scenarios"

@@ -11,11 +11,11 @@ import pytest
 from conftest import ROOT, courier_data, write_csv
 
 import symcal
-import symcal.codegen
+import symcal.codegen.c
 import symcal.language.yamlio
-from symcal.compare import compare
-from symcal.diagnose import diagnose
-from symcal.errors import SymcalError
+from symcal.base.errors import SymcalError
+from symcal.revise.diagnose import diagnose
+from symcal.revise.ladder import compare
 from symcal.solvers import instrument
 
 PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"
@@ -124,7 +124,7 @@ def test_consumers_of_a_result_never_solve_again(project, tmp_path) -> None:
         first = diagnose(result)
         again = diagnose(loaded)
         compare([result, loaded])
-        symcal.codegen.generate(result.problem, tmp_path / "c", loaded)
+        symcal.codegen.c.generate(result.problem, tmp_path / "c", loaded)
     assert counts.iterations == 0 and counts.r_passes == 0
     assert [c.label for c in first.candidates] == [c.label for c in again.candidates]
     assert [c.f_stat for c in first.candidates] == pytest.approx(

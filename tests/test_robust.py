@@ -24,10 +24,10 @@ import scipy.optimize
 from conftest import ROOT
 
 import symcal
-from symcal.data import make_dataset
-from symcal.diagnose import diagnose
-from symcal.errors import SpecError
-from symcal.report import diagnosis_document, diagnosis_report, text_report
+from symcal.base.errors import SpecError
+from symcal.data.dataset import make_dataset
+from symcal.report.text import diagnosis_document, diagnosis_report, text_report
+from symcal.revise.diagnose import diagnose
 from symcal.simulate import load_scenario, simulate_run, slipped_rows, truth
 from symcal.simulate.scenario import CountSlip, Effects
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from symcal.errors import SpecError
+from symcal.base.errors import SpecError
 from symcal.language.yamlio import display_path
 from symcal.simulate import (
     load_scenario,

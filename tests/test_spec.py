@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 import symcal
-from symcal.errors import SpecError
+from symcal.base.errors import SpecError
 
 MODEL = """\
 model: seg

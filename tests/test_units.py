@@ -1,4 +1,4 @@
-"""Units: checked once at load (symcal.dimensions over the parse), converted (a model in m
+"""Units: checked once at load (symcal.language.dimensions over the parse), converted (a model in m
 and deg solves to the same physical estimate as its mm/rad twin and is reported in its own
 units), unknown units refused with a suggestion, derived units of candidate effects."""
 
@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 import symcal
-from symcal import effects, units
 from symcal.analysis.discovery import Basis, Candidate
-from symcal.errors import SpecError
-from symcal.report import text_report
+from symcal.base import units
+from symcal.base.errors import SpecError
+from symcal.report.text import text_report
+from symcal.revise import effects
 
 # ------------------------------------------------------------------------ unit sizes
 

@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
                          "symcal's")
     with tempfile.TemporaryDirectory(prefix="symcal-bench-") as tmp:
         workdir = Path(tmp)
-        # compiled functions (symcal.jit) in a cache of this run only: every run builds
+        # compiled functions (symcal.base.jit) in a cache of this run only: every run builds
         # them once (job startup) and measures the same state, whatever ran before
         os.environ["XDG_CACHE_HOME"] = str(workdir / "cache")
         ctx = Run(settings, workdir, make_data(workdir, settings.sizes), report, clock)

@@ -51,8 +51,8 @@ def symcal_solver(problem: str, cols: Columns, method: str = "auto") -> Method:
     """symcal's default path for the single stage: ``Objective`` and the method choice of
     ``solve()`` (``symcal.solvers.stage``: closed form when linear, else ``lm``), or the
     method given (``ipopt``: the IPOPT row)."""
-    from symcal.data import make_dataset
-    from symcal.datasets import needed_columns
+    from symcal.data.dataset import make_dataset
+    from symcal.data.loading import needed_columns
     from symcal.language.options import SolveOptions
     from symcal.solvers.instrument import counting
     from symcal.solvers.objective import Objective
@@ -75,10 +75,10 @@ def symcal_solver(problem: str, cols: Columns, method: str = "auto") -> Method:
 
 
 def symcal_analysis(problem: str, cols: Columns) -> Method:
-    """``symcal.calibrate.run_stage``: the solve plus the stage's analysis."""
-    from symcal.calibrate import run_stage
-    from symcal.data import make_dataset
-    from symcal.datasets import needed_columns
+    """``symcal.calibrate.solve.run_stage``: the solve plus the stage's analysis."""
+    from symcal.calibrate.solve import run_stage
+    from symcal.data.dataset import make_dataset
+    from symcal.data.loading import needed_columns
     from symcal.solvers.instrument import counting
 
     prob = single_stage_problem(problem)

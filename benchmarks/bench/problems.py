@@ -35,8 +35,8 @@ def cost(problem: str, theta: np.ndarray, cols: Columns) -> float:
 def single_stage_problem(problem: str) -> Any:
     """The problem file with one stage over every parameter and all constraints, and
     equal weights: the cost every method minimises."""
-    from symcal.language.problem import load_problem_spec
-    from symcal.problem import build_problem
+    from symcal.language.problem_file import load_problem_spec
+    from symcal.problem.compiler import build_problem
 
     spec = load_problem_spec(ROOT / PROBLEMS[problem]["path"])
     study = dataclasses.replace(spec.study, stages=())
@@ -45,7 +45,7 @@ def single_stage_problem(problem: str) -> Any:
 
 def make_data(workdir: Path, sizes: tuple[int, ...]) -> Files:
     """Simulate every (problem, N) once; the same file feeds every method."""
-    from symcal.data import write_table
+    from symcal.data.dataset import write_table
     from symcal.simulate import load_scenario, simulate_run
 
     files: Files = {}

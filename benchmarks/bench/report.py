@@ -23,7 +23,7 @@ INTRO = {
         "Jacobian (steps from the TSQR factor R of [J | g], evaluated by chunks).  "
         "*symcal, IPOPT path* is the same stage with method `ipopt` (IPOPT with the "
         "Gauss-Newton Hessian, normal equations by chunks).  "
-        "The `run_stage` row is `symcal.calibrate.run_stage`: the same solve plus the "
+        "The `run_stage` row is `symcal.calibrate.solve.run_stage`: the same solve plus the "
         "stage's analysis (R factor at the start, identifiability, sandwich "
         "covariance).",
         "",
@@ -133,7 +133,7 @@ def _method_notes(report: dict[str, Any], settings: Settings) -> list[str]:
         "- Final J = Σ g² (mm², equal weights) of every method's estimate, evaluated with the "
         "same numpy residual; 'rel.' is (J − J_best)/J_best at that N.",
         "- symcal's passes run on one thread per core from 32768 observations on, and its "
-        "one-observation functions are compiled (`symcal.jit`) once per run into the run's "
+        "one-observation functions are compiled (`symcal.base.jit`) once per run into the run's "
         "own cache (job *startup*): timed rows use them from the cache, as every solve after "
         "the first of a problem on a machine does.  'symcal, 1 thread, interpreted' is the "
         "same default path with `SYMCAL_THREADS=1 SYMCAL_JIT=off`: symcal as it was before "
@@ -216,7 +216,7 @@ def _data_table(report: dict[str, Any], big: int) -> list[str]:
                          f"{s['bytes'] / 2**20:.0f} MiB |")
     for kind in ("csv", "npz"):
         if kind in read:
-            lines.append(f"| `symcal.data.read_table` of that {kind.upper()} "
+            lines.append(f"| `symcal.data.dataset.read_table` of that {kind.upper()} "
                          f"({read[f'{kind}_rows']} rows) | {fmt_time(read[kind])} | |")
     return lines
 

@@ -32,7 +32,7 @@ def _one_pass(d: Record, lin: Record) -> list[str]:
         "### 1. One pass over the data",
         "",
         f"symcal evaluates its one-observation CasADi functions over chunks of up to {n} "
-        "observations (`symcal.numeric.Mapped`, `CHUNK`).  Per chunk of "
+        "observations (`symcal.base.numeric.Mapped`, `CHUNK`).  Per chunk of "
         f"{n} observations in this run (best of 2; *first call* includes building the "
         "mapped function for that chunk length):",
         "",
@@ -162,7 +162,7 @@ def _assembly(report: dict[str, Any], d: Record, ds: Record) -> list[str]:
         f"{fmt_time(ds.get('normal_equations', float('nan')))}.  A mapped function is "
         "a plain serial `map` (a loop over the one-observation code, built in "
         "microseconds); a first call allocates the thread's buffers and loads the "
-        "compiled twin from the cache (`symcal.jit`)."]
+        "compiled twin from the cache (`symcal.base.jit`)."]
 
 
 def _blas(report: dict[str, Any], n0: int) -> list[str]:

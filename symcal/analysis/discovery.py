@@ -22,7 +22,7 @@ import numpy as np
 import scipy.linalg
 import scipy.stats
 
-from symcal.linalg import range_basis
+from symcal.base.linalg import range_basis
 
 ABSORBED = 1e-3         # projected norm below this share of the raw norm: absorbed
 INDISTINGUISHABLE = 0.98  # canonical correlation above which candidates are one group

@@ -9,10 +9,10 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from symcal.data import Dataset
-from symcal.numeric import mapped
-from symcal.problem import Problem
-from symcal.units import DISPLAY_UNITS
+from symcal.base.numeric import mapped
+from symcal.base.units import DISPLAY_UNITS
+from symcal.data.dataset import Dataset
+from symcal.problem.compiler import Problem
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ matrix ``K`` (``n_g × n_g``, one observation's constraints) with
 ``K = 0`` for offsets and invariances, ``K = I`` for a homogeneity (then ``t = w∘θ``, the
 Euler relation), ``K`` antisymmetric for a rotation.  The Jacobian is the model's own,
 noise-free one at random points, so a symmetry found here is exact whatever the noise in
-the data; :mod:`symcal.linalg` decides what is numerically zero.  The test uses a bounded,
+the data; :mod:`symcal.base.linalg` decides what is numerically zero.  The test uses a bounded,
 evenly spread sample of the observations (:data:`SAMPLE`).
 """
 
@@ -38,11 +38,11 @@ import numpy as np
 
 from symcal.analysis.identifiability import Combination, format_combination, null_groups
 from symcal.analysis.identifiability import _rref_rows as _rref
-from symcal.data import Dataset
-from symcal.linalg import EXACT_RTOL, common_null, null_basis, range_basis
-from symcal.numeric import Mapped, mapped
+from symcal.base.linalg import EXACT_RTOL, common_null, null_basis, range_basis
+from symcal.base.numeric import Mapped, mapped
+from symcal.base.units import internal_unit
+from symcal.data.dataset import Dataset
 from symcal.solvers.objective import Objective
-from symcal.units import internal_unit
 
 #: At most this many observations, evenly spread over the dataset, enter the test.
 SAMPLE = 256
@@ -319,7 +319,7 @@ class GaugeAnalysis:
         """The gauges' directions at ``theta`` and the analysis reduced to the gauges that
         hold there.  A symmetry without a known tangent (found only as a null direction
         of the Jacobian at the start and the random points) holds at ``theta`` only where
-        the Jacobian is null along it to :data:`symcal.linalg.EXACT_RTOL`; one that does
+        the Jacobian is null along it to :data:`symcal.base.linalg.EXACT_RTOL`; one that does
         not was a degeneracy of the region the start lies in (an exponential term that
         vanishes there, say), not a symmetry, and must not hide a direction the data
         determine."""

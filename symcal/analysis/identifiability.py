@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from symcal.linalg import known_null_svd
+from symcal.base.linalg import known_null_svd
 
 _ZERO = 1e-9  # relative size below which a coefficient counts as zero
 

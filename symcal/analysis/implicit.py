@@ -14,9 +14,9 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from symcal.data import Dataset
-from symcal.numeric import mapped
-from symcal.problem import Problem
+from symcal.base.numeric import mapped
+from symcal.data.dataset import Dataset
+from symcal.problem.compiler import Problem
 
 
 @dataclass(frozen=True)

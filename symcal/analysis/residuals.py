@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.signal
 
-from symcal.units import DISPLAY_UNITS
+from symcal.base.units import DISPLAY_UNITS
 
 
 @dataclass(frozen=True)

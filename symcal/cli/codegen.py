@@ -1,12 +1,12 @@
-"""``symcal codegen``: export the calibrated model as C99 (:func:`symcal.codegen.generate`)."""
+"""``symcal codegen``: export the calibrated model as C99 (:func:`symcal.codegen.c.generate`)."""
 
 from __future__ import annotations
 
 import argparse
 from typing import Any
 
+from symcal.base.errors import SymcalError
 from symcal.cli.common import debug_option, inputs_of
-from symcal.errors import SymcalError
 
 HELP = "export the calibrated model as C99 (residuals, Jacobian, sensor outputs)"
 
@@ -34,9 +34,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Generate the code; print one ``wrote PATH`` line per file; return the exit code."""
-    from symcal.codegen import generate
-    from symcal.files import input_refusal
-    from symcal.problem import load_problem
+    from symcal.base.files import input_refusal
+    from symcal.codegen.c import generate
+    from symcal.problem.compiler import load_problem
 
     problem = load_problem(args.problem)
     if args.result:

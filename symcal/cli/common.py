@@ -14,7 +14,7 @@ from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING
 
-from symcal.errors import (
+from symcal.base.errors import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
     EXIT_INTERRUPTED,
@@ -25,8 +25,8 @@ from symcal.errors import (
 )
 
 if TYPE_CHECKING:
-    from symcal.problem import Problem
-    from symcal.progress import Bars
+    from symcal.base.progress import Bars
+    from symcal.problem.compiler import Problem
 
 
 class UsageError(SymcalError):
@@ -83,17 +83,17 @@ def data_map(args: argparse.Namespace) -> dict[str, str]:
 
 def progress(line: str) -> None:
     """Print one progress line on stderr (above an open progress bar, never through it)."""
-    from symcal.progress import write_line
+    from symcal.base.progress import write_line
 
     write_line(escape_controls(line), sys.stderr)
 
 
 def progress_bars(args: argparse.Namespace) -> Bars | None:
-    """The progress bars of a command (:mod:`symcal.progress`): tqdm bars on stderr when
+    """The progress bars of a command (:mod:`symcal.base.progress`): tqdm bars on stderr when
     stderr is a terminal, None under ``--quiet`` or when stderr is a file or a pipe."""
     if getattr(args, "quiet", False):
         return None
-    from symcal.progress import terminal_bars
+    from symcal.base.progress import terminal_bars
 
     return terminal_bars(sys.stderr)
 
@@ -112,7 +112,7 @@ def solve_progress(args: argparse.Namespace, label: str = "solve"
     if bars is None:
         yield progress
         return
-    from symcal.progress import meter
+    from symcal.base.progress import meter
 
     with meter(bars, label, None, "it") as m:
         def show(line: str) -> None:
@@ -188,7 +188,7 @@ def signals_handled() -> Iterator[None]:
 
 
 def _interrupted(exc: KeyboardInterrupt) -> tuple[str, int]:
-    from symcal.files import committed
+    from symcal.base.files import committed
 
     what = ("terminated by SIGTERM" if isinstance(exc, Terminated)
             else "interrupted by SIGINT (Ctrl-C)")
@@ -222,7 +222,7 @@ def failure(exc: BaseException) -> tuple[str, int]:
 def report_failure(exc: BaseException, as_json: bool) -> int:
     """Print the message of ``exc`` on stderr (and a JSON error document on stdout when
     ``as_json``); return the exit code."""
-    from symcal.files import json_text
+    from symcal.base.files import json_text
 
     message, code = failure(exc)
     if isinstance(exc, UsageError):
@@ -238,7 +238,7 @@ def run_guarded(command: Callable[[], int], argv: Sequence[str]) -> int:
     exit code (0 success, 1 failed solve, 2 bad input, 130 SIGINT, 143 SIGTERM), with a
     traceback only under ``--debug``.  A usage error raises ``SystemExit(2)``, as
     argparse does."""
-    from symcal.files import forget_committed
+    from symcal.base.files import forget_committed
 
     forget_committed()
     try:

@@ -24,12 +24,12 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Solve every revision once on the first one's data; print the ladder; write its figure."""
-    from symcal.calibrate import solve
-    from symcal.compare import compare, ladder_report, save_ladder_plot
-    from symcal.datasets import load_datasets
-    from symcal.files import OutputSet, check_output_folder
-    from symcal.problem import load_problem
-    from symcal.report import plain_json
+    from symcal.base.files import OutputSet, check_output_folder
+    from symcal.calibrate.solve import solve
+    from symcal.data.loading import load_datasets
+    from symcal.problem.compiler import load_problem
+    from symcal.report.text import plain_json
+    from symcal.revise.ladder import compare, ladder_report, save_ladder_plot
 
     problems = [load_problem(path) for path in args.problems]
     data = data_map(args)

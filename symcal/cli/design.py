@@ -6,8 +6,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from symcal.base.errors import SymcalError
 from symcal.cli.common import debug_option, inputs_of, write_stdout
-from symcal.errors import SymcalError
 
 HELP = "predict the uncertainty of a planned motion and optimise it within its limits"
 
@@ -47,12 +47,12 @@ def run(args: argparse.Namespace) -> int:
 
     Returns 0, or 1 when IPOPT did not solve the design.
     """
-    from symcal.design import Design, design, parse_target
-    from symcal.files import check_outputs, json_text
-    from symcal.plan import predict
-    from symcal.problem import load_problem
-    from symcal.report import design_document, design_report
-    from symcal.result import Result
+    from symcal.base.files import check_outputs, json_text
+    from symcal.calibrate.result import Result
+    from symcal.design.optimize import Design, design, parse_target
+    from symcal.design.predict import predict
+    from symcal.problem.compiler import load_problem
+    from symcal.report.text import design_document, design_report
     from symcal.simulate import load_scenario
 
     if (args.target or args.criterion) and not args.optimize:
@@ -91,8 +91,8 @@ def run(args: argparse.Namespace) -> int:
 def _write(args: argparse.Namespace, outcome: Any, text: str, inputs: set[Path],
            option: str) -> None:
     """Write the designed scenario, the report and the figure as one output set."""
-    from symcal.files import OutputSet, atomic_write_text
-    from symcal.plots import save_design_figure
+    from symcal.base.files import OutputSet, atomic_write_text
+    from symcal.report.plots import save_design_figure
 
     motions = {"given": outcome.poses(False, args.seed),
                "designed": outcome.poses(True, args.seed)}

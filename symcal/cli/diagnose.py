@@ -7,8 +7,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from symcal.base.errors import SymcalError
 from symcal.cli.common import data_map, data_options, inputs_of, progress, write_stdout
-from symcal.errors import SymcalError
 
 HELP = "solve, then show where the model fails and which effect is missing"
 
@@ -32,12 +32,12 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Diagnose; print the findings; write plots and the HTML page when asked."""
-    from symcal.calibrate import solve
-    from symcal.diagnose import diagnose
-    from symcal.files import check_output_folder, check_outputs
-    from symcal.plots import FORMATS
-    from symcal.problem import load_problem
-    from symcal.report import diagnosis_document, diagnosis_report, plain_json, text_report
+    from symcal.base.files import check_output_folder, check_outputs
+    from symcal.calibrate.solve import solve
+    from symcal.problem.compiler import load_problem
+    from symcal.report.plots import FORMATS
+    from symcal.report.text import diagnosis_document, diagnosis_report, plain_json, text_report
+    from symcal.revise.diagnose import diagnose
 
     if not 0 < args.alpha < 1:
         raise SymcalError(f"--alpha {args.alpha}: must lie between 0 and 1")
@@ -70,17 +70,17 @@ def run(args: argparse.Namespace) -> int:
 def _write(args: argparse.Namespace, doc: dict, text: str, formats: list[str],
            inputs: set[Path]) -> None:
     """Write the figures (one output set in ``--plots``) and the HTML page."""
-    from symcal.files import OutputSet
+    from symcal.base.files import OutputSet
 
     if args.plots:
-        from symcal.plots import save_figures
+        from symcal.report.plots import save_figures
 
         with OutputSet(args.plots, inputs, f"--plots {args.plots}") as stage:
             written = save_figures(doc, stage, formats)
         print(f"wrote {sum(len(v) for v in written.values())} figure files to "
               f"{args.plots}", file=sys.stderr)
     if args.report:
-        from symcal.htmlreport import write_html
+        from symcal.report.html import write_html
 
         page = Path(args.report)
         with OutputSet(page.parent, inputs, f"--report {args.report}") as stage:

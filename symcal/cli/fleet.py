@@ -14,9 +14,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from symcal.base.errors import SymcalError, escape_controls
+from symcal.calibrate.fleet_summary import failure_reason
 from symcal.cli.common import data_map, inputs_of, progress, progress_bars, write_stdout
-from symcal.errors import SymcalError, escape_controls
-from symcal.fleetsummary import failure_reason
 
 #: What ``--out DIR`` holds for the fleet, beside one folder per unit.
 FLEET_OUTPUTS = ("fleet.json", "fleet.txt", "fleet.png")
@@ -27,7 +27,7 @@ UNIT_OUTPUTS = ("result.json", "report.txt")
 def _check_out(out: Path, fleet: Path, units: list[str], inputs: set[Path]) -> None:
     """Refuse outputs before any work: an input or a foreign file replaced, or a result
     folder that the next run would take for a unit."""
-    from symcal.files import check_outputs
+    from symcal.base.files import check_outputs
 
     option = f"--out {out}"
     if out.resolve().parent == fleet.resolve():
@@ -41,7 +41,7 @@ def _check_out(out: Path, fleet: Path, units: list[str], inputs: set[Path]) -> N
 def _unit_writer(out: Path, inputs: set[Path]) -> Any:
     """Write each unit's folder as it finishes: its ``result.json`` and ``report.txt``,
     or, for a unit without a result, ``{"error": MESSAGE}`` and the message."""
-    from symcal.files import OutputSet, atomic_write_text, json_text
+    from symcal.base.files import OutputSet, atomic_write_text, json_text
 
     def write(unit: str, doc: Mapping[str, Any], report: str | None) -> None:
         with OutputSet(out / unit, inputs, f"--out {out}") as stage:
@@ -68,11 +68,11 @@ def _announce(total: int) -> Any:
 def run_fleet(args: argparse.Namespace) -> int:
     """Solve the fleet of ``args.fleet``; print the summary (or ``--json``); write
     ``--out``; return the exit code."""
-    from symcal.files import OutputSet, atomic_write_bytes, atomic_write_text, json_text
-    from symcal.fleet import find_units, solve_fleet
-    from symcal.fleetreport import fleet_png, fleet_text
-    from symcal.problem import load_problem
-    from symcal.report import text_report
+    from symcal.base.files import OutputSet, atomic_write_bytes, atomic_write_text, json_text
+    from symcal.calibrate.fleet import find_units, solve_fleet
+    from symcal.problem.compiler import load_problem
+    from symcal.report.fleet import fleet_png, fleet_text
+    from symcal.report.text import text_report
 
     if args.workers is not None and args.workers < 1:
         raise SymcalError(f"--workers {args.workers}: must be at least 1")

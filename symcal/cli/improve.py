@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from symcal.base.errors import SymcalError
 from symcal.cli.common import data_map, data_options, inputs_of, progress
-from symcal.errors import SymcalError
 
 HELP = "improve the model round by round until the diagnosis is quiet"
 #: The most rounds one run may take.
@@ -34,10 +34,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Run the loop; write the ladder; print the rounds; exit 0 when the model is quiet."""
-    from symcal.compare import compare, ladder_report, save_ladder_plot
-    from symcal.files import OutputSet, atomic_write_text, check_outputs
-    from symcal.improve import improve
-    from symcal.report import plain_json
+    from symcal.base.files import OutputSet, atomic_write_text, check_outputs
+    from symcal.report.text import plain_json
+    from symcal.revise.improve import improve
+    from symcal.revise.ladder import compare, ladder_report, save_ladder_plot
 
     if not 1 <= args.max_rounds <= MAX_ROUNDS:
         raise SymcalError(f"--max-rounds {args.max_rounds}: must be between 1 and "

@@ -6,8 +6,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from symcal.base.errors import SymcalError
 from symcal.cli.common import debug_option, inputs_of
-from symcal.errors import SymcalError
 
 HELP = "simulate a courier scenario to CSV"
 
@@ -32,8 +32,8 @@ def run(args: argparse.Namespace) -> int:
     the scenario or a file it extends, or a file symcal did not write) and are written as
     one output set.
     """
-    from symcal.data import write_table
-    from symcal.files import OutputSet, atomic_write_text, check_outputs
+    from symcal.base.files import OutputSet, atomic_write_text, check_outputs
+    from symcal.data.dataset import write_table
     from symcal.language.fields import MAX_SAMPLES
     from symcal.simulate import load_scenario, simulate_run, truth
 

@@ -6,11 +6,11 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from symcal.base.errors import SymcalError
 from symcal.cli.common import data_map, data_options, inputs_of, solve_progress, write_stdout
-from symcal.errors import SymcalError
 
 if TYPE_CHECKING:
-    from symcal.result import Result
+    from symcal.calibrate.result import Result
 
 HELP = "calibrate a problem and print the report"
 
@@ -56,14 +56,14 @@ def run(args: argparse.Namespace) -> int:
 
     ``--out`` is checked before the solve (a folder that can be written, no input and no
     file symcal did not write replaced); ``result.json`` and ``report.txt`` then replace
-    their predecessors together (:class:`symcal.files.OutputSet`).  Text reports are
+    their predecessors together (:class:`symcal.base.files.OutputSet`).  Text reports are
     printed before they are written, so a failed write never loses them.
     """
-    from symcal.calibrate import solve
-    from symcal.files import check_outputs
+    from symcal.base.files import check_outputs
+    from symcal.calibrate.solve import solve
     from symcal.language.options import MAX_ITER_LIMIT
-    from symcal.problem import load_problem
-    from symcal.report import json_report, text_report
+    from symcal.problem.compiler import load_problem
+    from symcal.report.text import json_report, text_report
 
     if args.max_iter is not None and not 1 <= args.max_iter <= MAX_ITER_LIMIT:
         raise SymcalError(f"--max-iter {args.max_iter}: must be between 1 and "
@@ -112,7 +112,7 @@ OUTPUTS = ("result.json", "report.txt")
 
 def _write(out: str, result: Result, text: str, inputs: set[Path], option: str) -> None:
     """Write ``result.json`` and ``report.txt`` to ``out`` as one output set."""
-    from symcal.files import OutputSet, atomic_write_text
+    from symcal.base.files import OutputSet, atomic_write_text
 
     with OutputSet(out, inputs, option) as stage:
         result.save(stage / "result.json")

@@ -6,8 +6,9 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from symcal import expr
-from symcal.errors import SpecError, Where, excerpt
+from symcal.base.errors import SpecError, Where, excerpt
+from symcal.base.units import check_unit
+from symcal.language import expr
 from symcal.language.fields import (
     check_keys,
     child_where,
@@ -18,11 +19,10 @@ from symcal.language.fields import (
     expect_symbol,
 )
 from symcal.language.yamlio import YMap
-from symcal.units import check_unit
 
 
 def display_unit(value: Any, where: Where) -> str:
-    """Validate a unit string (any unit pint knows, :func:`symcal.units.parse_unit`;
+    """Validate a unit string (any unit pint knows, :func:`symcal.base.units.parse_unit`;
     ``""`` when absent), refusing an unknown one with a did-you-mean."""
     if value is None:
         return ""

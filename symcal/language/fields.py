@@ -6,10 +6,10 @@ import math
 from collections.abc import Iterable
 from typing import Any
 
-from symcal.errors import SpecError, Where, excerpt
-from symcal.expr import RESERVED_NAMES
+from symcal.base.didyoumean import did_you_mean
+from symcal.base.errors import SpecError, Where, excerpt
+from symcal.language.expr import RESERVED_NAMES
 from symcal.language.yamlio import YList, YMap
-from symcal.suggest import did_you_mean
 
 
 def child_where(parent: Any, where: Where, key: str | int) -> Where:

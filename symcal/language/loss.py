@@ -12,10 +12,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from symcal.errors import SpecError, Where, excerpt
+from symcal.base.didyoumean import did_you_mean
+from symcal.base.errors import SpecError, Where, excerpt
+from symcal.base.units import DISPLAY_UNITS, symbol
 from symcal.language.fields import check_keys, child_where, expect_map, expect_number
-from symcal.suggest import did_you_mean
-from symcal.units import DISPLAY_UNITS, symbol
 
 #: The robust losses a constraint may declare (squared residuals when none is).
 LOSSES: tuple[str, ...] = ("huber", "soft_l1", "cauchy", "arctan")

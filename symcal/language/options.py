@@ -11,7 +11,7 @@ from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any
 
-from symcal.errors import SpecError, Where
+from symcal.base.errors import SpecError, Where
 from symcal.language.fields import (
     check_keys,
     child_where,

@@ -17,11 +17,11 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from symcal.errors import SpecError, Where
-from symcal.files import input_refusal
+from symcal.base.didyoumean import did_you_mean
+from symcal.base.errors import SpecError, Where
+from symcal.base.files import input_refusal
 from symcal.language.fields import child_where, expect_str
 from symcal.language.yamlio import MAX_BYTES, YList, YMap, display_path, load_yaml
-from symcal.suggest import did_you_mean
 
 #: How many files deep ``extends`` may go (a file and at most this many bases).
 MAX_DEPTH = 32

@@ -22,8 +22,8 @@ from typing import Any
 
 import yaml
 
-from symcal.errors import SpecError, Where, excerpt
-from symcal.files import display_path, read_input_bytes
+from symcal.base.errors import SpecError, Where, excerpt
+from symcal.base.files import display_path, read_input_bytes
 
 #: Largest YAML file accepted, in bytes.
 MAX_BYTES = 1 << 20

@@ -66,7 +66,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from symcal.errors import SpecError
+from symcal.base.errors import SpecError
 from symcal.simulate.scenario import (
     FOURIER_KEYS,
     SEGMENT_NAMES,

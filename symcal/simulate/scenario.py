@@ -91,7 +91,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from symcal.errors import SpecError, Where
+from symcal.base.didyoumean import did_you_mean
+from symcal.base.errors import SpecError, Where
 from symcal.language.fields import (
     MAX_SAMPLES,
     check_keys,
@@ -105,7 +106,6 @@ from symcal.language.fields import (
 )
 from symcal.language.overlay import load_with_extends, merge_scenario
 from symcal.language.yamlio import YMap
-from symcal.suggest import did_you_mean
 
 SEGMENT_NAMES: tuple[str, ...] = ("s1", "s2", "s3", "s4")
 FOURIER_KEYS: tuple[str, ...] = tuple(f"k{j}" for j in range(9))

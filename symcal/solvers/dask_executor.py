@@ -1,6 +1,6 @@
 """Chunk passes as Dask tasks: the executor of a partitioned dataset on a Dask cluster.
 
-Each task is one shard: the worker reads it (:meth:`symcal.shards.Shard.read`), evaluates
+Each task is one shard: the worker reads it (:meth:`symcal.data.shards.Shard.read`), evaluates
 the pass chunk by chunk and returns a small reduction (a number, ``Jᵀg`` and ``JᵀJ``, or
 an R factor), so a worker holds one shard at a time and the lead never holds the log.
 The lead reduces the shards' results in shard order (:func:`symcal.solvers.passes.run_pass`).
@@ -15,7 +15,7 @@ import logging
 from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from symcal.errors import SymcalError, excerpt
+from symcal.base.errors import SymcalError, excerpt
 from symcal.solvers.executor import usable_cores
 
 if TYPE_CHECKING:

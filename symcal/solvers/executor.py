@@ -31,7 +31,7 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Protocol, TypeVar
 
-from symcal.errors import SymcalError
+from symcal.base.errors import SymcalError
 
 T = TypeVar("T")
 

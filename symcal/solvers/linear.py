@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from symcal.linalg import rank_tolerance
+from symcal.base.linalg import rank_tolerance
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.objective import Objective, Source
 

@@ -5,7 +5,7 @@ J(θ) = Σ_obs Σ_k (g_k(θ, u)/σ_k)².  Everything is built symbolically for O
 ``map`` (serial), in chunks, so the graph never grows with N and memory is bounded.  Every
 method is one pass over the data (:mod:`symcal.solvers.passes`) on an executor
 (:mod:`symcal.solvers.executor`): the chunks of an in-memory dataset on threads for large
-N, or the shards of a partitioned one (:mod:`symcal.shards`) on Dask workers.
+N, or the shards of a partitioned one (:mod:`symcal.data.shards`) on Dask workers.
 """
 
 from __future__ import annotations
@@ -19,12 +19,12 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from symcal import jit
-from symcal.data import Dataset
-from symcal.errors import SolveError
-from symcal.numeric import Mapped, chunks, shared_mapped
-from symcal.problem import Problem
-from symcal.shards import ShardedDataset
+from symcal.base import jit
+from symcal.base.errors import SolveError
+from symcal.base.numeric import Mapped, chunks, shared_mapped
+from symcal.data.dataset import Dataset
+from symcal.data.shards import ShardedDataset
+from symcal.problem.compiler import Problem
 from symcal.solvers import instrument
 from symcal.solvers.executor import Executor, SerialExecutor, current, default_executor
 from symcal.solvers.passes import Kind, Pass, run_pass

@@ -1,8 +1,8 @@
 """The chunk passes over the data: one task per piece, reduced in the order of the pieces.
 
 A piece is a block of observations (``n_u × m``, a chunk of an in-memory dataset) or a
-shard of a partitioned dataset (:class:`symcal.shards.Shard`, read by whoever runs the
-task).  :class:`Pass` is the task: it evaluates a :class:`~symcal.numeric.Mapped`
+shard of a partitioned dataset (:class:`symcal.data.shards.Shard`, read by whoever runs the
+task).  :class:`Pass` is the task: it evaluates a :class:`~symcal.base.numeric.Mapped`
 function chunk by chunk and reduces the piece to something small; :func:`run_pass` maps
 it with an executor (:mod:`symcal.solvers.executor`) and reduces the pieces' results in
 their order, so that every executor gives the same result, bit for bit, on the same
@@ -24,7 +24,7 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 
-from symcal.numeric import Mapped, chunks
+from symcal.base.numeric import Mapped, chunks
 from symcal.solvers.executor import Executor
 
 Kind = Literal["cost", "terms", "normal", "r", "gram", "residuals"]

@@ -37,8 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from symcal.data import Dataset
-from symcal.linalg import rank_tolerance, sqrt_psd
+from symcal.base.linalg import rank_tolerance, sqrt_psd
+from symcal.data.dataset import Dataset
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.objective import Objective
 

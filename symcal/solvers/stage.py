@@ -14,7 +14,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from symcal.errors import SolveError
+from symcal.base.errors import SolveError
 from symcal.language.options import SolveOptions
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.linear import solve_linear

@@ -12,7 +12,7 @@ on the exact Jacobian from CasADi's AD.
   (in x), which makes steps independent of how the model is parametrised.
 * **Step.** With the SVD B = R_x D⁻¹ = U S Vᵀ computed once per iterate, the step for a
   multiplier λ is z(λ) = D p = −V S (S² + λ)⁻¹ Uᵀc.  The Gauss–Newton step (λ = 0, singular
-  values below :func:`symcal.linalg.rank_tolerance` dropped: minimum norm) is taken when
+  values below :func:`symcal.base.linalg.rank_tolerance` dropped: minimum norm) is taken when
   it lies inside the region; otherwise λ solves ‖z(λ)‖ = Δ (to 10 %) by safeguarded Newton
   iterations on 1/‖z(λ)‖, which is nearly linear in λ.
 * **Bounds.** Parameters at a bound whose gradient points out of the box are held for the
@@ -43,8 +43,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from symcal.data import Dataset
-from symcal.linalg import rank_tolerance
+from symcal.base.linalg import rank_tolerance
+from symcal.data.dataset import Dataset
 from symcal.solvers import instrument
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.objective import Objective

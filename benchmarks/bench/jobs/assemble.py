@@ -18,10 +18,10 @@ NAME = "assemble"
 def child(job: dict[str, Any]) -> dict[str, Any]:
     """Load and build the problem, make each stage's objective and its mapped
     per-observation functions, and evaluate each once on every chunk length N needs
-    (which builds whatever ``symcal.numeric`` builds on first use)."""
+    (which builds whatever ``symcal.base.numeric`` builds on first use)."""
     start = time.perf_counter()
     import symcal
-    from symcal.numeric import CHUNK, chunks
+    from symcal.base.numeric import CHUNK, chunks
     from symcal.solvers.objective import Objective
 
     imported = time.perf_counter()

@@ -18,8 +18,8 @@ NAME = "data"
 
 
 def child(job: dict[str, Any]) -> dict[str, Any]:
-    """``symcal.data.read_table`` on the CSV and on the NPZ of the same table."""
-    from symcal.data import read_table
+    """``symcal.data.dataset.read_table`` on the CSV and on the NPZ of the same table."""
+    from symcal.data.dataset import read_table
 
     out: dict[str, Any] = {}
     for kind in ("csv", "npz"):

@@ -62,8 +62,8 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from symcal.datasets import needed_columns
-    from symcal.shards import open_shards
+    from symcal.data.loading import needed_columns
+    from symcal.data.shards import open_shards
     from symcal.simulate import load_scenario, simulate_run
     from symcal.solvers.dask_executor import dask_executor
     from symcal.solvers.objective import Objective

@@ -1,7 +1,7 @@
 """Job ``profile``: where symcal's time per pass goes, on one full chunk and the smallest N.
 
 Only symcal's own objects are timed (``Mapped.chunk`` and ``Objective``'s evaluators), so
-the profile follows whatever ``symcal.numeric`` does; the cost of building a mapped
+the profile follows whatever ``symcal.base.numeric`` does; the cost of building a mapped
 function is taken as the first call minus a repeated call.
 """
 
@@ -37,8 +37,8 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
 
 def profile_problem(problem: str, data_path: str, start_path: str) -> dict[str, Any]:
     """Times of one problem's per-chunk evaluation and of each ``Objective`` pass."""
-    from symcal.data import make_dataset
-    from symcal.datasets import needed_columns
+    from symcal.data.dataset import make_dataset
+    from symcal.data.loading import needed_columns
     from symcal.solvers.objective import Objective
 
     prob = single_stage_problem(problem)
@@ -81,8 +81,8 @@ def _describe(rec: dict[str, Any]) -> str:
 
 def run(ctx: Run) -> JobSummary:
     """Simulate one chunk's worth of data per problem and profile it in a child."""
-    from symcal.data import write_table
-    from symcal.numeric import CHUNK
+    from symcal.base.numeric import CHUNK
+    from symcal.data.dataset import write_table
     from symcal.simulate import load_scenario, simulate_run
 
     sizes = ctx.settings.sizes

@@ -21,9 +21,9 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     """The common start: the problem's initial values (linear), or symcal's first two
     stages, in closed form with equal weights (dual).  Saved to ``job["out"]``."""
     import symcal
-    from symcal.calibrate import run_stage
-    from symcal.data import make_dataset
-    from symcal.datasets import needed_columns
+    from symcal.calibrate.solve import run_stage
+    from symcal.data.dataset import make_dataset
+    from symcal.data.loading import needed_columns
 
     prob = symcal.load_problem(ROOT / PROBLEMS[job["problem"]]["path"]).with_weighting("equal")
     theta = np.array([p.value for p in prob.parameters])

@@ -3,7 +3,7 @@
 * ``symcal --help`` and ``symcal solve`` of the bundled §3.1 problem (its own simulated
   data, ``--quiet``), whole commands in fresh processes, interpreter start included:
   the median of 5 and of 3 runs.
-* The compiled twins of both problems' single-stage functions (``symcal.jit``), built
+* The compiled twins of both problems' single-stage functions (``symcal.base.jit``), built
   once into the run's cache folder (``XDG_CACHE_HOME`` points into the run's temporary
   folder, see ``bench.cli``), as the first large solve of a problem on a machine builds
   them; the compile time is reported here, and every later job finds them in the cache.
@@ -31,7 +31,7 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     """Compile (or load from the cache) both problems' single-stage functions."""
     import numpy as np
 
-    from symcal import jit
+    from symcal.base import jit
     from symcal.solvers.objective import Objective
 
     from ..problems import single_stage_problem
@@ -65,8 +65,8 @@ def _command(args: list[str], ctx: Run, runs: int) -> dict[str, Any]:
 #: What a ``symcal solve`` process spends before solving, each in a fresh interpreter.
 PARTS = {
     "interpreter": "pass",
-    "import symcal.calibrate": "import symcal.calibrate",
-    "pint's unit registry": "from symcal.units import registry; registry()",
+    "import symcal.calibrate.solve": "import symcal.calibrate.solve",
+    "pint's unit registry": "from symcal.base.units import registry; registry()",
 }
 
 

@@ -1,0 +1,428 @@
+"""Fleet calibration on Dask: every unit of a fleet folder solved in parallel, one
+result per unit, and the fleet's summary.
+
+A fleet folder holds one subfolder per unit, ``FLEET/UNIT/NAME.csv`` (or ``.npz`` or
+``.parquet``) for each of the problem's datasets ``NAME`` the unit has; the datasets a
+unit lacks come from ``data`` (``--data``) or the problem's own.  Each unit is one Dask
+task that runs exactly what ``symcal solve PROBLEM --data NAME=FLEET/UNIT/NAME.csv ...``
+runs, so its result equals that local solve's.  A unit's failure (bad data, a failed
+solve, even a worker that died) is that unit's result, ``{"error": MESSAGE}`` or its
+failed document, and never stops the others.
+
+Dask is imported only here, inside :func:`solve_fleet` and :func:`fleet_client`, never at
+``import symcal``.  By default the fleet runs on an embedded local cluster: one worker
+process per core, one thread each, BLAS pinned to one thread.  ``scheduler`` names a
+running Dask scheduler instead (its workers must have symcal installed and see the
+problem and data files at the same absolute paths).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import time
+import uuid
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from symcal.base.didyoumean import did_you_mean
+from symcal.base.errors import DataError, SymcalError, excerpt
+from symcal.base.files import display_path, json_text
+from symcal.base.progress import Bars, meter
+from symcal.calibrate.fleet_summary import failure_reason, summarise
+from symcal.calibrate.result import Result, file_hashes
+from symcal.calibrate.solve import solve
+from symcal.language.options import SolveOptions
+from symcal.problem.compiler import Problem, load_problem
+from symcal.solvers.executor import usable_cores
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+#: Suffixes of a unit's data files, in the order they are looked for.
+SUFFIXES = (".csv", ".npz", ".parquet")
+#: What the client hears of each finished unit: ``on_unit(unit, document, report)``.
+UnitCallback = Callable[[str, Mapping[str, Any], str | None], None]
+
+
+# ------------------------------------------------------------------------ the fleet folder
+
+@dataclass(frozen=True)
+class Unit:
+    """One unit of a fleet folder.
+
+    Attributes
+    ----------
+    name
+        The subfolder's name.
+    files
+        Dataset name → the unit's file for it.
+    error
+        Why the unit cannot be solved, found before solving (None: it can be).
+    """
+
+    name: str
+    files: Mapping[str, Path] = field(default_factory=dict)
+    error: str | None = None
+
+
+def _unit(problem: Problem, folder: Path) -> Unit:
+    """The data files of one unit folder, or why they cannot be used."""
+    files: dict[str, Path] = {}
+    shown = display_path(folder)
+    names = list(problem.datasets)
+    for path in sorted(folder.iterdir()):
+        if path.name.startswith(".") or path.suffix.lower() not in SUFFIXES:
+            continue
+        if not path.is_file():
+            return Unit(folder.name, error=f"{display_path(path)}: not a regular file")
+        stem = path.stem
+        if stem not in problem.datasets:
+            return Unit(folder.name, error=(
+                f"{display_path(path)}: the problem has no dataset '{excerpt(stem)}'"
+                f"{did_you_mean(stem, names)}; its datasets: {', '.join(names)}"))
+        if stem in files:
+            return Unit(folder.name, error=(
+                f"{shown}: two files for dataset '{stem}' ({files[stem].name} and "
+                f"{path.name}); keep one"))
+        files[stem] = path
+    if not files:
+        return Unit(folder.name, error=(
+            f"{shown}: no data file; a unit folder holds NAME.csv, NAME.npz or "
+            f"NAME.parquet for datasets NAME of the problem ({', '.join(names)})"))
+    return Unit(folder.name, files)
+
+
+def find_units(problem: Problem, fleet: str | Path) -> list[Unit]:
+    """The units of a fleet folder, sorted by name, each with its files or its error.
+
+    Parameters
+    ----------
+    problem
+        The problem whose dataset names the files must have.
+    fleet
+        The fleet folder: one subfolder per unit (hidden ones are skipped).
+
+    Raises
+    ------
+    DataError
+        When ``fleet`` is not a folder or has no unit subfolder.
+    """
+    folder = Path(fleet)
+    shown = display_path(folder)
+    if not folder.is_dir():
+        what = "not found" if not folder.exists() else "is not a folder"
+        raise DataError(f"fleet folder {shown}: {what}")
+    subfolders = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
+    if not subfolders:
+        raise DataError(f"fleet folder {shown}: no unit subfolder; a fleet folder holds one "
+                        "folder per unit, each with NAME.csv, NAME.npz or NAME.parquet for "
+                        f"datasets NAME of the problem ({', '.join(problem.datasets)})")
+    return [_unit(problem, sub) for sub in subfolders]
+
+
+# ------------------------------------------------------------------------ one unit (worker)
+
+@dataclass(frozen=True)
+class UnitTask:
+    """Everything a worker needs to solve one unit: plain, picklable data.
+
+    The problem is loaded again on the worker from ``problem_file`` (once per process
+    and problem) and refused when its files differ from ``hashes`` (a remote worker that
+    sees other files).
+    """
+
+    unit: str
+    problem_file: str
+    hashes: tuple[tuple[str, str], ...]
+    weighting: str
+    data: tuple[tuple[str, str], ...]
+    method: str | None
+    max_iter: int
+    tol: float
+    ipopt: tuple[tuple[str, Any], ...]
+    drop_invalid: bool
+    report: Callable[[Result], str] | None = None
+
+
+#: Problems loaded in this (worker) process, by file, file hashes and weighting.
+_LOADED: dict[tuple[str, tuple[tuple[str, str], ...], str], Problem] = {}
+
+
+def _problem_for(task: UnitTask) -> Problem:
+    key = (task.problem_file, task.hashes, task.weighting)
+    if key not in _LOADED:
+        problem = load_problem(task.problem_file)
+        if tuple(sorted(file_hashes(problem).items())) != task.hashes:
+            raise SymcalError(f"{task.problem_file}: the problem or model files on this "
+                              "worker differ from those the fleet was started with")
+        if len(_LOADED) >= 4:
+            _LOADED.clear()
+        _LOADED[key] = problem.with_weighting(task.weighting)
+    return _LOADED[key]
+
+
+def _message(exc: BaseException) -> str:
+    if isinstance(exc, SymcalError):
+        return str(exc)
+    if isinstance(exc, MemoryError):
+        return "out of memory: the unit's data are too large for a worker"
+    if isinstance(exc, OSError):
+        where = f"{excerpt(exc.filename, 200)}: " if exc.filename else ""
+        return f"{where}{exc.strerror or exc.__class__.__name__}"
+    return (f"internal error ({exc.__class__.__name__}: {excerpt(exc, 200)}); please report "
+            "it")
+
+
+def solve_unit(task: UnitTask) -> dict[str, Any]:
+    """Solve one unit (the Dask task): ``{"document": ..., "report": ...}`` with the
+    unit's ``symcal solve --json`` document and, when the task carries a renderer, its
+    text report; or ``{"error": MESSAGE}``.
+
+    Never raises for a fault of the unit (its data, its solve): the message says what."""
+    try:
+        problem = _problem_for(task)
+        options = SolveOptions(task.method, task.max_iter, task.tol, dict(task.ipopt))
+        result = solve(problem, dict(task.data), options, drop_invalid=task.drop_invalid)
+        outcome: dict[str, Any] = {"document": json.loads(json_text(result.to_dict()))}
+        if task.report is not None:
+            outcome["report"] = task.report(result)
+        return outcome
+    except Exception as exc:  # noqa: BLE001 - one unit's fault is that unit's result
+        return {"error": _message(exc)}
+
+
+# ------------------------------------------------------------------------ the fleet (client)
+
+@dataclass(frozen=True)
+class FleetResult:
+    """The result of a fleet.
+
+    Attributes
+    ----------
+    problem
+        The problem file.
+    units
+        Unit name (sorted) → the unit's ``symcal solve --json`` document, or
+        ``{"error": MESSAGE}`` when it could not be solved.
+    reports
+        Unit name → the unit's text report (units that have a document).
+    summary
+        :func:`symcal.calibrate.fleet_summary.summarise` of ``units``: parameter distributions,
+        outliers and failures with their reasons.
+    seconds
+        Wall time of the whole fleet.
+    """
+
+    problem: str
+    units: Mapping[str, Mapping[str, Any]]
+    reports: Mapping[str, str]
+    summary: Mapping[str, Any]
+    seconds: float = 0.0
+
+    @property
+    def success(self) -> bool:
+        """Whether every unit was solved successfully (outliers do not count)."""
+        return not self.summary["failed"]
+
+    @property
+    def failed(self) -> Mapping[str, str]:
+        """Failed unit → reason."""
+        return self.summary["failed"]
+
+    @property
+    def outliers(self) -> Mapping[str, list[Mapping[str, Any]]]:
+        """Outlier unit → its findings, each with its ``reason``."""
+        return self.summary["outliers"]
+
+    def params(self, unit: str) -> dict[str, float]:
+        """The estimated parameters of ``unit`` by name.
+
+        Raises
+        ------
+        KeyError
+            An unknown unit, or one that has no result (its error is the message).
+        """
+        doc = self.units[unit]
+        if "error" in doc:
+            raise KeyError(f"unit '{unit}' has no result: {doc['error']}")
+        return {p["name"]: p["value"] for p in doc["parameters"]}
+
+    def to_dict(self) -> dict[str, Any]:
+        """``{"units": {UNIT: document or {"error": MESSAGE}}, "summary": {...}}``: what
+        ``symcal solve --fleet DIR --json`` prints."""
+        return {"units": dict(self.units), "summary": dict(self.summary)}
+
+
+@contextlib.contextmanager
+def fleet_client(scheduler: str | None = None, workers: int | None = None) -> Iterator[Client]:
+    """A Dask client: to the scheduler at ``scheduler``, or to an embedded local cluster.
+
+    Parameters
+    ----------
+    scheduler
+        Address of a running Dask scheduler (``tcp://host:8786``); None starts a local
+        cluster of processes, closed when the block ends.
+    workers
+        Worker processes of the local cluster (default: one per core), one thread each,
+        with one BLAS thread.
+
+    Raises
+    ------
+    SymcalError
+        When the scheduler cannot be reached (exit code 2).
+    """
+    from symcal.solvers.dask_executor import dask_client
+
+    with dask_client(scheduler, workers, "--scheduler") as client:
+        yield client
+
+
+def _tasks(problem: Problem, units: list[Unit], data: Mapping[str, str | Path],
+           options: SolveOptions, drop_invalid: bool,
+           report: Callable[[Result], str] | None) -> dict[str, UnitTask]:
+    hashes = tuple(sorted(file_hashes(problem).items()))
+    shared = {name: str(Path(path).resolve()) for name, path in data.items()}
+    out = {}
+    for unit in units:
+        if unit.error is not None:
+            continue
+        files = {**shared, **{k: str(p.resolve()) for k, p in unit.files.items()}}
+        out[unit.name] = UnitTask(unit.name, str(Path(problem.path).resolve()), hashes,
+                                  problem.weighting, tuple(sorted(files.items())),
+                                  options.method, options.max_iter, options.tol,
+                                  tuple(sorted(options.ipopt.items())), drop_invalid, report)
+    return out
+
+
+def _run(client: Client, tasks: Mapping[str, UnitTask], bars: Bars | None,
+         finish: Callable[[str, dict[str, Any]], None]) -> None:
+    """Submit every task; hand each unit's outcome to ``finish`` as it completes."""
+    from distributed import as_completed
+
+    token = uuid.uuid4().hex[:12]
+    futures = {client.submit(solve_unit, task, key=f"symcal-unit-{i}-{token}", pure=False):
+               unit for i, (unit, task) in enumerate(tasks.items())}
+    failed = 0
+    try:
+        with meter(bars, "fleet", total=len(futures), unit="unit") as m:
+            for future in as_completed(futures):
+                unit = futures[future]
+                try:
+                    outcome = future.result()
+                except Exception as exc:  # noqa: BLE001 - a worker died, a task was lost
+                    outcome = {"error": f"the Dask task of unit '{unit}' failed: "
+                                        f"{exc.__class__.__name__}: {excerpt(exc, 200)}"}
+                finally:
+                    future.release()
+                finish(unit, outcome)
+                doc = outcome.get("document", outcome)
+                failed += failure_reason(doc) is not None
+                m.advance()
+                if failed:
+                    m.note(f"failed={failed}")
+    except BaseException:
+        client.cancel(list(futures))
+        raise
+
+
+def solve_fleet(
+    problem: Problem | str | Path,
+    fleet: str | Path,
+    data: Mapping[str, str | Path] | None = None,
+    options: SolveOptions | None = None,
+    *,
+    drop_invalid: bool = False,
+    scheduler: str | Client | None = None,
+    workers: int | None = None,
+    bars: Bars | None = None,
+    on_unit: UnitCallback | None = None,
+    report: Callable[[Result], str] | None = None,
+) -> FleetResult:
+    """Calibrate every unit of a fleet folder on Dask.
+
+    Each unit is solved as ``symcal.solve(problem, files, options)`` on a worker, its
+    files being ``FLEET/UNIT/NAME.csv`` (``.npz``, ``.parquet``) for each dataset NAME
+    it has, then ``data``, then the problem's own datasets.  The problem is loaded again
+    from its file on the workers, with its weighting.  Run it from a script under
+    ``if __name__ == "__main__":`` (the local cluster starts processes).
+
+    Parameters
+    ----------
+    problem
+        A :class:`~symcal.problem.compiler.Problem` or the path of a problem file.
+    fleet
+        The fleet folder: one subfolder per unit.
+    data
+        Dataset name → file, for every unit that has no file of its own for it.
+    options
+        How to solve (default: the problem file's ``solver:`` section).
+    drop_invalid
+        Drop rows with NaN/inf instead of refusing a unit's data.
+    scheduler
+        None: an embedded local cluster (``workers`` processes, one per core by
+        default); a scheduler address; or a :class:`distributed.Client` of your own
+        (left open).
+    workers
+        Worker processes of the embedded cluster.
+    bars
+        Progress bars (:func:`symcal.base.progress.terminal_bars`); None: silent.
+    on_unit
+        Called on this process as each unit finishes, with the unit's name, its
+        document (or ``{"error": MESSAGE}``) and its text report (or None).
+    report
+        Renders a unit's text report on its worker (the command line passes
+        :func:`symcal.report.text.text_report`); None: no text reports.
+
+    Returns
+    -------
+    FleetResult
+        Every unit's document or error, their text reports, and the summary.
+
+    Raises
+    ------
+    SymcalError
+        Only for the fleet as a whole: an unreadable problem, a missing or empty fleet
+        folder, an unknown ``data`` name, an unreachable scheduler.
+    """
+    start = time.perf_counter()
+    if not isinstance(problem, Problem):
+        problem = load_problem(problem)
+    options = options or problem.options
+    data = dict(data or {})
+    for name in data:
+        if name not in problem.datasets:
+            raise DataError(f"--data {name}=...: the problem has no dataset '{name}'"
+                            f"{did_you_mean(name, problem.datasets)}; it has: "
+                            f"{', '.join(problem.datasets)}")
+    if workers is not None and workers < 1:
+        raise SymcalError(f"workers: must be at least 1, found {workers}")
+    units = find_units(problem, fleet)
+    tasks = _tasks(problem, units, data, options, drop_invalid, report)
+    docs: dict[str, Mapping[str, Any]] = {}
+    reports: dict[str, str] = {}
+
+    def finish(unit: str, outcome: dict[str, Any]) -> None:
+        doc = outcome["document"] if "document" in outcome else {"error": outcome["error"]}
+        docs[unit] = doc
+        if "report" in outcome:
+            reports[unit] = outcome["report"]
+        if on_unit is not None:
+            on_unit(unit, doc, outcome.get("report"))
+
+    for unit in units:
+        if unit.error is not None:
+            finish(unit.name, {"error": unit.error})
+    if tasks:
+        if scheduler is not None and not isinstance(scheduler, str):
+            _run(scheduler, tasks, bars, finish)
+        else:
+            local = min(workers or usable_cores(), len(tasks))
+            with fleet_client(scheduler, local) as client:
+                _run(client, tasks, bars, finish)
+    ordered = {u.name: docs[u.name] for u in units}
+    return FleetResult(str(problem.path), ordered, {u: reports[u] for u in ordered
+                                                    if u in reports},
+                       summarise(ordered), time.perf_counter() - start)

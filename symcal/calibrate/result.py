@@ -1,0 +1,550 @@
+"""The frozen outcome of a calibration: its problem, estimate, data, identifiability, fit.
+
+A :class:`Result` carries the :class:`~symcal.problem.compiler.Problem` it solved, the estimate
+and the datasets, so that diagnosis, comparison and code generation work from it without
+solving again.  :meth:`Result.save` and :meth:`Result.load` are the one writer and reader
+of ``result.json``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from symcal.analysis.fit import SeriesStats
+from symcal.analysis.gauges import GaugeAnalysis
+from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
+from symcal.analysis.implicit import ImplicitCheck
+from symcal.analysis.outliers import Outliers
+from symcal.base.errors import SymcalError
+from symcal.base.files import atomic_write_text, json_text
+from symcal.base.numeric import mapped
+from symcal.data.dataset import Dataset
+from symcal.language.yamlio import display_path
+from symcal.problem.compiler import Problem
+
+#: Version of the ``result.json`` layout.
+FORMAT = 1
+
+#: How much larger a spread must be after calibration than before to count as a
+#: regression (relative).  On clean simulated data, where the model is exact, a calibrated
+#: sensor passes its reading noise through the slope of its error model, which raised an
+#: already noise-limited spread by up to 11 % (the courier's fly-by angle, seeds 1-8, both
+#: platen models); 20 % leaves that margin so noise does not flag.
+REGRESSION_TOLERANCE = 0.2
+
+
+@dataclass(frozen=True)
+class ParameterResult:
+    """One parameter after the solve."""
+
+    name: str
+    value: float
+    initial: float
+    unit: str
+    fixed: bool
+    se: float | None
+    se_reason: str | None
+    lower: float
+    upper: float
+    doc: str
+
+    @property
+    def at_bound(self) -> str | None:
+        """``"lower"``/``"upper"`` when the value sits on (or beyond) a bound."""
+        if self.value <= self.lower:
+            return "lower"
+        if self.value >= self.upper:
+            return "upper"
+        return None
+
+    def to_dict(self) -> dict:
+        """Plain-data form (infinite bounds as None)."""
+        def bound(x: float) -> float | None:
+            return None if math.isinf(x) else x
+
+        return {"name": self.name, "value": self.value, "initial": self.initial,
+                "unit": self.unit, "fixed": self.fixed, "se": self.se,
+                "se_reason": self.se_reason, "lower": bound(self.lower),
+                "upper": bound(self.upper), "at_bound": self.at_bound, "doc": self.doc}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> ParameterResult:
+        """Inverse of :meth:`to_dict`."""
+        lower = -math.inf if doc.get("lower") is None else doc["lower"]
+        upper = math.inf if doc.get("upper") is None else doc["upper"]
+        return cls(doc["name"], doc["value"], doc["initial"], doc["unit"], doc["fixed"],
+                   doc["se"], doc["se_reason"], lower, upper, doc.get("doc", ""))
+
+
+@dataclass(frozen=True)
+class Regression:
+    """A residual or reference comparison that calibration made worse on one dataset.
+
+    ``measure`` is ``"std"`` for a comparison whose mean is an arbitrary zero
+    (``remove_mean``) and ``"rms"`` otherwise (an offset is an error too); ``before`` and
+    ``after`` are that measure with the initial parameters and with the estimate, in the
+    display unit ``unit`` (``""``: internal units).
+    """
+
+    dataset: str
+    name: str
+    kind: str
+    measure: str
+    before: float
+    after: float
+    unit: str
+
+    @property
+    def ratio(self) -> float:
+        """``after / before`` (inf when ``before`` is 0)."""
+        return self.after / self.before if self.before > 0 else math.inf
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form (the unit string as in ``statistics``)."""
+        return {"dataset": self.dataset, "name": self.name, "kind": self.kind,
+                "measure": self.measure, "before": self.before, "after": self.after,
+                "ratio": None if math.isinf(self.ratio) else self.ratio,
+                "unit": self.unit or "(internal)"}
+
+
+def regressions(statistics: tuple[SeriesStats, ...],
+                tolerance: float = REGRESSION_TOLERANCE) -> tuple[Regression, ...]:
+    """The residuals and comparisons whose spread calibration made worse.
+
+    A spread counts as worse when it grew by more than ``tolerance`` (relative) from the
+    initial parameters to the estimate; the spread is the standard deviation for a
+    comparison whose mean carries no information (``remove_mean``), the RMS otherwise.
+
+    Parameters
+    ----------
+    statistics
+        Before/after statistics (:attr:`Result.statistics`).
+    tolerance
+        Relative growth allowed before a spread counts as worse (default
+        :data:`REGRESSION_TOLERANCE`).
+
+    Returns
+    -------
+    tuple of Regression
+        In the order of ``statistics``.
+    """
+    out = []
+    for s in statistics:
+        measure = "std" if s.remove_mean else "rms"
+        before = getattr(s.shown("before"), measure)
+        after = getattr(s.shown("after"), measure)
+        if after > (1.0 + tolerance) * before and after > 0:
+            out.append(Regression(s.dataset, s.name, s.kind, measure, before, after, s.unit))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class DatasetInfo:
+    """Which data a result was computed on: ``file`` (absolute) and its ``sha256`` when
+    the data came from a file, None when simulated or given as an object."""
+
+    name: str
+    source: str
+    n: int
+    dropped: int
+    file: str | None = None
+    sha256: str | None = None
+
+
+@dataclass(frozen=True)
+class ConstraintCost:
+    """One constraint's share of a stage's cost before and after the stage.
+
+    ``cost_*`` is Σ (g/σ)²; ``rms_*`` is the RMS of g in the constraint's display unit.
+    """
+
+    name: str
+    unit: str
+    cost_before: float
+    cost_after: float
+    rms_before: float
+    rms_after: float
+
+
+@dataclass(frozen=True, eq=False)
+class StageResult:
+    """The outcome of one stage of a calibration; ``outliers`` are the observations its
+    fit treats as outliers (None where its residuals were not finite)."""
+
+    name: str
+    doc: str
+    method: str
+    success: bool
+    status: str
+    message: str
+    iterations: int
+    seconds: float
+    free: tuple[str, ...]
+    costs: tuple[ConstraintCost, ...]
+    unmoved: tuple[str, ...]
+    at_bound: tuple[str, ...]
+    conditioning_before: Conditioning
+    conditioning_after: Conditioning
+    identifiability: Identifiability
+    uncertainty: Uncertainty
+    notes: tuple[str, ...] = ()
+    outliers: Outliers | None = None
+    gauges: GaugeAnalysis | None = None  # the stage's gauges, found before its solve
+
+    @property
+    def cost_before(self) -> float:
+        """Total cost Σ (g/σ)² at the stage's start."""
+        return sum(c.cost_before for c in self.costs)
+
+    @property
+    def cost_after(self) -> float:
+        """Total cost Σ (g/σ)² at the stage's end."""
+        return sum(c.cost_after for c in self.costs)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form."""
+        return {
+            "name": self.name, "doc": self.doc, "method": self.method,
+            "success": self.success, "status": self.status, "message": self.message,
+            "iterations": self.iterations, "seconds": self.seconds, "free": list(self.free),
+            "costs": [c.__dict__ for c in self.costs],
+            "cost_before": self.cost_before, "cost_after": self.cost_after,
+            "unmoved": list(self.unmoved), "at_bound": list(self.at_bound),
+            "hessian_conditioning": {"before": self.conditioning_before.to_dict(),
+                                     "after": self.conditioning_after.to_dict()},
+            "identifiability": self.identifiability.to_dict(),
+            "uncertainty": self.uncertainty.to_dict(),
+            "notes": list(self.notes),
+            "outliers": None if self.outliers is None else self.outliers.to_dict(),
+            "gauges": None if self.gauges is None else self.gauges.to_dict(),
+        }
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> StageResult:
+        """Inverse of :meth:`to_dict`."""
+        cond = doc["hessian_conditioning"]
+        return cls(doc["name"], doc["doc"], doc["method"], doc["success"], doc["status"],
+                   doc["message"], doc["iterations"], doc["seconds"], tuple(doc["free"]),
+                   tuple(ConstraintCost(**c) for c in doc["costs"]), tuple(doc["unmoved"]),
+                   tuple(doc["at_bound"]), Conditioning.from_dict(cond["before"]),
+                   Conditioning.from_dict(cond["after"]),
+                   Identifiability.from_dict(doc["identifiability"]),
+                   Uncertainty.from_dict(doc["uncertainty"]), tuple(doc["notes"]),
+                   None if doc.get("outliers") is None
+                   else Outliers.from_dict(doc["outliers"]),
+                   None if doc.get("gauges") is None
+                   else GaugeAnalysis.from_dict(doc["gauges"]))
+
+
+def file_hashes(problem: Problem) -> dict[str, str]:
+    """sha256 of every file the problem was built from (the problem file, the files it
+    extends, its models), by path relative to the problem file's folder (so that a moved
+    project keeps its results)."""
+    home = Path(problem.path).resolve().parent
+    out = {}
+    for path in problem.source_files():
+        key = Path(os.path.relpath(Path(path).resolve(), home)).as_posix()
+        try:
+            out[key] = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        except OSError as exc:
+            raise SymcalError(f"cannot read {display_path(Path(path))} to hash it: "
+                              f"{exc.strerror}") from None
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Result:
+    """A calibration result.
+
+    Use ``.params`` for the estimated values by name, :func:`symcal.report.text.text_report`
+    for the table a person reads and ``.to_dict()`` for the machine-readable document
+    (``symcal solve --json``).  ``identifiability`` and ``uncertainty`` are those of the
+    last stage; each stage's own are in ``stages``.  ``success`` is False when a stage
+    failed (the estimate is then the failed stage's last iterate and later stages did not
+    run) or when an implicit definition's fixed-point map does not contract on the data
+    (``implicit``).
+
+    Attributes
+    ----------
+    problem
+        The problem solved.
+    theta0, theta
+        The parameter vector at the start and the estimate, in ``problem.theta`` order.
+    data
+        The datasets by name (loaded again from their files for a loaded result).
+    datasets
+        What each dataset was: source, size, file and hash.
+    """
+
+    problem: Problem
+    theta0: np.ndarray
+    theta: np.ndarray
+    stages: tuple[StageResult, ...]
+    parameters: tuple[ParameterResult, ...]
+    identifiability: Identifiability
+    uncertainty: Uncertainty
+    statistics: tuple[SeriesStats, ...]
+    datasets: tuple[DatasetInfo, ...]
+    notes: tuple[str, ...]
+    implicit: tuple[ImplicitCheck, ...] = ()
+    _data: Mapping[str, Dataset] | None = field(default=None, repr=False)
+
+    @property
+    def name(self) -> str:
+        """The problem's name."""
+        return self.problem.name
+
+    @property
+    def problem_path(self) -> str:
+        """The problem file as shown in messages."""
+        return display_path(Path(self.problem.path))
+
+    @property
+    def success(self) -> bool:
+        """Whether every stage succeeded and every implicit definition converged."""
+        return all(st.success for st in self.stages) and all(c.contracts for c in self.implicit)
+
+    @property
+    def method(self) -> str:
+        """The methods of the stages, e.g. ``"linear"`` or ``"linear+linear+ipopt"``."""
+        return "+".join(st.method for st in self.stages)
+
+    @property
+    def params(self) -> MappingProxyType:
+        """Estimated parameter values by name (read-only)."""
+        return MappingProxyType({p.name: p.value for p in self.parameters})
+
+    @property
+    def data(self) -> Mapping[str, Dataset]:
+        """The datasets by name; for a loaded result, read again from their sources (and
+        refused when a file changed since the solve)."""
+        if self._data is None:
+            object.__setattr__(self, "_data", MappingProxyType(self._reload()))
+        assert self._data is not None
+        return self._data
+
+    def _reload(self) -> dict[str, Dataset]:
+        from symcal.data.loading import load_datasets
+
+        files = {d.name: d.file for d in self.datasets if d.file is not None}
+        for info in self.datasets:
+            if info.file is not None and info.sha256 is not None:
+                if _sha256(Path(info.file)) != info.sha256:
+                    raise SymcalError(f"dataset '{info.name}' ({info.file}) changed since the "
+                                      "result was computed; solve again")
+        for info in self.datasets:
+            spec = self.problem.datasets.get(info.name)
+            if info.file is None and (spec is None or spec.source != info.source):
+                raise SymcalError(f"dataset '{info.name}' ({info.source}) was given as data in "
+                                  "memory, not as a file: it cannot be read again; solve again "
+                                  "with it")
+        data = load_datasets(self.problem, files, drop_invalid=any(d.dropped
+                                                                   for d in self.datasets),
+                             names=[d.name for d in self.datasets])
+        for info in self.datasets:
+            if data[info.name].n != info.n:
+                raise SymcalError(f"dataset '{info.name}' ({info.source}) has "
+                                  f"{data[info.name].n} observations now, {info.n} when the "
+                                  "result was computed; solve again")
+        return data
+
+    @property
+    def outliers(self) -> Outliers | None:
+        """The observations the last stage's fit treats as outliers."""
+        return self.stages[-1].outliers
+
+    @property
+    def regressions(self) -> tuple[Regression, ...]:
+        """Residuals and reference comparisons that calibration made worse, on any
+        dataset (more than :data:`REGRESSION_TOLERANCE` larger after than before; see
+        :func:`regressions`)."""
+        return regressions(self.statistics)
+
+    @property
+    def rows(self) -> int:
+        """Residual rows of the last stage's fit (observations × constraints)."""
+        return int(self.uncertainty.dof + self.identifiability.rank)
+
+    @property
+    def rss(self) -> float:
+        """The last stage's cost Σ (g/σ)²."""
+        return float(self.stages[-1].cost_after)
+
+    @property
+    def aic(self) -> float:
+        """Akaike information criterion of the calibration fit (Gaussian residuals)."""
+        return self.rows * float(np.log(self.rss / self.rows)) + 2 * self.identifiability.rank
+
+    @property
+    def bic(self) -> float:
+        """Bayesian information criterion of the calibration fit."""
+        return (self.rows * float(np.log(self.rss / self.rows))
+                + self.identifiability.rank * float(np.log(self.rows)))
+
+    def stat(self, name: str, dataset: str = "calibration") -> SeriesStats:
+        """The statistics of constraint or comparison ``name`` on ``dataset``."""
+        for s in self.statistics:
+            if s.name == name and s.dataset == dataset:
+                return s
+        raise KeyError(f"no statistics for '{name}' on dataset '{dataset}'")
+
+    def value(self, name: str, dataset: str = "calibration") -> np.ndarray:
+        """A named constraint, expression, sensor signal or comparison (estimate minus
+        reference) evaluated at the estimate on every observation of ``dataset``, in
+        internal units.
+
+        Raises
+        ------
+        KeyError
+            An unknown quantity or dataset, naming the ones there are.
+        """
+        sx = self.problem.quantity(name)
+        if dataset not in self.data:
+            raise KeyError(f"no dataset '{dataset}'; datasets: {', '.join(self.data)}")
+        ds = self.data[dataset]
+        fn = mapped(self.problem.theta, self.problem.u, [sx], "value")
+        return fn(self.theta, ds.matrix(self.problem.columns))[0][:, 0]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The whole result as plain data (JSON-ready)."""
+        return {
+            "symcal_result": FORMAT,
+            "problem": self.problem.name, "problem_path": self.problem_path,
+            "problem_file": str(Path(self.problem.path).resolve()),
+            "files": file_hashes(self.problem),
+            "solver": {"method": self.method, "success": self.success,
+                       "seconds": sum(st.seconds for st in self.stages)},
+            "stages": [st.to_dict() for st in self.stages],
+            "datasets": [d.__dict__ for d in self.datasets],
+            "parameters": [p.to_dict() for p in self.parameters],
+            "identifiability": self.identifiability.to_dict(),
+            "uncertainty": self.uncertainty.to_dict(),
+            "statistics": [s.to_dict() for s in self.statistics],
+            "regressions": [r.to_dict() for r in self.regressions],
+            "outliers": None if self.outliers is None else self.outliers.to_dict(),
+            "implicit": [c.to_dict() for c in self.implicit],
+            "information_criteria": {"aic": self.aic, "bic": self.bic, "rows": self.rows,
+                                     "rss": self.rss},
+            "notes": list(self.notes),
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write ``result.json`` (the document of :meth:`to_dict`) atomically to ``path``."""
+        return atomic_write_text(path, json_text(self.to_dict()))
+
+    @classmethod
+    def load(cls, path: str | Path, problem: Problem | None = None) -> Result:
+        """Read a ``result.json`` written by :meth:`save`.
+
+        Parameters
+        ----------
+        path
+            The result file.
+        problem
+            The problem it is for (default: load the file it names).  Refused when its
+            name differs, or when the problem or model files changed since the solve.
+
+        Raises
+        ------
+        SymcalError
+            A missing, unreadable or foreign file, another format version, another
+            problem, or changed problem or model files.
+        """
+        doc, label = read_result_document(path)
+        if problem is None:
+            from symcal.problem.compiler import load_problem
+
+            file = doc.get("problem_file")
+            if not isinstance(file, str):
+                raise SymcalError(f"{label} does not name its problem file; give the problem")
+            problem = load_problem(file)
+        check_result_problem(doc, label, problem)
+        theta = np.array([_value_of(doc, label, p.name) for p in problem.parameters])
+        theta0 = np.array([_value_of(doc, label, p.name, "initial") for p in problem.parameters])
+        return cls(problem, theta0, theta,
+                   tuple(StageResult.from_dict(s) for s in doc["stages"]),
+                   tuple(ParameterResult.from_dict(p) for p in doc["parameters"]),
+                   Identifiability.from_dict(doc["identifiability"]),
+                   Uncertainty.from_dict(doc["uncertainty"]),
+                   tuple(SeriesStats.from_dict(s) for s in doc["statistics"]),
+                   tuple(DatasetInfo(**d) for d in doc["datasets"]), tuple(doc["notes"]),
+                   tuple(ImplicitCheck.from_dict(c) for c in doc.get("implicit", [])))
+
+
+def _sha256(path: Path) -> str | None:
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
+def read_result_document(result: str | Path | Mapping[str, Any]) -> tuple[Mapping[str, Any],
+                                                                          str]:
+    """A result file's document (or the given dict) and how to name it in messages.
+
+    Raises
+    ------
+    SymcalError
+        A missing or unreadable file, invalid JSON, not a symcal result, another version.
+    """
+    if isinstance(result, Mapping):
+        doc: Any = result
+        label = "the result"
+    else:
+        label = f"result file {result}"
+        try:
+            text = Path(result).read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise SymcalError(f"{label} not found") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            reason = getattr(exc, "strerror", None) or exc.__class__.__name__
+            raise SymcalError(f"{label} cannot be read: {reason}") from None
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise SymcalError(f"{label} is not valid JSON: {exc.msg} at line {exc.lineno}, "
+                              f"column {exc.colno}") from None
+    if not isinstance(doc, Mapping) or "symcal_result" not in doc:
+        raise SymcalError(f"{label} is not a symcal result (no 'symcal_result' key); "
+                          "write one with 'symcal solve PROBLEM --out DIR'")
+    if doc["symcal_result"] != FORMAT:
+        raise SymcalError(f"{label} has format version {doc['symcal_result']!r}; this symcal "
+                          f"reads version {FORMAT}")
+    return doc, label
+
+
+def check_result_problem(doc: Mapping[str, Any], label: str, problem: Problem) -> None:
+    """Refuse a result document for another problem, or from changed problem/model files."""
+    if doc.get("problem") != problem.name:
+        raise SymcalError(f"{label} is for problem '{doc.get('problem')}', not "
+                          f"'{problem.name}'")
+    stored = doc.get("files")
+    if isinstance(stored, Mapping):
+        home = Path(problem.path).resolve().parent
+        current = file_hashes(problem)
+        for file, digest in current.items():
+            if file in stored and stored[file] != digest:
+                raise SymcalError(f"{label} was computed from another version of "
+                                  f"{display_path(home / file)} (it changed since the "
+                                  "solve); solve again")
+        missing = [f for f in current if f not in stored]
+        if missing:
+            raise SymcalError(f"{label} was not computed with "
+                              f"{display_path(home / missing[0])}; solve again")
+
+
+def _value_of(doc: Mapping[str, Any], label: str, name: str, key: str = "value") -> float:
+    for entry in doc.get("parameters", []):
+        if isinstance(entry, Mapping) and entry.get("name") == name:
+            return float(entry[key])
+    raise SymcalError(f"{label} has no value for parameter '{name}'")

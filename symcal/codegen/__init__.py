@@ -1,0 +1,1 @@
+"""Code generation: the calibrated model as C."""

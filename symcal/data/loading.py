@@ -1,0 +1,88 @@
+"""The one home of dataset loading: a problem's datasets from files, objects or simulation.
+
+Every command reads data through :func:`load_datasets`, so an unknown dataset name, a
+missing file or a missing column is answered the same way everywhere.  Simulated datasets
+(``simulate:`` in a problem's ``datasets``) come from the courier simulator, the one
+dataset source that is not a file.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+from symcal.base.didyoumean import did_you_mean
+from symcal.base.errors import DataError
+from symcal.data.dataset import Dataset, make_dataset, read_table
+from symcal.language.problem_file import DatasetSpec
+from symcal.language.yamlio import display_path
+from symcal.problem.compiler import Problem
+
+
+def needed_columns(problem: Problem) -> list[str]:
+    """Columns every dataset must have: those the constraints read."""
+    needed: list[str] = []
+    for c in problem.constraints:
+        needed += [col for col in problem.columns_of(c.sx) if col not in needed]
+    return needed
+
+
+def load_dataset(
+    spec: DatasetSpec, needed: Iterable[str], path: str | Path | None = None,
+    drop_invalid: bool = False,
+) -> Dataset:
+    """Load the dataset ``spec`` describes, or the file ``path`` that replaces it."""
+    if path is not None:
+        return make_dataset(spec.name, display_path(Path(path)), read_table(path), needed,
+                            drop_invalid, copy=False)
+    if spec.path is not None:
+        return make_dataset(spec.name, spec.source, read_table(spec.path), needed, drop_invalid,
+                            copy=False)
+    from symcal.simulate import load_scenario, simulate_run
+
+    assert spec.scenario is not None and spec.run is not None
+    columns = simulate_run(load_scenario(spec.scenario), spec.run, seed=spec.seed, n=spec.n)
+    return make_dataset(spec.name, spec.source, columns, needed, drop_invalid)
+
+
+def load_datasets(
+    problem: Problem,
+    given: Mapping[str, Dataset | str | Path] | None = None,
+    drop_invalid: bool = False,
+    names: Iterable[str] | None = None,
+) -> dict[str, Dataset]:
+    """Every dataset of ``problem`` (or those in ``names``), ``given`` ones replacing it.
+
+    Parameters
+    ----------
+    problem
+        The problem whose ``datasets`` section says where data comes from.
+    given
+        Dataset name → :class:`~symcal.data.dataset.Dataset` or CSV/NPZ path
+        (``--data NAME=PATH``).
+    drop_invalid
+        Drop rows with NaN/inf in a needed column instead of refusing the data.
+    names
+        Load only these datasets (default: all of the problem's).
+
+    Raises
+    ------
+    DataError
+        Unknown dataset name, missing file or column, malformed cells, invalid rows.
+    """
+    given = dict(given or {})
+    for name in given:
+        if name not in problem.datasets:
+            raise DataError(f"--data {name}=...: the problem has no dataset '{name}'"
+                            f"{did_you_mean(name, problem.datasets)}; it has: "
+                            f"{', '.join(problem.datasets)}")
+    needed = needed_columns(problem)
+    wanted = list(problem.datasets) if names is None else list(names)
+    out: dict[str, Dataset] = {}
+    for name in wanted:
+        item = given.get(name)
+        if isinstance(item, Dataset):
+            out[name] = item
+        else:
+            out[name] = load_dataset(problem.datasets[name], needed, item, drop_invalid)
+    return out

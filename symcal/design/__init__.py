@@ -1,0 +1,1 @@
+"""Experiment design: predicted uncertainty of a motion and an optimised motion."""

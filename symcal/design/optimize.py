@@ -1,0 +1,568 @@
+"""Which motion next: optimise a calibration run's motion within the courier's limits.
+
+A scenario's ``design`` section names a scatter run and the motion parameters that may
+change, with their limits (``x``, ``y``, ``theta_deg``, ``dwell``, ``n``).
+:func:`design` chooses them with IPOPT on exact sensitivities: the Fisher information of
+the motion is a CasADi graph from the motion's parameters through the courier's pose
+(:mod:`symcal.simulate.motion`) and the problem's symbolic Jacobian, so its derivatives by
+the motion are exact.  The expectation over a scatter's random poses is a fixed sample of
+``SAMPLES`` uniform draws (common random numbers), with the poses that dwell at the ends
+of the angle range as a second and third set.  Two goals:
+
+- a criterion on the covariance of the identifiable parameters, measured in their scales:
+  ``D`` (log det), ``A`` (trace) or ``E`` (largest eigenvalue, through a smooth
+  ``trace(C^16)^(1/16)``), with the most observations the limits allow;
+- standard-error targets (``l_x=5um``) with the fewest observations: the motion that
+  minimises ``max_j n_j``, ``n_j`` the observations target ``j`` needs; when even the
+  limit on ``n`` does not suffice, the best reachable errors and the limits that bind.
+
+Every design is then predicted exactly by :func:`symcal.design.predict.predict` (the simulator's
+readings, noise and misfit, the solve's weighting), which is what is reported; ``n`` is
+raised to meet the targets on that prediction when the limits allow.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from symcal.base.didyoumean import did_you_mean
+from symcal.base.errors import SymcalError
+from symcal.base.linalg import sqrt_psd, whitening
+from symcal.base.units import internal_unit, size
+from symcal.design.predict import Prediction, last_stage, operating_point, predict
+from symcal.problem.compiler import Problem
+from symcal.simulate import Scenario
+from symcal.simulate.motion import ideal_columns
+from symcal.simulate.scenario import DESIGN_KEYS, DesignSpace, Run, Scatter
+from symcal.solvers.objective import Objective
+
+#: The design criteria (``--criterion``).
+CRITERIA: tuple[str, ...] = ("D", "A", "E")
+#: Uniform draws standing for a scatter's expectation in the optimiser.
+SAMPLES = 256
+#: Power of the smooth largest-eigenvalue criterion ``E``.
+E_POWER = 16
+_DEG = math.pi / 180.0
+
+#: A limit binds when the design ends within this fraction of its range from it (and
+#: its multiplier is not zero).
+BOUND_TOL = 1e-3
+
+
+@dataclass(frozen=True)
+class Target:
+    """A standard-error target: ``name``'s SE at most ``value`` (in the parameter's unit)."""
+
+    name: str
+    value: float
+    text: str
+
+
+@dataclass(frozen=True, eq=False)
+class Design:
+    """An optimised motion and the predictions before and after.
+
+    Attributes
+    ----------
+    baseline
+        The prediction for the scenario as given.
+    designed
+        The prediction for the optimised motion (None when nothing was optimised).
+    scenario
+        The optimised scenario (the given one when nothing was optimised).
+    criterion
+        ``D``, ``A`` or ``E``; None with targets.
+    targets
+        The standard-error targets.
+    before, after
+        The run's motion parameters (``x``, ``y``, ``theta_deg`` as ``(lo, hi)``,
+        ``dwell``, ``n``) as given and as designed.
+    binding
+        The limits that bind at the optimum (``theta_deg <= 1.5``); with targets that
+        cannot be met, the limits that stop them.
+    met
+        Whether each target is met by the designed motion's prediction.
+    message
+        What the optimiser reported.
+    """
+
+    baseline: Prediction
+    designed: Prediction | None
+    scenario: Scenario
+    criterion: str | None
+    targets: tuple[Target, ...]
+    before: dict[str, object]
+    after: dict[str, object]
+    binding: tuple[str, ...]
+    met: dict[str, bool]
+    message: str
+
+    @property
+    def final(self) -> Prediction:
+        """The prediction of the design (the baseline when nothing was optimised)."""
+        return self.designed if self.designed is not None else self.baseline
+
+    @property
+    def needed_n(self) -> int | None:
+        """With targets, the observations the designed motion would need to meet them
+        all (the prediction scaled as 1/n); None without targets."""
+        if not self.targets:
+            return None
+        se = self.final.se
+        worst = max(float(se[t.name]) / t.value for t in self.targets)  # type: ignore[arg-type]
+        return math.ceil(self.final.n * worst**2)
+
+    def poses(self, designed: bool, seed: int = 0) -> dict[str, np.ndarray]:
+        """The true poses of the run (given or designed motion): ``x``, ``y`` (mm, as the
+        motion states them) and ``theta_deg``."""
+        from symcal.simulate.courier import run_poses, stream
+
+        scenario = self.scenario if designed else self.baseline.scenario
+        index = scenario.run_index(self.baseline.run)
+        run = scenario.runs[index]
+        motion = motion_of(scenario, run.name)
+        flat = dataclasses.replace(motion, rotate_about="platen")
+        poses = run_poses(scenario, dataclasses.replace(run, motion=flat),
+                          stream(seed, index, "pose"), None, stream(seed, index, "dwell"))
+        return {"x": poses.x, "y": poses.y, "theta_deg": poses.theta / _DEG}
+
+    def scenario_yaml(self, base: str | Path, out_dir: str | Path) -> str:
+        """The designed scenario as a file that ``extends`` ``base`` (the given scenario
+        file), for ``out_dir``: it replaces only the designed run's motion."""
+        import yaml
+
+        space = self.baseline.scenario.design
+        run = self.baseline.run if space is None else space.run
+        rel = os.path.relpath(Path(base).resolve(), Path(out_dir).resolve())
+        after = self.after
+        scatter: dict[str, object] = {"n": int(after["n"])}  # type: ignore[call-overload]
+        for key in ("x", "y", "theta_deg"):
+            ends: Any = after[key]
+            scatter[key] = [_round(float(ends[0])), _round(float(ends[1]))]
+        scatter["dwell"] = _round(float(after["dwell"]))  # type: ignore[arg-type]
+        goal = (f"criterion {self.criterion}" if self.criterion else
+                "targets " + ", ".join(t.text for t in self.targets))
+        doc = {
+            "scenario": f"{self.baseline.scenario.name}_designed",
+            "extends": rel,
+            "doc": f"run '{run}' of {self.baseline.scenario.name} designed by symcal design "
+                   f"({goal}); everything else as in {Path(base).name}",
+            "runs": {run: {"scatter": scatter}},
+        }
+        return yaml.safe_dump(doc, sort_keys=False)
+
+
+def _round(value: float) -> float:
+    return float(f"{value:.10g}")
+
+
+# --------------------------------------------------------------------------- targets
+
+
+_TARGET = re.compile(r"^\s*([A-Za-z_][\w.]*)\s*=\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)"
+                     r"\s*(.*?)\s*$")
+
+
+def parse_target(text: str, problem: Problem) -> Target:
+    """A ``NAME=VALUE[unit]`` target (``l_x=5um``), converted to the parameter's unit.
+
+    Raises
+    ------
+    SymcalError
+        For text of another form, an unknown parameter (did-you-mean), one not free in
+        the last stage, a unit of another kind than the parameter's, or a value that is
+        not positive.
+    """
+    match = _TARGET.match(text)
+    if match is None:
+        raise SymcalError(f"--target {text}: expected NAME=VALUE with an optional unit, "
+                          "e.g. l_x=5um")
+    name, number, unit = match.group(1), float(match.group(2)), match.group(3)
+    if name not in problem.index:
+        raise SymcalError(f"--target {text}: the problem has no parameter '{name}'"
+                          f"{did_you_mean(name, problem.parameter_names)}")
+    stage, free = last_stage(problem)
+    param = problem.parameters[problem.index[name]]
+    if not free[problem.index[name]]:
+        raise SymcalError(f"--target {text}: '{name}' is not free in the last stage "
+                          f"'{stage.name}', so the calibration reports no standard error "
+                          "for it")
+    if number <= 0:
+        raise SymcalError(f"--target {text}: a standard error must be positive")
+    if unit and internal_unit(unit) != internal_unit(param.unit):
+        raise SymcalError(f"--target {text}: '{unit}' is not a unit of {name}, which is in "
+                          f"'{param.unit or '1'}'")
+    value = number * size(unit or param.unit) / size(param.unit)
+    return Target(name, value, text.strip())
+
+
+# --------------------------------------------------------------------------- motions
+
+
+def motion_of(scenario: Scenario, run: str) -> Scatter:
+    """The scatter motion of ``run`` (a line cannot be designed)."""
+    motion = scenario.runs[scenario.run_index(run)].motion
+    if not isinstance(motion, Scatter):
+        raise SymcalError(f"design: run '{run}' of scenario '{scenario.name}' is a line; only "
+                          "a scatter run can be designed")
+    return motion
+
+
+def motion_values(motion: Scatter) -> dict[str, object]:
+    """A scatter's motion parameters in the units of a design's limits."""
+    return {"x": tuple(motion.x), "y": tuple(motion.y),
+            "theta_deg": (motion.theta[0] / _DEG, motion.theta[1] / _DEG),
+            "dwell": motion.dwell, "n": motion.n}
+
+
+def with_motion(scenario: Scenario, run: str, values: dict[str, object]) -> Scenario:
+    """``scenario`` with ``run``'s scatter set to ``values`` (see :func:`motion_values`)."""
+    index = scenario.run_index(run)
+    old = scenario.runs[index]
+    motion = motion_of(scenario, run)
+    th = values["theta_deg"]
+    new = dataclasses.replace(
+        motion, x=tuple(values["x"]), y=tuple(values["y"]),  # type: ignore[arg-type]
+        theta=(th[0] * _DEG, th[1] * _DEG),  # type: ignore[index]
+        dwell=float(values["dwell"]), n=int(values["n"]))  # type: ignore[arg-type,call-overload]
+    runs = list(scenario.runs)
+    runs[index] = Run(old.name, new, old.dt, old.t0, old.doc)
+    return dataclasses.replace(scenario, runs=tuple(runs))
+
+
+# --------------------------------------------------------------------------- the optimiser
+
+
+@dataclass(frozen=True)
+class _Var:
+    """One scalar of the design: a key of the motion (and which end of a range)."""
+
+    key: str
+    end: int | None
+    lower: float
+    upper: float
+    start: float
+
+    @property
+    def label(self) -> str:
+        return self.key if self.end is None else f"{self.key}[{self.end}]"
+
+    def bound_text(self, at_upper: bool) -> str:
+        return f"{self.key} {'<=' if at_upper else '>='} {self.upper if at_upper else self.lower:g}"
+
+
+def _variables(space: DesignSpace, start: dict[str, object]) -> list[_Var]:
+    out: list[_Var] = []
+    for key, (lo, hi) in space.limits:
+        if key == "n":
+            continue
+        value = start[key]
+        if key == "dwell":
+            out.append(_Var(key, None, lo, hi, float(value)))  # type: ignore[arg-type]
+        else:
+            out.append(_Var(key, 0, lo, hi, float(value[0])))  # type: ignore[index]
+            out.append(_Var(key, 1, lo, hi, float(value[1])))  # type: ignore[index]
+    return out
+
+
+def _identifiable_basis(prediction: Prediction, names: tuple[str, ...],
+                        scales: np.ndarray) -> np.ndarray:
+    """Orthonormal columns spanning the identifiable directions, in scaled coordinates."""
+    null = [np.array([c.coefficients.get(n, 0.0) for n in names]) / scales
+            for c in prediction.identifiability.null_space]
+    if not null:
+        return np.eye(len(names))
+    q, _ = np.linalg.qr(np.array(null).T, mode="complete")
+    return q[:, len(null):]
+
+
+class _Model:
+    """The per-observation Fisher information of a scatter as a CasADi graph of its
+    motion parameters."""
+
+    def __init__(self, problem: Problem, scenario: Scenario, run: str,
+                 prediction: Prediction) -> None:
+        stage, free = last_stage(problem)
+        theta = operating_point(problem, scenario)
+        cov = prediction.covariance
+        ng = cov.shape[0]
+        estimated = problem.weighting == "estimated" and ng > 1
+        transform = whitening(cov)[0] if estimated else np.eye(ng)
+        objective = Objective(problem, stage.constraints, free, transform)
+        self.names = objective.names
+        self.scales = objective.scales
+        self.basis = _identifiable_basis(prediction, self.names, self.scales)
+        seen = transform @ cov @ transform.T
+        self.single = ng == 1
+        self.variance = float(seen[0, 0]) if self.single else 1.0
+        self.meat_root = None if (estimated or self.single) else sqrt_psd(seen).T
+        motion = motion_of(scenario, run)
+        index = scenario.run_index(run)
+        run_spec = scenario.runs[index]
+        pose = ca.SX.sym("pose", 3)
+        t_mid = run_spec.t0 + run_spec.dt * (motion.n - 1) / 2.0
+        cols = ideal_columns(scenario, motion, pose[0], pose[1], pose[2], t_mid)
+        missing = [c for c in problem.columns if c not in cols]
+        u = ca.vertcat(*(cols.get(c, 0.0) for c in problem.columns))
+        if any(c in missing for c in problem.columns_of(objective.g)):
+            raise SymcalError(f"design: the problem reads column(s) {', '.join(missing)} "
+                              f"that scenario '{scenario.name}' does not simulate")
+        jac = ca.substitute(objective.jac, ca.vertcat(problem.theta, problem.u),
+                            ca.vertcat(ca.DM(theta), u))
+        b = ca.mtimes(ca.mtimes(jac, ca.DM(np.diag(self.scales))), ca.DM(self.basis))
+        outs = [ca.vec(b.T)]
+        if self.meat_root is not None:
+            outs.append(ca.vec(ca.mtimes(ca.DM(self.meat_root), b).T))
+        self.ng, self.rank = ng, self.basis.shape[1]
+        self.per_pose = ca.Function("info", [pose], outs).map(SAMPLES, "serial")
+        rng = np.random.default_rng(20240517)
+        self.draws = rng.uniform(size=(3, SAMPLES))
+
+    def _gram(self, poses: Any) -> tuple[Any, Any]:
+        outs: Any = self.per_pose(poses)
+        outs = outs if isinstance(outs, (list, tuple)) else [outs]
+        mats = [ca.reshape(o, self.rank, self.ng * SAMPLES) for o in outs]
+        bread = ca.mtimes(mats[0], mats[0].T) / SAMPLES
+        meat = ca.mtimes(mats[1], mats[1].T) / SAMPLES if len(mats) > 1 else None
+        return bread, meat
+
+    def covariance(self, values: dict[str, ca.MX]) -> ca.MX:
+        """Scaled covariance (identifiable coordinates) of ONE observation's worth of
+        information (divide by n)."""
+        u = ca.DM(self.draws)
+        x0, x1 = values["x"]
+        y0, y1 = values["y"]
+        t0, t1 = values["theta_deg"]
+        sx = x0 + (x1 - x0) * u[0, :]
+        sy = y0 + (y1 - y0) * u[1, :]
+        spread = ca.vertcat(sx, sy, (t0 + (t1 - t0) * u[2, :]) * _DEG)
+        low = ca.vertcat(sx, sy, ca.repmat(t0 * _DEG, 1, SAMPLES))
+        high = ca.vertcat(sx, sy, ca.repmat(t1 * _DEG, 1, SAMPLES))
+        w = values["dwell"]
+        parts = [(1 - w, self._gram(spread)), (w / 2, self._gram(low)),
+                 (w / 2, self._gram(high))]
+        bread: Any = sum(share * g[0] for share, g in parts)
+        inverse = ca.solve(bread, ca.DM.eye(self.rank))
+        if self.meat_root is None:
+            return self.variance * inverse
+        meat: Any = sum(share * g[1] for share, g in parts)
+        return ca.mtimes(ca.mtimes(inverse, meat), inverse)
+
+    def se2(self, cov: ca.MX, name: str) -> ca.MX:
+        """Variance of parameter ``name`` (its unit squared) from a scaled covariance."""
+        i = self.names.index(name)
+        z = ca.DM(self.basis[i, :])
+        return self.scales[i] ** 2 * ca.mtimes(ca.mtimes(z.T, cov), z)
+
+
+def _criterion(kind: str, cov: ca.MX, rank: int, reference: float) -> ca.MX:
+    if kind == "D":
+        return ca.log(ca.det(cov))
+    if kind == "A":
+        return ca.trace(cov) / reference
+    power = cov / reference
+    for _ in range(int(math.log2(E_POWER))):
+        power = ca.mtimes(power, power)
+    return ca.trace(power) ** (1.0 / E_POWER)
+
+
+def _optimise(model: _Model, variables: list[_Var], fixed: dict[str, object],
+              criterion: str | None, targets: tuple[Target, ...], n_scale: float
+              ) -> tuple[dict[str, float], list[str], float, str]:
+    """IPOPT over the motion; returns the values, the active bounds, the optimum and
+    IPOPT's status."""
+    d = ca.MX.sym("d", len(variables))
+    values: dict[str, ca.MX] = {}
+    for key in ("x", "y", "theta_deg"):
+        ends = [next((d[i] for i, v in enumerate(variables) if v.key == key and v.end == e),
+                     fixed[key][e]) for e in (0, 1)]  # type: ignore[index]
+        values[key] = tuple(ends)  # type: ignore[assignment]
+    values["dwell"] = next((d[i] for i, v in enumerate(variables) if v.key == "dwell"),
+                           fixed["dwell"])  # type: ignore[assignment]
+    cov = model.covariance(values)
+    g: list[ca.MX] = []
+    glb: list[float] = []
+    for key in ("x", "y", "theta_deg"):
+        lo, hi = values[key]
+        if isinstance(lo, ca.MX) or isinstance(hi, ca.MX):
+            g.append(hi - lo)
+            glb.append(0.0)
+    x = d
+    lbx = [v.lower for v in variables]
+    ubx = [v.upper for v in variables]
+    x0 = [v.start for v in variables]
+    if targets:
+        t = ca.MX.sym("t")
+        x = ca.vertcat(d, t)
+        ratios = [model.se2(cov, tg.name) / tg.value**2 / n_scale for tg in targets]
+        start: Any = ca.Function("r", [d], ratios)(x0)
+        start = start if isinstance(start, (list, tuple)) else [start]
+        g += [r - t for r in ratios]
+        glb += [-ca.inf] * len(ratios)
+        t0 = max(float(s) for s in start)
+        objective = t
+        lbx, ubx = lbx + [0.0], ubx + [ca.inf]
+        x0 = x0 + [t0]
+    else:
+        assert criterion is not None
+        reference = float(ca.Function("c", [d], [ca.trace(cov)])(x0))
+        objective = _criterion(criterion, cov, model.rank, reference)
+    gub = [0.0 if b == -ca.inf else -b if b < 0 else ca.inf for b in glb]
+    glb = [-ca.inf if b < 0 else b for b in glb]
+    xs, lam, best, status = _ipopt(x, objective, g, x0, lbx, ubx, glb, gub)
+    if targets:
+        best = float(xs[-1])
+    active = []
+    for i, v in enumerate(variables):
+        # an interior point stops just inside an active bound (measured: 2e-5 of the
+        # width): a bound is binding when its multiplier is non-zero and the design is
+        # within BOUND_TOL of it; the design is then put on the bound itself
+        width = max(v.upper - v.lower, 1e-12)
+        near_hi = v.upper - xs[i] <= BOUND_TOL * width
+        near_lo = xs[i] - v.lower <= BOUND_TOL * width
+        if (near_hi or near_lo) and abs(lam[i]) > 1e-9:
+            active.append(v.bound_text(near_hi))
+            xs[i] = v.upper if near_hi else v.lower
+    out = {v.label: float(xs[i]) for i, v in enumerate(variables)}
+    return out, active, best, status
+
+
+def _ipopt(x: ca.MX, f: ca.MX, g: list[ca.MX], x0: list[float], lbx: list[float],
+           ubx: list[float], lbg: list[float], ubg: list[float]
+           ) -> tuple[np.ndarray, np.ndarray, float, str]:
+    """One IPOPT solve (limited-memory Hessian): x, bound multipliers, f, status."""
+    nlp = {"x": x, "f": f, "g": ca.vertcat(*g) if g else ca.MX(0, 1)}
+    solver = ca.nlpsol("design", "ipopt", nlp, {
+        "ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
+        "ipopt.max_iter": 200, "ipopt.tol": 1e-9,
+        "ipopt.hessian_approximation": "limited-memory"})
+    sol = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+    status = str(solver.stats().get("return_status", ""))
+    return (np.array(sol["x"]).ravel(), np.array(sol["lam_x"]).ravel(), float(sol["f"]),
+            status)
+
+
+# --------------------------------------------------------------------------- the design
+
+
+def _apply(start: dict[str, object], variables: list[_Var], solution: dict[str, float],
+           n: int) -> dict[str, object]:
+    out = dict(start)
+    for key in ("x", "y", "theta_deg"):
+        ends = list(start[key])  # type: ignore[call-overload]
+        for v in variables:
+            if v.key == key and v.end is not None:
+                ends[v.end] = min(max(solution[v.label], v.lower), v.upper)
+        if ends[0] > ends[1]:
+            ends = [ends[1], ends[0]]
+        out[key] = tuple(ends)
+    for v in variables:
+        if v.key == "dwell":
+            out["dwell"] = min(max(solution[v.label], v.lower), v.upper)
+    out["n"] = n
+    return out
+
+
+def _met(prediction: Prediction, targets: tuple[Target, ...]) -> dict[str, bool]:
+    se = prediction.se
+    return {t.name: se.get(t.name) is not None and float(se[t.name]) <= t.value  # type: ignore[arg-type]
+            for t in targets}
+
+
+def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None,
+           targets: tuple[Target, ...] = (), seed: int = 0) -> Design:
+    """Optimise the motion of the scenario's ``design`` run within its limits.
+
+    Parameters
+    ----------
+    problem
+        The calibration problem (its last stage is what the calibration reports).
+    scenario
+        A scenario with a ``design`` section.
+    criterion
+        ``D``, ``A`` or ``E`` (default ``D`` without targets).
+    targets
+        Standard-error targets (:func:`parse_target`): met with the fewest observations
+        the limits allow, or the best reachable errors with the limits that bind.
+    seed
+        Seed of the poses the predictions are evaluated on.
+
+    Returns
+    -------
+    Design
+        The designed motion, the predictions before and after, the binding limits.
+
+    Raises
+    ------
+    SymcalError
+        Without a ``design`` section, for an unknown criterion, or for a target that the
+        baseline cannot determine on its own.
+    """
+    space = scenario.design
+    if space is None:
+        raise SymcalError(f"scenario '{scenario.name}' ({scenario.source}) has no 'design' "
+                          "section: declare which motion parameters may change and their "
+                          "limits (design: {run: NAME, limits: {KEY: [lo, hi], ...}}, KEY one "
+                          f"of {', '.join(DESIGN_KEYS)})")
+    if targets and criterion is not None:
+        raise SymcalError("--criterion and --target: give one goal, a criterion or targets")
+    criterion = None if targets else (criterion or "D")
+    if criterion is not None and criterion not in CRITERIA:
+        raise SymcalError(f"--criterion {criterion}: expected one of {', '.join(CRITERIA)}"
+                          f"{did_you_mean(criterion, CRITERIA)}")
+    run = space.run
+    baseline = predict(problem, scenario, run, seed)
+    for tg in targets:
+        if baseline.se.get(tg.name) is None:
+            raise SymcalError(f"--target {tg.text}: '{tg.name}' is determined only in a "
+                              "combination with other parameters, on any motion of this "
+                              "problem; target an identifiable parameter")
+    start = motion_values(motion_of(scenario, run))
+    limits = space.bounds
+    n_lo, n_hi = (int(limits["n"][0]), int(limits["n"][1])) if "n" in limits else (
+        int(start["n"]), int(start["n"]))  # type: ignore[call-overload]
+    variables = _variables(space, start)
+    current = baseline
+    values: dict[str, object] = dict(start)
+    active: list[str] = []
+    message = "only n may change: no motion to optimise"
+    designed = baseline
+    for _ in range(2):  # a second round with the design's own noise model, if needed
+        if variables:
+            model = _Model(problem, scenario, run, current)
+            solution, active, best, status = _optimise(model, variables, start, criterion,
+                                                       targets, float(baseline.n))
+            message = f"IPOPT: {status}"
+        else:
+            solution, best = {}, max(((float(baseline.se[t.name]) / t.value) ** 2  # type: ignore[arg-type]
+                                      for t in targets), default=0.0)
+        n = n_hi if not targets else min(max(math.ceil(best * baseline.n * 1.02), n_lo), n_hi)
+        values = _apply(start, variables, solution, n)
+        designed = predict(problem, with_motion(scenario, run, values), run, seed)
+        if targets:
+            worst = max(float(designed.se[t.name]) / t.value for t in targets)  # type: ignore[arg-type]
+            fitted = min(max(math.ceil(n * worst**2 * 1.02), n_lo), n_hi)
+            if fitted != n:  # the exact prediction needs more, or fewer, observations
+                values_n = _apply(start, variables, solution, fitted)
+                again = predict(problem, with_motion(scenario, run, values_n), run, seed)
+                if fitted > n or all(_met(again, targets).values()):
+                    n, values, designed = fitted, values_n, again
+        current = designed
+        if not targets or all(_met(designed, targets).values()):
+            break
+    met = _met(designed, targets)
+    binding = list(active)
+    if "n" in limits and int(values["n"]) == n_hi and (  # type: ignore[call-overload]
+            criterion is not None or not all(met.values())):
+        binding.append(f"n <= {n_hi}")
+    return Design(baseline, designed, with_motion(scenario, run, values), criterion,
+                  targets, start, values, tuple(dict.fromkeys(binding)), met, message)

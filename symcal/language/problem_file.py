@@ -1,0 +1,478 @@
+"""Calibration problem files (``problems/*.yaml``) → validated, frozen :class:`ProblemSpec`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from symcal.base.didyoumean import did_you_mean
+from symcal.base.errors import SpecError, Where, excerpt
+from symcal.base.files import input_refusal
+from symcal.language import expr
+from symcal.language.common import (
+    ConstantSpec,
+    ExprSpec,
+    ParameterSpec,
+    check_unique,
+    display_unit,
+    parse_constant,
+    parse_expr,
+    parse_parameter,
+    section,
+)
+from symcal.language.courier import PRESETS
+from symcal.language.fields import (
+    MAX_SAMPLES,
+    check_keys,
+    child_where,
+    expect_bool,
+    expect_choice,
+    expect_int,
+    expect_list,
+    expect_map,
+    expect_name,
+    expect_number,
+    expect_str,
+    expect_symbol,
+)
+from symcal.language.loss import LossSpec, parse_loss
+from symcal.language.model_file import (
+    ImplicitSpec,
+    ModelSpec,
+    expression_nodes,
+    load_model,
+    parse_implicit,
+)
+from symcal.language.options import METHODS, SolveOptions, parse_solver
+from symcal.language.overlay import extends_chain, load_with_extends, merge_problem
+from symcal.language.yamlio import MAX_BYTES, YMap, display_path
+
+PROBLEM_KEYS = ["doc", "extends", "constants", "parameters", "columns", "expressions",
+                "comparisons", "stages", "weighting", "implicit", "solver"]
+WEIGHTINGS = ("equal", "estimated")
+#: What a column may be declared as (``role:``): the time of an observation, or a raw
+#: position reading along which residuals are plotted.
+ROLES = ("time", "axis")
+
+
+@dataclass(frozen=True)
+class ColumnSpec:
+    """A data column the problem may refer to by name; ``role`` is "", "time" or "axis"."""
+
+    name: str
+    unit: str
+    doc: str
+    where: Where
+    role: str = ""
+
+
+@dataclass(frozen=True)
+class InstanceSpec:
+    """A sensor instance: a model with its inputs bound and parameter overrides."""
+
+    name: str
+    model: ModelSpec
+    bindings: dict[str, ExprSpec]
+    overrides: dict[str, tuple[YMap, Where]]
+    doc: str
+    where: Where
+
+
+@dataclass(frozen=True)
+class QuantitySpec:
+    """A named expression, constraint or comparison side, with display unit and weight;
+    a constraint may carry a robust ``loss``."""
+
+    name: str
+    expr: ExprSpec
+    unit: str
+    sigma: float
+    doc: str
+    where: Where
+    loss: LossSpec | None = None
+    #: True when ``sigma`` is written (in the constraint's unit), False for the default 1
+    #: (one internal unit: the constraint unweighted).
+    sigma_given: bool = False
+
+
+@dataclass(frozen=True)
+class ComparisonSpec:
+    """An estimate compared against an independent reference sensor."""
+
+    name: str
+    estimate: ExprSpec
+    reference: ExprSpec
+    unit: str
+    datasets: tuple[str, ...] | None
+    remove_mean: bool
+    doc: str
+    where: Where
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """Where a named dataset comes from: a CSV/NPZ file or a simulated scenario run."""
+
+    name: str
+    path: Path | None
+    scenario: Path | None
+    run: str | None
+    seed: int
+    n: int | None
+    doc: str
+    where: Where
+
+    @property
+    def source(self) -> str:
+        """Human-readable origin of the data."""
+        if self.path is not None:
+            return display_path(self.path)
+        assert self.scenario is not None  # a dataset has a path or a scenario
+        return f"simulated {display_path(self.scenario)} run '{self.run}' seed {self.seed}"
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One step of a staged calibration: which constraints, which parameters free."""
+
+    name: str
+    constraints: tuple[str, ...]
+    free: tuple[tuple[str, Where], ...]
+    method: str
+    doc: str
+    where: Where
+
+
+@dataclass(frozen=True)
+class SystemSpec:
+    """What is measured: the sensors, their redundancy and the reference comparisons."""
+
+    constants: dict[str, ConstantSpec]
+    parameters: dict[str, ParameterSpec]
+    columns: dict[str, ColumnSpec]
+    instances: dict[str, InstanceSpec]
+    expressions: dict[str, QuantitySpec]
+    constraints: dict[str, QuantitySpec]
+    comparisons: dict[str, ComparisonSpec]
+    implicit: dict[str, ImplicitSpec] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """On what data, in which steps: the datasets, the stages and the weighting."""
+
+    datasets: dict[str, DatasetSpec]
+    stages: tuple[StageSpec, ...]
+    weighting: str
+
+
+@dataclass(frozen=True)
+class ProblemSpec:
+    """A calibration problem as declared in YAML: the system, the study, the solve options."""
+
+    name: str
+    doc: str
+    path: Path
+    system: SystemSpec
+    study: StudySpec
+    options: SolveOptions
+    where: Where
+    sources: tuple[Path, ...] = ()
+
+
+def _doc(entry: YMap, where: Where) -> str:
+    return expect_str(entry["doc"], child_where(entry, where, "doc")) if "doc" in entry else ""
+
+
+def _relative(base: Path, value: Any, where: Where) -> Path:
+    text = expect_str(value, where)
+    return (base.parent / text).resolve()
+
+
+class _ModelCache:
+    def __init__(self) -> None:
+        self.models: dict[Path, ModelSpec] = {}
+
+    def get(self, path: Path, where: Where) -> ModelSpec:
+        if path not in self.models:
+            if not path.exists():
+                raise SpecError(where, f"model file not found: {display_path(path)}")
+            reason = input_refusal(path, MAX_BYTES)
+            if reason is not None:
+                raise SpecError(where, f"cannot read model file {display_path(path)}: it "
+                                       f"{reason}")
+            self.models[path] = load_model(path)
+        return self.models[path]
+
+
+def _parse_instance(
+    name: str, value: Any, where: Where, base: Path, cache: _ModelCache
+) -> InstanceSpec:
+    expect_symbol(name, where, "an instance's name")
+    entry = check_keys(value, where, required=["model", "inputs"],
+                       optional=["parameters", "doc"])
+    model_at = child_where(entry, where, "model")
+    model = cache.get(_relative(base, entry["model"], model_at), model_at)
+    inputs_at = child_where(entry, where, "inputs")
+    inputs = expect_map(entry["inputs"], inputs_at)
+    bindings: dict[str, ExprSpec] = {}
+    for key, text in inputs.items():
+        at = child_where(inputs, inputs_at, key)
+        if key not in model.inputs:
+            raise SpecError(at, _not_in(key, "an input", model.name, list(model.inputs)))
+        bindings[key] = parse_expr(text, at)
+    for key in model.inputs:
+        if key not in bindings:
+            raise SpecError(inputs_at, f"input '{key}' of model '{model.name}' is not bound "
+                                       f"(add '{key}: <column or expression>')")
+    params_at = child_where(entry, where, "parameters")
+    params = expect_map(entry.get("parameters"), params_at)
+    overrides: dict[str, tuple[YMap, Where]] = {}
+    for key, val in params.items():
+        at = child_where(params, params_at, key)
+        if key not in model.parameters:
+            raise SpecError(at, _not_in(key, "a parameter", model.name, list(model.parameters)))
+        overrides[key] = (check_keys(val, at, optional=["value", "lower", "upper", "fixed",
+                                                         "scale"]), at)
+    return InstanceSpec(name, model, bindings, overrides, _doc(entry, where), where)
+
+
+def _not_in(key: str, what: str, model: str, names: list[str]) -> str:
+    return (f"'{key}' is not {what} of model '{model}'{did_you_mean(key, names)}; "
+            f"it has: {', '.join(names) or 'none'}")
+
+
+def _parse_quantity(name: str, value: Any, where: Where, weighted: bool) -> QuantitySpec:
+    expect_symbol(name, where)
+    if not isinstance(value, dict):
+        return QuantitySpec(name, parse_expr(value, where), "", 1.0, "", where)
+    optional = ["unit", "doc"] + (["sigma", "loss"] if weighted else [])
+    entry = check_keys(value, where, required=["expr"], optional=optional)
+    sigma = 1.0
+    if "sigma" in entry:
+        at = child_where(entry, where, "sigma")
+        sigma = expect_number(entry["sigma"], at)
+        if sigma <= 0:
+            raise SpecError(at, f"sigma must be positive, found {entry['sigma']}")
+    unit = display_unit(entry.get("unit"), child_where(entry, where, "unit"))
+    loss = (parse_loss(entry["loss"], child_where(entry, where, "loss"), unit)
+            if "loss" in entry else None)
+    return QuantitySpec(
+        name, parse_expr(entry["expr"], child_where(entry, where, "expr")), unit, sigma,
+        _doc(entry, where), where, loss, "sigma" in entry,
+    )
+
+
+def _parse_comparison(name: str, value: Any, where: Where) -> ComparisonSpec:
+    expect_name(name, where)
+    entry = check_keys(value, where, required=["estimate", "reference"],
+                       optional=["unit", "datasets", "remove_mean", "doc"])
+    datasets = None
+    if "datasets" in entry:
+        at = child_where(entry, where, "datasets")
+        items = expect_list(entry["datasets"], at)
+        datasets = tuple(expect_name(v, child_where(items, at, i), "a dataset name")
+                         for i, v in enumerate(items))
+    remove_mean = True
+    if "remove_mean" in entry:
+        remove_mean = expect_bool(entry["remove_mean"], child_where(entry, where, "remove_mean"))
+    return ComparisonSpec(
+        name,
+        parse_expr(entry["estimate"], child_where(entry, where, "estimate")),
+        parse_expr(entry["reference"], child_where(entry, where, "reference")),
+        display_unit(entry.get("unit"), child_where(entry, where, "unit")),
+        datasets, remove_mean, _doc(entry, where), where,
+    )
+
+
+def _parse_dataset(name: str, value: Any, where: Where, base: Path) -> DatasetSpec:
+    expect_name(name, where, "a dataset's name")
+    entry = check_keys(value, where, optional=["path", "simulate", "run", "seed", "n", "doc"])
+    has_path, has_sim = "path" in entry, "simulate" in entry
+    if has_path == has_sim:
+        raise SpecError(where, "a dataset needs exactly one of 'path' (a CSV or NPZ file) "
+                               "or 'simulate' (a scenario file)")
+    if has_path:
+        for key in ("run", "seed", "n"):
+            if key in entry:
+                raise SpecError(child_where(entry, where, key),
+                                f"'{key}' only applies to simulated datasets")
+        path = _relative(base, entry["path"], child_where(entry, where, "path"))
+        return DatasetSpec(name, path, None, None, 0, None, _doc(entry, where), where)
+    scenario = _relative(base, entry["simulate"], child_where(entry, where, "simulate"))
+    run = (expect_name(entry["run"], child_where(entry, where, "run"), "a run name")
+           if "run" in entry else name)
+    seed = (expect_int(entry["seed"], child_where(entry, where, "seed"), 0)
+            if "seed" in entry else 0)
+    n = (expect_int(entry["n"], child_where(entry, where, "n"), 1, MAX_SAMPLES)
+         if "n" in entry else None)
+    return DatasetSpec(name, None, scenario, run, seed, n, _doc(entry, where), where)
+
+
+def _parse_stage(index: int, value: Any, where: Where, constraints: dict) -> StageSpec:
+    entry = check_keys(value, where, required=["name", "constraints", "free"],
+                       optional=["method", "doc"])
+    name = expect_name(entry["name"], child_where(entry, where, "name"), "a stage's name")
+    at = child_where(entry, where, "constraints")
+    items = expect_list(entry["constraints"], at)
+    if not items:
+        raise SpecError(at, "a stage needs at least one constraint")
+    names = []
+    for i, item in enumerate(items):
+        item_at = child_where(items, at, i)
+        if item not in constraints:
+            raise SpecError(item_at, f"unknown constraint '{excerpt(item)}'"
+                                     f"{did_you_mean(str(item), constraints)}; "
+                                     f"constraints: {', '.join(constraints)}")
+        names.append(item)
+    at = child_where(entry, where, "free")
+    items = expect_list(entry["free"], at)
+    if not items:
+        raise SpecError(at, "a stage needs at least one free parameter (a name or a pattern)")
+    free = tuple((expect_str(v, child_where(items, at, i)), child_where(items, at, i))
+                 for i, v in enumerate(items))
+    method = "auto"
+    if "method" in entry:
+        method = expect_choice(entry["method"], child_where(entry, where, "method"), METHODS,
+                               "method")
+    return StageSpec(name, tuple(names), free, method, _doc(entry, where), where)
+
+
+def _parse_stages(doc: YMap, where: Where, constraints: dict) -> tuple[StageSpec, ...]:
+    if "stages" not in doc:
+        return ()
+    at = child_where(doc, where, "stages")
+    items = expect_list(doc["stages"], at)
+    stages = tuple(_parse_stage(i, v, child_where(items, at, i), constraints)
+                   for i, v in enumerate(items))
+    seen: set[str] = set()
+    for stage in stages:
+        if stage.name in seen:
+            raise SpecError(stage.where, f"stage '{stage.name}' is defined twice")
+        seen.add(stage.name)
+    return stages
+
+
+def _parse_column(name: str, value: Any, where: Where) -> ColumnSpec:
+    expect_symbol(name, where, "a column's name")
+    entry = check_keys(value, where, optional=["unit", "doc", "role"])
+    role = (expect_choice(entry["role"], child_where(entry, where, "role"), ROLES, "role")
+            if "role" in entry else "")
+    return ColumnSpec(name, display_unit(entry.get("unit"), child_where(entry, where, "unit")),
+                      _doc(entry, where), where, role)
+
+
+def _parse_columns(doc: YMap, where: Where) -> dict[str, ColumnSpec]:
+    """``columns:`` as a mapping of columns, or the name of a preset (``courier``)."""
+    at = child_where(doc, where, "columns")
+    value = doc.get("columns")
+    if isinstance(value, str):
+        if value not in PRESETS:
+            raise SpecError(at, f"unknown column preset '{excerpt(value)}'"
+                                f"{did_you_mean(value, PRESETS)}; presets: "
+                                f"{', '.join(PRESETS)} (or a mapping of columns)")
+        return {k: ColumnSpec(k, unit, text, at, role)
+                for k, (unit, role, text) in PRESETS[value].items()}
+    mapping = expect_map(value, at)
+    return {k: _parse_column(k, v, child_where(mapping, at, k)) for k, v in mapping.items()}
+
+
+#: Most expression nodes a problem may expand to: every expression of every instance's
+#: model, every binding and the problem's own expressions, each use of a YAML alias counted.
+MAX_EXPRESSION_NODES = 100_000
+
+
+def _check_size(name: str, where: Where, instances: dict[str, InstanceSpec],
+                groups: list[list[ExprSpec]]) -> None:
+    """Refuse a problem whose expressions, expanded, are too large to build in bounded time."""
+    nodes = [n for inst in instances.values() for n in expression_nodes(inst.model)]
+    nodes += [b.node for inst in instances.values() for b in inst.bindings.values()]
+    nodes += [spec.node for group in groups for spec in group]
+    total = expr.total_size(nodes)
+    if total > MAX_EXPRESSION_NODES:
+        raise SpecError(where, f"the expressions of problem '{name}' expand to {total} nodes, "
+                               f"more than the limit of {MAX_EXPRESSION_NODES} (a model counts "
+                               "once per instance, an alias once per use)")
+
+
+def load_problem_spec(path: str | Path) -> ProblemSpec:
+    """Load and validate a problem file and the model files it names.
+
+    Parameters
+    ----------
+    path
+        The problem's YAML file; relative paths inside it are relative to it.
+
+    Returns
+    -------
+    ProblemSpec
+
+    Raises
+    ------
+    SpecError
+        Naming file, line and key path for any problem in the files.
+    """
+    path = Path(path).resolve() if Path(path).exists() else Path(path)
+    doc, where = load_with_extends(path, "problem", merge_problem)
+    check_keys(doc, where, required=["problem", "constraints", "datasets"],
+               optional=["instances", *PROBLEM_KEYS])
+    name = expect_name(doc["problem"], child_where(doc, where, "problem"), "the problem's name")
+    cache = _ModelCache()
+
+    def entries(key: str, parse: Any) -> dict[str, Any]:
+        mapping, at = section(doc, where, key)
+        return {k: parse(k, v, child_where(mapping, at, k)) for k, v in mapping.items()}
+
+    constants = entries("constants", parse_constant)
+    parameters = entries("parameters", parse_parameter)
+    columns = _parse_columns(doc, where)
+    instances = entries("instances", lambda k, v, at: _parse_instance(k, v, at, path, cache))
+    expressions = entries("expressions", lambda k, v, at: _parse_quantity(k, v, at, False))
+    constraints = entries("constraints", lambda k, v, at: _parse_quantity(k, v, at, True))
+    datasets = entries("datasets", lambda k, v, at: _parse_dataset(k, v, at, path))
+    comparisons = entries("comparisons", _parse_comparison)
+    for key, at in (("constraints", constraints), ("datasets", datasets)):
+        if not at:
+            raise SpecError(child_where(doc, where, key), f"'{key}' must not be empty")
+    if "calibration" not in datasets:
+        raise SpecError(child_where(doc, where, "datasets"),
+                        "a problem needs a dataset named 'calibration' (the data it is solved on)")
+    for comp in comparisons.values():
+        for ds in comp.datasets or ():
+            if ds not in datasets:
+                raise SpecError(comp.where.child("datasets"),
+                                f"unknown dataset '{ds}'{did_you_mean(ds, datasets)}")
+    check_unique({
+        sect: [(k, v.where) for k, v in group.items()]
+        for sect, group in (("columns", columns), ("constants", constants),
+                            ("parameters", parameters), ("instances", instances),
+                            ("expressions", expressions), ("constraints", constraints))
+    })
+    _check_size(name, where, instances, [
+        [q.expr for q in expressions.values()], [q.expr for q in constraints.values()],
+        [c.estimate for c in comparisons.values()], [c.reference for c in comparisons.values()],
+    ])
+    stages = _parse_stages(doc, where, constraints)
+    weighting = "equal"
+    if "weighting" in doc:
+        weighting = expect_choice(doc["weighting"], child_where(doc, where, "weighting"),
+                                  WEIGHTINGS, "weighting")
+    robust = next((q for q in constraints.values() if q.loss is not None), None)
+    if weighting == "estimated" and robust is not None and robust.loss is not None:
+        raise SpecError(robust.loss.where, f"constraint '{robust.name}' declares a robust "
+                                           "loss, which 'weighting: estimated' does not "
+                                           "support: remove one of them")
+    implicit = entries("implicit", parse_implicit)
+    for key, item in implicit.items():
+        if key not in expressions:
+            raise SpecError(item.where, f"'{key}' is not an expression of the problem"
+                                        f"{did_you_mean(key, expressions)}; only problem "
+                                        "expressions can be declared implicit here")
+    options = (parse_solver(doc["solver"], child_where(doc, where, "solver"))
+               if "solver" in doc else SolveOptions())
+    system = SystemSpec(constants, parameters, columns, instances, expressions, constraints,
+                        comparisons, implicit)
+    return ProblemSpec(name, _doc(doc, where), path, system,
+                       StudySpec(datasets, stages, weighting), options, where,
+                       extends_chain(path, "problem"))

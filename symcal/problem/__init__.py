@@ -1,0 +1,1 @@
+"""The problem compiler: a problem spec into a symbolic Problem (CasADi SX) and its views."""

@@ -1,0 +1,1 @@
+"""Presenters: text and JSON reports, figures, HTML, the fleet summary."""

@@ -1,0 +1,814 @@
+"""Text and JSON reports of a :class:`~symcal.calibrate.result.Result` and of a diagnosis.
+
+Human-facing text writes units as symbols (µm, µrad; :func:`symcal.base.units.symbol`); the
+JSON documents keep the declared unit strings.  Each report opens with a verdict a person
+reads at a glance.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from typing import TYPE_CHECKING, Any
+
+import casadi as ca
+import numpy as np
+
+from symcal.analysis.outliers import THRESHOLD, Outliers, remedy_yaml
+from symcal.base.errors import SymcalError
+from symcal.base.files import json_text as plain_json
+from symcal.base.units import DISPLAY_UNITS, symbol
+from symcal.calibrate.result import REGRESSION_TOLERANCE, Regression, Result
+
+if TYPE_CHECKING:
+    from symcal.analysis.fit import SeriesStats
+    from symcal.design.optimize import Design
+    from symcal.revise.diagnose import Diagnosis
+
+#: At most this many regressions are listed in a verdict (all are in the tables).
+VERDICT_REGRESSIONS = 4
+#: A residual's binned structure counts as a finding above this share of its variance.
+STRUCTURE_ETA2 = 0.1
+
+
+def _num(x: float | None, fmt: str = ".6g") -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "—"
+    return format(x, fmt)
+
+
+def _table(rows: list[list[str]], align: str) -> list[str]:
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    out = []
+    for r in rows:
+        cells = [c.rjust(w) if a == "r" else c.ljust(w) for c, w, a in zip(r, widths, align,
+                                                                           strict=True)]
+        out.append("  " + "  ".join(cells).rstrip())
+    return out
+
+
+def noise_floors(result: Result) -> dict[tuple[str, str], float]:
+    """The known noise floor of each residual and comparison, where the data were
+    simulated.
+
+    A dataset simulated from a scenario (a problem's ``simulate:`` dataset, not replaced
+    by other data) has the floors the simulator states
+    (:func:`symcal.simulate.noise_floor`); a residual or comparison ``NAME`` has one when
+    they include ``NAME_std``.  Elsewhere the floor is unknown and absent.
+
+    Parameters
+    ----------
+    result
+        A calibration result.
+
+    Returns
+    -------
+    dict
+        ``(dataset, name)`` → the standard deviation noise alone leaves, internal units.
+    """
+    from symcal.simulate import load_scenario, noise_floor
+
+    names = {s.name for s in result.statistics}
+    by_scenario: dict[str, dict[str, float]] = {}
+    out: dict[tuple[str, str], float] = {}
+    for info in result.datasets:
+        spec = result.problem.datasets.get(info.name)
+        if (spec is None or spec.scenario is None or info.file is not None
+                or info.source != spec.source):
+            continue
+        key = str(spec.scenario)
+        if key not in by_scenario:
+            try:
+                by_scenario[key] = noise_floor(load_scenario(spec.scenario))
+            except (SymcalError, OSError):
+                by_scenario[key] = {}
+        for name in names:
+            floor = by_scenario[key].get(f"{name}_std")
+            if floor is not None and math.isfinite(floor) and floor > 0:
+                out[(info.name, name)] = float(floor)
+    return out
+
+
+def _what(s: Any) -> str:
+    """A residual's name; a comparison's as ``NAME vs reference``."""
+    return s.name if s.kind == "constraint" else f"{s.name} vs reference"
+
+
+def _spread_text(value: float, unit: str) -> str:
+    return f"{value:.4g} {symbol(unit)}"
+
+
+def _regression_text(r: Regression) -> str:
+    """E.g. ``calibration made flyby position_y vs reference worse: std 2.94 → 10.55 µm``."""
+    return (f"calibration made {r.dataset} {_what(r)} worse: {r.measure} {r.before:.4g} → "
+            f"{r.after:.4g} {symbol(r.unit)}")
+
+
+def _fit_lines(result: Result, floors: Mapping[tuple[str, str], float]) -> list[str]:
+    worse = {(r.dataset, r.name) for r in result.regressions}
+    rows = [["dataset", "quantity", "std before", "std after", "mean before", "mean after",
+             "unit", "noise floor", "std/floor", ""]]
+    last = None
+    for s in result.statistics:
+        before, after = s.shown("before"), s.shown("after")
+        tiny = 1e-9 * max(before.std, after.std, 1e-300)
+        means = (["(arbitrary zero)", ""] if s.remove_mean
+                 else [f"{m:.4g}" if abs(m) > tiny else "0" for m in (before.mean, after.mean)])
+        floor = floors.get((s.dataset, s.name))
+        shown = floor / DISPLAY_UNITS[s.unit] if floor is not None else None
+        rows.append([s.dataset if s.dataset != last else "", _what(s), f"{before.std:.4g}",
+                     f"{after.std:.4g}", *means, symbol(s.unit),
+                     "" if shown is None else f"{shown:.4g}",
+                     "" if shown is None else f"{after.std / shown:.3g}",
+                     "WORSE" if (s.dataset, s.name) in worse else ""])
+        last = s.dataset
+    if not floors:       # no floor known anywhere: no empty columns
+        rows = [r[:7] + r[9:] for r in rows]
+        return _table(rows, "llrrrrll")
+    return _table(rows, "llrrrrlrrl")
+
+
+def _worst_against_floor(result: Result, floors: Mapping[tuple[str, str], float]
+                         ) -> tuple[SeriesStats, float, float] | None:
+    """The residual or comparison farthest above its known floor: (stats, std after in
+    the display unit, ratio)."""
+    best: tuple[SeriesStats, float, float] | None = None
+    for s in result.statistics:
+        floor = floors.get((s.dataset, s.name))
+        if floor is None:
+            continue
+        ratio = s.after.std / floor
+        if best is None or ratio > best[2]:
+            best = (s, s.shown("after").std, ratio)
+    return best
+
+
+def _failure_text(result: Result) -> str | None:
+    for st in result.stages:
+        if not st.success:
+            return f"FAILED: stage '{st.name}' ({st.method}): {st.message}"
+    for c in result.implicit:
+        if not c.contracts:
+            return (f"FAILED: implicit definition '{c.name}' does not converge on "
+                    f"'{c.dataset}' (max |dF/dx| {c.contraction:.3g}, not a contraction)")
+    return None
+
+
+def _null_space_text(result: Result) -> str:
+    ident = result.identifiability
+    if not ident.deficiency:
+        return (f"every free parameter is determined by the data (rank {ident.rank} of "
+                f"{ident.n_free})")
+    return (f"{ident.deficiency} parameter direction(s) the data cannot determine (their "
+            "initial values are kept; see Identifiability)")
+
+
+def outlier_text(outliers: Outliers) -> str | None:
+    """The outliers of a fit in one sentence (None when there are none), e.g.
+    ``outliers dominate: 8 of 1000 observations of calibration ... carry 94% of the cost``."""
+    if outliers.count == 0:
+        return None
+    n_obs = outliers.rows // max(len(outliers.units), 1)
+    what = (f"{outliers.observations} of {n_obs} observations of {outliers.dataset} have a "
+            f"residual beyond {THRESHOLD:g} robust standard deviations")
+    if outliers.squared:
+        carry = f"they carry {outliers.share:.0%} of the cost Σ(g/σ)²"
+    else:
+        carry = (f"down-weighted by the robust loss ({outliers.loss}), they carry "
+                 f"{outliers.share:.0%} of the weighted cost's gradient variance")
+    if outliers.dominate:
+        remedy = ("; a robust loss is the remedy (see Outliers)" if outliers.squared else
+                  "; a loss that down-weights them more (cauchy, arctan) or a smaller scale "
+                  "is the remedy")
+        return f"outliers dominate: {what}; {carry}{remedy}"
+    return f"{what}; {carry}"
+
+
+def _outlier_lines(outliers: Outliers) -> list[str]:
+    """The Outliers section of the text report."""
+    spread = ", ".join(f"{name} {std:.4g} {symbol(outliers.units.get(name, ''))}"
+                       for name, std in outliers.robust_std.items())
+    loss = "squared residuals" if outliers.squared else f"robust loss {outliers.loss}"
+    lines = [f"  {loss}; robust standard deviation (1.4826 × MAD) of each residual: {spread}"]
+    sentence = outlier_text(outliers)
+    if sentence is None:
+        lines.append(f"  no residual lies beyond {THRESHOLD:g} robust standard deviations")
+        return lines
+    lines.append(f"  {sentence}")
+    rows = [["dataset", "row", "time", "constraint", "residual", "unit", "× robust std",
+             "weight"]]
+    for o in outliers.listed:
+        rows.append([o.dataset, str(o.row), _num(o.time), o.constraint, f"{o.residual:.4g}",
+                     symbol(o.unit), f"{o.whitened:.3g}", f"{o.weight:.3g}"])
+    lines += _table(rows, "lrrlrlrr")
+    if outliers.count > len(outliers.listed):
+        lines.append(f"  ... {outliers.count - len(outliers.listed)} more (the largest are "
+                     "listed; rows count the dataset's observations from 0)")
+    if outliers.dominate and outliers.squared:
+        lines.append("  To give these constraints a robust loss (Huber, scale about twice the "
+                     "robust standard deviation), add to the problem file:")
+        lines += [f"    {ln}" for ln in remedy_yaml(outliers).splitlines()]
+    return lines
+
+
+def _regression_lines(found: tuple[Regression, ...], indent: str) -> list[str]:
+    lines = [indent + _regression_text(r) for r in found[:VERDICT_REGRESSIONS]]
+    if len(found) > VERDICT_REGRESSIONS:
+        lines.append(f"{indent}... and {len(found) - VERDICT_REGRESSIONS} more (marked WORSE "
+                     "in the fit table)")
+    return lines
+
+
+def verdict_lines(result: Result,
+                  floors: Mapping[tuple[str, str], float] | None = None) -> list[str]:
+    """The verdict at the top of :func:`text_report`, one finding per line.
+
+    Success or failure; the residual farthest above its noise floor, where floors are
+    known (:func:`noise_floors`); every residual or comparison calibration made worse
+    (:attr:`~symcal.calibrate.result.Result.regressions`); how many parameter directions the data
+    cannot determine.
+
+    Parameters
+    ----------
+    result
+        A calibration result.
+    floors
+        Known noise floors (default: :func:`noise_floors` of ``result``).
+
+    Returns
+    -------
+    list of str
+        The lines, without indentation.
+    """
+    floors = noise_floors(result) if floors is None else floors
+    n = len(result.stages)
+    lines = [_failure_text(result)
+             or f"solved: {n} stage{'s' if n > 1 else ''} converged ({result.method})"]
+    sentence = None if result.outliers is None else outlier_text(result.outliers)
+    if sentence is not None:
+        lines.append(sentence)
+    worst = _worst_against_floor(result, floors)
+    if worst is not None:
+        s, after, ratio = worst
+        floor = floors[(s.dataset, s.name)] / DISPLAY_UNITS[s.unit]
+        lines.append(f"worst against its noise floor: {s.dataset} {_what(s)} std "
+                     f"{_spread_text(after, s.unit)} = {ratio:.2f} × the floor "
+                     f"{_spread_text(floor, s.unit)}")
+    else:
+        lines.append("noise floors unknown (the data were not simulated from a scenario)")
+    found = result.regressions
+    if found:
+        lines += _regression_lines(found, "")
+    else:
+        lines.append(f"no residual or comparison is worse after calibration (by more than "
+                     f"{REGRESSION_TOLERANCE:.0%})")
+    lines.append(_null_space_text(result))
+    gauges = _gauges(result)
+    if gauges:
+        kinds = "; ".join(f"{g.kind} of {', '.join(g.parameters)}" for _, g in gauges)
+        lines.append(f"{len(gauges)} gauge(s) found before the solve, which no data can "
+                     f"determine ({kinds}); see Gauges for the fix")
+    return lines
+
+
+def _gauges(result: Result) -> list[tuple[str, Any]]:
+    """Every stage's gauges as ``(stage, gauge)``, each text once."""
+    seen: set[str] = set()
+    out = []
+    for st in result.stages:
+        for g in st.gauges.gauges if st.gauges is not None else ():
+            if g.text not in seen:
+                seen.add(g.text)
+                out.append((st.name, g))
+    return out
+
+
+def _gauge_lines(result: Result) -> list[str]:
+    lines = []
+    for stage, g in _gauges(result):
+        lines.append(f"  {stage}: {g.text}")
+        where = "" if g.kind == "offset" else " at the start"
+        lines += [f"    direction{where}: {c.text}" for c in g.directions]
+    return lines
+
+
+def _names(names: tuple[str, ...], limit: int = 8) -> str:
+    shown = ", ".join(names[:limit])
+    return shown + (f", ... ({len(names)} in all)" if len(names) > limit else "")
+
+
+def _stage_lines(result: Result) -> list[str]:
+    lines: list[str] = []
+    for k, st in enumerate(result.stages, start=1):
+        state = "" if st.success else "  *** FAILED ***"
+        lines.append(f"  {k}. {st.name}: {st.method}{state}" + (f" ({st.doc})" if st.doc else ""))
+        lines.append(f"     {st.message}; status {st.status}; {len(st.free)} free "
+                     f"parameters; {st.iterations} iterations; {st.seconds:.3g} s")
+        lines.append(f"     cost Σ(g/σ)²: {st.cost_before:.6g} → {st.cost_after:.6g}")
+        for c in st.costs:
+            lines.append(f"       {c.name}: RMS {c.rms_before:.4g} → {c.rms_after:.4g} "
+                         f"{symbol(c.unit)}")
+        before, after = st.conditioning_before, st.conditioning_after
+        lines.append(f"     condition number of the cost's Hessian (identifiable part, "
+                     f"parameters in their scales): {before.condition_number:.3g} at the "
+                     f"start, {after.condition_number:.3g} at the end")
+        for combo, rel in after.near_null:
+            lines.append(f"       nearly flat: {combo.text}  (singular value {rel:.2g} of "
+                         "the largest)")
+        if st.identifiability.deficiency:
+            lines.append(f"     {st.identifiability.deficiency} direction(s) not "
+                         "identifiable (listed below for the last stage)")
+        if st.unmoved:
+            lines.append(f"     did not move: {_names(st.unmoved)}")
+        if st.at_bound:
+            lines.append(f"     at a bound: {_names(st.at_bound)}")
+        lines += [f"     note: {n}" for n in st.notes]
+    return lines
+
+
+def _identifiability_lines(result: Result) -> list[str]:
+    ident = result.identifiability
+    lines = [f"  rank {ident.rank} of {ident.n_free} free parameters; condition number of "
+             f"the identifiable part {ident.condition_number:.4g}"]
+    if ident.null_space:
+        lines.append(f"  {ident.deficiency} direction(s) the data cannot determine "
+                     "(each leaves every constraint unchanged; the estimate keeps the initial "
+                     "values along them):")
+        lines += [f"    {c.text}" for c in ident.null_space]
+    if ident.identifiable_combinations:
+        lines.append("  determined only in combination:")
+        units = {p.name: p.unit for p in result.parameters}
+        for c in ident.identifiable_combinations:
+            unit = {units[n] for n in c.coefficients}
+            shown = f" {symbol(unit.pop())}" if len(unit) == 1 else ""
+            lines.append(f"    {c.text} = {_num(c.value)} ± {_num(c.se, '.2g')}{shown}")
+    return lines
+
+
+def _correlation_lines(result: Result, limit: float = 0.99, most: int = 8) -> list[str]:
+    unc = result.uncertainty
+    corr, names = unc.correlation, unc.names
+    pairs = [(abs(corr[i, j]), names[i], names[j], corr[i, j])
+             for i in range(len(names)) for j in range(i + 1, len(names))
+             if np.isfinite(corr[i, j]) and abs(corr[i, j]) > limit]
+    if not pairs:
+        return [f"  no pair of estimates is correlated beyond |ρ| = {limit}"]
+    pairs.sort(reverse=True)
+    lines = [f"  {a} ~ {b}: ρ = {rho:+.4f}" for _, a, b, rho in pairs[:most]]
+    if len(pairs) > most:
+        lines.append(f"  ... {len(pairs) - most} more pairs beyond |ρ| = {limit}")
+    return lines
+
+
+def _parameter_lines(result: Result) -> list[str]:
+    rows = [["parameter", "value", "± se", "initial", "unit", "note"]]
+    for p in result.parameters:
+        note = "fixed" if p.fixed else ""
+        if not p.fixed and p.se is None:
+            note = "only in combination" if "combination" in (p.se_reason or "") else (
+                p.se_reason or "")
+        if p.at_bound:
+            note = (note + "; " if note else "") + f"at {p.at_bound} bound"
+        rows.append([p.name, _num(p.value), _num(p.se, ".2g"), _num(p.initial),
+                     symbol(p.unit) if p.unit else "", note])
+    return _table(rows, "lrrrll")
+
+
+def _implicit_lines(result: Result) -> list[str]:
+    rows = [["definition", "dataset", "steps", "max |dF/dx|", "last step", "error bound",
+             "converged"]]
+    for c in result.implicit:
+        rows.append([c.name, c.dataset, str(c.steps), f"{c.contraction:.3g}",
+                     f"{c.last_step:.2g}", _num(c.remaining, ".2g"),
+                     "yes" if c.contracts else "NO: not a contraction"])
+    return _table(rows, "llrrrrl")
+
+
+def text_report(result: Result) -> str:
+    """The report a person reads: the verdict, then data, solver, identifiability, fit,
+    parameters."""
+    state = "" if result.success else "  *** FAILED ***"
+    floors = noise_floors(result)
+    lines = [f"symcal: {result.name} ({result.problem_path}){state}", "", "Verdict"]
+    lines += [f"  {ln}" for ln in verdict_lines(result, floors)]
+    if _gauges(result):
+        lines += ["", "Gauges (symmetries found before the solve, at the start and at random "
+                  "points: no data can determine them)"]
+        lines += _gauge_lines(result)
+    lines += ["", "Data"]
+    lines += _table([[d.name, f"{d.n} observations", d.source
+                      + (f" ({d.dropped} invalid rows dropped)" if d.dropped else "")]
+                     for d in result.datasets], "lrl")
+    lines += ["", "Stages (each starts from the previous estimate)"]
+    lines += _stage_lines(result)
+    lines += ["", f"Identifiability (last stage, '{result.stages[-1].name}')"]
+    lines += _identifiability_lines(result)
+    lines += ["", "Fit: standard deviation and mean of each residual with the initial "
+              "parameters (before) and the estimate (after)"
+              + ("; the noise floor where the data were simulated" if floors else "")]
+    lines += _fit_lines(result, floors)
+    if result.outliers is not None:
+        lines += ["", f"Outliers (last stage, '{result.stages[-1].name}': residual rows "
+                  f"beyond {THRESHOLD:g} robust standard deviations)"]
+        lines += _outlier_lines(result.outliers)
+    robust = result.outliers is not None and not result.outliers.squared
+    lines += ["", "Parameters (standard errors from the Jacobian at the estimate, "
+              + ("the robust sandwich with the final weights)" if robust else
+                 "scaled by the residual variance)")]
+    lines += _parameter_lines(result)
+    lines += ["", "Strongly correlated estimates"]
+    lines += _correlation_lines(result)
+    if result.implicit:
+        lines += ["", "Implicit definitions (fixed-point steps, checked at the estimate)"]
+        lines += _implicit_lines(result)
+    if result.notes:
+        lines += ["", "Notes"] + [f"  - {n}" for n in result.notes]
+    return "\n".join(lines) + "\n"
+
+
+def json_report(result: Result) -> str:
+    """The machine-readable document (``--json``)."""
+    return plain_json(result.to_dict())
+
+
+#: A residual within this factor of its noise floor is at the floor.
+AT_FLOOR = 1.2
+
+
+def self_referential(result: Result) -> dict[str, frozenset[str]]:
+    """For each residual and comparison, the variables it contains whole.
+
+    A residual binned against such a variable "varies with" it trivially: a comparison
+    ``theta_x`` (estimate minus reference) against the expression ``theta_x`` whose error
+    it is.  These are the residual's own name and, for a comparison, every named
+    expression or sensor signal that is its estimate.
+
+    Parameters
+    ----------
+    result
+        A calibration result.
+
+    Returns
+    -------
+    dict
+        Residual or comparison name → names of the variables to leave out.
+    """
+    problem = result.problem
+    named = [(q.name, q.sx) for q in problem.expressions]
+    named += [(sig.name, sig.sx) for sig in problem.signals]
+    out = {c.name: frozenset({c.name}) for c in problem.constraints}
+    for comp in problem.comparisons:
+        out[comp.name] = frozenset({comp.name} | {n for n, sx in named
+                                                  if ca.is_equal(sx, comp.estimate, 64)})
+    return out
+
+
+def _findings(binned: Iterable[Any], skip: frozenset[str] | set[str]) -> list[Any]:
+    """Binned structure but along variables the residual contains whole (also along their
+    phase)."""
+    def own(variable: str) -> bool:
+        return variable in skip or any(variable.startswith(f"phase of {n} (")
+                                       for n in skip)
+    return [b for b in binned if not own(str(b.variable))]
+
+
+def _floor_note(value: float, floor: float | None, unit: str) -> str:
+    if floor is None:
+        return ""
+    shown = floor / DISPLAY_UNITS[unit]
+    return f" (noise floor {_spread_text(shown, unit)}; {value / shown:.2f} ×)"
+
+
+def outliers_dominate(diag: Diagnosis) -> bool:
+    """Whether outliers dominate the diagnosed fit (then they come before any missing
+    effect)."""
+    return bool(getattr(diag, "outliers_dominate", False))
+
+
+def diagnosis_verdict(diag: Diagnosis) -> list[str]:
+    """The verdict at the top of :func:`diagnosis_report`: where it fails, what to add,
+    what cannot be calibrated.
+
+    Uses only the diagnosis' result (success, its noise floors where known, its
+    regressions and its null space), its significant candidates, and its
+    ``uncalibratable`` candidates (real effects the constraints cannot determine) when it
+    has them.
+
+    Parameters
+    ----------
+    diag
+        A diagnosis.
+
+    Returns
+    -------
+    list of str
+        The lines, without indentation: success or failure first.
+    """
+    result = diag.result
+    floors = noise_floors(result)
+    lines = [verdict_lines(result, floors)[0]]
+    where = []
+    outliers = getattr(diag, "outliers", None)
+    if outliers is not None and outliers_dominate(diag):
+        where.append(outlier_text(outliers) or "")
+    worst = _worst_against_floor(result, floors)
+    if worst is not None:
+        s, after, ratio = worst
+        state = "at" if ratio <= AT_FLOOR else f"{ratio:.2f} ×"
+        where.append(f"{s.dataset} {_what(s)} std {_spread_text(after, s.unit)} is {state} "
+                     "its noise floor" + (" (the worst)" if ratio <= AT_FLOOR else ""))
+    where += [_regression_text(r) for r in result.regressions[:VERDICT_REGRESSIONS]]
+    if len(result.regressions) > VERDICT_REGRESSIONS:
+        where.append(f"{len(result.regressions) - VERDICT_REGRESSIONS} more got worse (below)")
+    if not where:
+        where.append("the residuals carry structure the model lacks (below)"
+                     if diag.significant else
+                     "nowhere these tests can see (noise floors unknown)")
+    lines.append(f"where it fails: {where[0]}")
+    lines += where[1:]
+    significant = diag.significant
+    if outliers is not None and outliers_dominate(diag):
+        lines.append("what to add: a robust loss on the constraints with outliers (YAML "
+                     "below); missing effects are looked for once outliers no longer "
+                     "dominate")
+    elif significant:
+        more = (f" (and {len(significant) - 1} more significant, below)"
+                if len(significant) > 1 else "")
+        lines.append(f"what to add: {significant[0].label}{more}")
+    else:
+        lines.append("what to add: nothing significant (no candidate effect passes the test)")
+    cannot = []
+    uncalibratable = tuple(getattr(diag, "uncalibratable", ()) or ())
+    if uncalibratable:
+        shown = ", ".join(c.label for c in uncalibratable[:3])
+        more = f" and {len(uncalibratable) - 3} more" if len(uncalibratable) > 3 else ""
+        cannot.append(f"{shown}{more} (real, but these constraints cannot determine it)")
+    if result.identifiability.deficiency:
+        cannot.append(f"{result.identifiability.deficiency} parameter direction(s) the data "
+                      "cannot determine")
+    lines.append("what cannot be calibrated: " + ("; ".join(cannot) if cannot else
+                                                  "nothing found"))
+    lines += design_pointer(result)
+    return lines
+
+
+def _shown(path: object) -> str:
+    """A path as a command line would take it: relative to the current folder when it
+    lies below it, else as it is."""
+    import os
+
+    text = str(path)
+    try:
+        rel = os.path.relpath(text)
+    except ValueError:
+        return text
+    return text if rel.startswith("..") else rel
+
+
+def design_pointer(result: Result) -> list[str]:
+    """A verdict line pointing to ``symcal design`` when the last stage leaves a nearly
+    flat direction (a parameter poorly determined by this motion), naming the scenario
+    the calibration data were simulated from when there is one."""
+    if not result.stages:
+        return []
+    near = result.stages[-1].conditioning_after.near_null
+    if not near:
+        return []
+    spec = result.problem.datasets.get("calibration")
+    scenario = getattr(spec, "scenario", None) if spec is not None else None
+    where = f"--scenario {_shown(scenario)}" if scenario else "--scenario SCENARIO.yaml"
+    return [f"poorly determined by this motion: {near[0][0].text} (singular value "
+            f"{near[0][1]:.1g} of the largest); 'symcal design "
+            f"{_shown(result.problem.path)} {where} "
+            "--optimize --target NAME=SE' predicts another motion's standard errors before "
+            "recording it"]
+
+
+def diagnosis_report(diag: Diagnosis) -> str:
+    """What `symcal diagnose` prints: the verdict, where the model fails, what got worse,
+    which effect is missing."""
+    result = diag.result
+    floors = noise_floors(result)
+    skip = self_referential(result)
+    state = "" if result.success else "  *** FAILED ***"
+    lines = [f"symcal diagnose: {result.name} ({result.problem_path}){state}", "", "Verdict"]
+    lines += [f"  {ln}" for ln in diagnosis_verdict(diag)]
+    lines += ["", "Where the model fails (after calibration; std of each residual and its "
+              "noise floor where known, the variables along which it varies most, and its "
+              "dominant period)"]
+    for v in diag.residuals:
+        std = float(np.std(v.after)) / v.scale
+        floor = _floor_note(std, floors.get((v.dataset, v.name)), v.unit)
+        lines.append(f"  {v.dataset} {_what(v)}: std {_spread_text(std, v.unit)}{floor}")
+        for b in _findings(v.binned, skip.get(v.name, frozenset({v.name})))[:2]:
+            lines.append(f"      varies with {b.variable}: η² = {b.eta2:.2f}")
+        if v.periodogram is not None and float(np.max(v.periodogram.power)) > 0.1:
+            lines.append(f"      dominant frequency: {v.periodogram.peak_text} "
+                         f"(power {float(np.max(v.periodogram.power)):.2f})")
+    if result.regressions:
+        lines += ["", f"Worse after calibration (a spread more than {REGRESSION_TOLERANCE:.0%} "
+                  "larger with the estimate than with the initial parameters)"]
+        lines += [f"  {_regression_text(r)} ({r.ratio:.2f} ×)" for r in result.regressions]
+    ranked = list(diag.leads)
+    outliers = getattr(diag, "outliers", None)
+    if outliers is not None and (outliers.count or outliers_dominate(diag)):
+        lines += ["", f"Outliers (checked before missing effects: residual rows beyond "
+                  f"{THRESHOLD:g} robust standard deviations)"]
+        lines += _outlier_lines(outliers)
+    if outliers_dominate(diag):
+        lines += ["", "Which effect is missing: not examined, since outliers dominate the fit "
+                  "(tests for missing effects would follow the outliers); add the robust "
+                  "loss above, solve and diagnose again"]
+        return "\n".join(lines) + "\n"
+    lines += ["", f"Which effect is missing ({diag.tested} candidate terms tested; family-wise "
+              f"level {diag.alpha:g}, Bonferroni; indistinguishable candidates grouped)"]
+    if not diag.significant:
+        lines.append("  no candidate effect is significant: the residuals look like noise to "
+                     "this library of effects")
+    rows = [["rank", "candidate", "removes", "F", "p", "significant"]]
+    for i, c in enumerate(ranked[:10], start=1):
+        group = f" (+{len(c.indistinguishable)} alike)" if c.indistinguishable else ""
+        rows.append([str(i), c.label + group, f"{c.share:.1%}", f"{c.f_stat:.3g}",
+                     f"{c.p_value:.2g}", "yes" if c.significant else "no"])
+    if len(rows) > 1:
+        lines += _table(rows, "rlrrrl")
+    for i, c in enumerate(diag.significant[:3], start=1):
+        lines += ["", f"  {i}. {c.label}", "     " + diag.candidate_text(c)]
+        if diag.yaml.get(c.label):
+            lines += ["     To add it:"] + [f"       {ln}" if ln else ""
+                                            for ln in diag.yaml[c.label].splitlines()]
+    uncalibratable = tuple(getattr(diag, "uncalibratable", ()) or ())
+    if uncalibratable:
+        lines += ["", "Real, but these constraints cannot determine them (a reference or "
+                  "another constraint can):"]
+        for c in uncalibratable:
+            lines += [f"  {c.label}", "     " + diag.candidate_text(c)]
+    absorbed = [c for c in diag.candidates if c.absorbed and c.biases][:5]
+    if absorbed:
+        lines += ["", "Absorbed by the current parameters (invisible in these residuals; if "
+                  "present, such an effect biases the parameters named):"]
+        lines += [f"  {c.label}: would bias {', '.join(c.biases)}" for c in absorbed]
+    return "\n".join(lines) + "\n"
+
+
+def variable_units(result: Result) -> dict[str, str]:
+    """The declared unit of every variable a residual may be binned along or drawn
+    against: data columns, sensor signals and named expressions (values are in internal
+    units; see :func:`symcal.base.units.axis_unit`)."""
+    problem = result.problem
+    units = {col: spec.unit for col, spec in problem.column_specs.items()}
+    units.update({sig.name: sig.unit for sig in problem.signals})
+    units.update({q.name: q.unit for q in problem.expressions})
+    return units
+
+
+def _unit_of(units: Mapping[str, str], name: Any) -> str:
+    name = str(name)
+    if name in units:
+        return units[name]
+    if name.startswith("phase of ") and " (mod " in name:
+        return units.get(name[len("phase of "):].split(" (mod ", 1)[0], "")
+    return ""
+
+
+def diagnosis_document(diag: Diagnosis, series: bool = False) -> dict[str, Any]:
+    """The diagnosis as plain data for ``--json``, the figures and the HTML page.
+
+    :meth:`Diagnosis.to_dict <symcal.revise.diagnose.Diagnosis.to_dict>` with, where it lacks
+    them: ``regressions`` (:attr:`Result.regressions <symcal.calibrate.result.Result.regressions>`),
+    ``verdict`` (:func:`diagnosis_verdict`), and per residual its ``noise_floor`` (display
+    unit, None where unknown), the variables it ``contains`` whole
+    (:func:`self_referential`, left out of its findings and figures) and the ``unit`` of
+    each variable its structure and series are drawn along.
+
+    Parameters
+    ----------
+    diag
+        A diagnosis.
+    series
+        Include every residual's series (the plotting contract).
+
+    Returns
+    -------
+    dict
+        JSON-ready; unit strings as declared.
+    """
+    doc = diag.to_dict(series=series)
+    result = diag.result
+    floors = noise_floors(result)
+    skip = self_referential(result)
+    units = variable_units(result)
+    doc.setdefault("regressions", [r.to_dict() for r in result.regressions])
+    doc.setdefault("verdict", diagnosis_verdict(diag))
+    for row in doc.get("residuals") or []:
+        name = str(row.get("name"))
+        unit = "" if row.get("unit") in (None, "(internal)") else str(row.get("unit"))
+        floor = floors.get((str(row.get("dataset")), name))
+        row.setdefault("noise_floor",
+                       None if floor is None or unit not in DISPLAY_UNITS
+                       else floor / DISPLAY_UNITS[unit])
+        row.setdefault("contains", sorted(skip.get(name, frozenset({name}))))
+        for b in row.get("binned") or []:
+            b.setdefault("unit", _unit_of(units, b.get("variable")))
+        x = (row.get("series") or {}).get("x")
+        if isinstance(x, dict):
+            x.setdefault("unit", _unit_of(units, x.get("name")))
+    return doc
+
+
+# ----------------------------------------------------------------------- experiment design
+
+
+def _se_text(value: float | None) -> str:
+    return "only in combination" if value is None else f"{value:.4g}"
+
+
+def _motion_text(value: Any) -> str:
+    if isinstance(value, tuple):
+        return f"[{value[0]:.4g}, {value[1]:.4g}]"
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+
+def design_report(design: Design, result: Result | None = None) -> str:
+    """The text report of ``symcal design``: the motion before and after, the binding
+    limits, the targets, and per parameter the predicted standard error before and after
+    design (and the one a given result reports).
+
+    Parameters
+    ----------
+    design
+        What :func:`symcal.design.optimize.design` returned (or a design of the given scenario
+        alone).
+    result
+        A calibration result to compare the predictions with (``--result``).
+    """
+    base, final = design.baseline, design.final
+    optimised = design.designed is not None and design.designed is not design.baseline
+    lines = [f"Design of run '{base.run}' of scenario '{base.scenario.name}' "
+             f"(last stage '{base.stage.name}': what the calibration reports)"]
+    if optimised:
+        goal = (f"criterion {design.criterion} with the most observations the limits allow"
+                if design.criterion else "targets " + ", ".join(t.text for t in design.targets)
+                + " with the fewest observations")
+        lines.append(f"  goal: {goal}; {design.message}")
+        space = base.scenario.design
+        limits = {} if space is None else space.bounds
+        rows = [["motion", "given", "designed", "limits"]]
+        for key in ("n", "x", "y", "theta_deg", "dwell"):
+            lim = limits.get(key)
+            rows.append([key, _motion_text(design.before[key]), _motion_text(design.after[key]),
+                         "fixed" if lim is None else _motion_text(tuple(lim))])
+        lines += ["  " + r for r in _table(rows, "llll")]
+        lines.append("  binding limits: " + (", ".join(design.binding) or "none"))
+        for t in design.targets:
+            se = final.se.get(t.name)
+            ok = design.met.get(t.name, False)
+            unit = final.units.get(t.name, "")
+            lines.append(f"  target {t.text}: predicted {_se_text(se)} {unit} "
+                         f"({'met' if ok else 'NOT met: the best reachable within the limits'})")
+        if design.targets and not all(design.met.values()):
+            lines.append(f"  meeting every target on the designed motion would need about "
+                         f"{design.needed_n} observations")
+    ident0, ident1 = base.identifiability, final.identifiability
+    lines.append(f"  rank {ident1.rank} of {ident1.n_free} free parameters; condition number "
+                 f"of the identifiable part {ident0.condition_number:.4g}"
+                 + (f" -> {ident1.condition_number:.4g}" if optimised else ""))
+    for combo in ident1.null_space:
+        lines.append(f"    cannot be determined: {combo.text}")
+    for combo in ident1.identifiable_combinations:
+        lines.append(f"    determined only in combination: {combo.text} ± "
+                     f"{_se_text(combo.se)}")
+    res = ", ".join(
+        f"{name} {base.residual_std[name]:.3g}"
+        + (f" -> {final.residual_std[name]:.3g}" if optimised else "")
+        + f" {symbol(base.units[name])} (noise alone {final.residual_noise[name]:.3g})"
+        for name in base.stage.constraints)
+    lines.append(f"  predicted residual std: {res}")
+    head = ["parameter", "unit", "SE given motion"] + (["SE designed"] if optimised else [])
+    head += ["SE of --result"] if result is not None else []
+    rows = [head]
+    reported = {} if result is None else {p.name: p.se for p in result.parameters}
+    for name, se in base.se.items():
+        row = [name, symbol(base.units.get(name, "")), _se_text(se)]
+        if optimised:
+            row.append(_se_text(final.se.get(name)))
+        if result is not None:
+            row.append(_se_text(reported.get(name)))
+        rows.append(row)
+    lines.append("")
+    lines.append("Predicted standard errors (no data recorded)")
+    lines += ["  " + r for r in _table(rows, "ll" + "r" * (len(head) - 2))]
+    return "\n".join(lines) + "\n"
+
+
+def design_document(design: Design, scenario_path: str | None) -> dict[str, Any]:
+    """The ``--json`` document of ``symcal design``: ``{"parameters": {NAME:
+    {"predicted_se": ..., "baseline_se": ...}}, "binding": [...], "scenario": PATH}``, with
+    standard errors in each parameter's unit (null: determined only in combination)."""
+    final = design.final
+    return {
+        "parameters": {name: {"predicted_se": final.se.get(name), "baseline_se": se}
+                       for name, se in design.baseline.se.items()},
+        "binding": list(design.binding),
+        "scenario": scenario_path,
+    }

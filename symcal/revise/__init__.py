@@ -1,0 +1,2 @@
+"""Model revision: diagnose a result, candidate effects and variants, the improve loop,
+the ladder."""

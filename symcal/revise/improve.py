@@ -1,0 +1,359 @@
+"""`symcal improve`: the model-improvement loop, run for the user.
+
+diagnose → apply the top calibratable candidate (as files: a model extension and a
+problem overlay, or the switch to the implicit model) → solve again on the same data →
+keep it only if the held-out residuals and the BIC improve → repeat until the diagnosis
+is quiet or no candidate pays.  Every revision is an overlay (``extends:``) in the output
+folder, so each round is a few lines a person can read, and the last one kept is written
+as ``final.yaml``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from symcal.analysis.discovery import Candidate
+from symcal.base.files import write_output
+from symcal.calibrate.result import Result
+from symcal.calibrate.solve import solve
+from symcal.data.dataset import Dataset
+from symcal.data.loading import load_datasets
+from symcal.problem.compiler import Problem, load_problem
+from symcal.revise.diagnose import Diagnosis, diagnose
+from symcal.revise.effects import write_revision
+
+#: How many of the leading candidates are tried in a round before giving up.
+TRIES = 3
+#: A held-out reference comparison may get worse by at most this fraction.
+WORSE = 0.10
+#: How many members of a group of indistinguishable candidates are tried.
+GROUP = 4
+#: A revision may make an existing parameter's standard error at most this many times
+#: larger (beyond it the new term is nearly aliased with what the model has).
+INFLATION = 5.0
+
+
+@dataclass(frozen=True)
+class Round:
+    """One revision: what was added (None for the starting problem), its file and fit."""
+
+    index: int
+    added: str | None
+    problem_file: Path
+    result: Result
+    significant: int
+
+    def to_dict(self) -> dict:
+        """The round as ``symcal improve --json`` prints it."""
+        return {"added": self.added, "problem": str(self.problem_file),
+                "statistics": [s.to_dict() for s in self.result.statistics],
+                "significant": self.significant, "bic": self.result.bic,
+                "aic": self.result.aic, "success": self.result.success}
+
+
+@dataclass(frozen=True)
+class Improvement:
+    """The outcome of :func:`improve`: the kept rounds (round 0 is the starting problem),
+    whether the last diagnosis was quiet, the final problem file, what was tried and
+    rejected (label → reason), and the significant candidates of the last diagnosis that
+    are aliased with the parameters already there (label → reason).
+
+    Quiet means no *calibratable* candidate is left: a candidate the last round tried, with
+    every member of its group, and found nearly aliased with existing parameters (their
+    standard errors grow more than :data:`INFLATION` times) cannot be determined by these
+    constraints; it is reported apart, as the diagnosis reports candidates only a
+    reference reveals."""
+
+    rounds: tuple[Round, ...]
+    quiet: bool
+    final_problem: Path
+    rejected: tuple[tuple[str, str], ...]
+    last: Diagnosis
+    aliased: tuple[tuple[str, str], ...] = ()
+
+    def to_dict(self) -> dict:
+        """``{"rounds": [...], "quiet": ..., "final_problem": ...}`` (plus what was
+        rejected and why)."""
+        return {"rounds": [r.to_dict() for r in self.rounds], "quiet": self.quiet,
+                "final_problem": str(self.final_problem),
+                "rejected": [{"label": label, "reason": why} for label, why in self.rejected],
+                "aliased": [{"label": label, "reason": why} for label, why in self.aliased]}
+
+
+def held_out_change(new: Result, old: Result, kind: str | None = None) -> float:
+    """Mean log ratio of the residual spreads on the held-out datasets (every dataset but
+    ``calibration``; only residuals of ``kind`` when given), new over old: negative when
+    the new model predicts them better; 0 when there is none."""
+    ratios = []
+    for s in new.statistics:
+        if s.dataset == "calibration" or (kind is not None and s.kind != kind):
+            continue
+        try:
+            before = old.stat(s.name, s.dataset).after.std
+        except KeyError:
+            continue
+        if before > 0 and s.after.std > 0:
+            ratios.append(np.log(s.after.std / before))
+    return float(np.mean(ratios)) if ratios else 0.0
+
+
+def _pays(new: Result, old: Result) -> str | None:
+    """None when ``new`` is better than ``old``, else why not: the solve succeeds, the BIC
+    falls, the held-out constraint residuals fall (on average), no existing parameter
+    becomes much less determined (:data:`INFLATION`), and no held-out reference comparison
+    gets worse by more than :data:`WORSE`."""
+    if not new.success:
+        return "the solve failed"
+    if new.bic >= old.bic:
+        return f"BIC does not fall ({old.bic:.1f} → {new.bic:.1f})"
+    change = held_out_change(new, old, "constraint")
+    if change >= 0:
+        return ("the held-out constraint residuals do not fall (mean change "
+                f"{np.expm1(change):+.1%})")
+    inflated = _inflated(new, old)
+    if inflated:
+        return inflated
+    for s in new.statistics:
+        if s.dataset != "calibration" and s.kind == "comparison":
+            before = _spread(old, s.name, s.dataset)
+            if before and s.after.std > (1 + WORSE) * before:
+                return (f"{s.dataset} {s.name} against the reference gets worse "
+                        f"({before:.3g} → {s.after.std:.3g} internal units)")
+    return None
+
+
+def _inflated(new: Result, old: Result) -> str | None:
+    """Why the new terms are nearly aliased with parameters already there (a standard
+    error grows more than :data:`INFLATION` times), or None."""
+    before = {p.name: p.se for p in old.parameters if p.se}
+    worst = max(((p.se / before[p.name], p.name) for p in new.parameters
+                 if p.se and p.name in before), default=None)
+    if worst is not None and worst[0] > INFLATION:
+        return (f"it is nearly aliased with the parameters already there: the standard "
+                f"error of {worst[1]} grows {worst[0]:.0f} times")
+    return None
+
+
+def _spread(result: Result, name: str, dataset: str) -> float | None:
+    try:
+        return result.stat(name, dataset).after.std
+    except KeyError:
+        return None
+
+
+def _best_of_group(
+    diag: Diagnosis, lead: Candidate, directory: Path, name: str,
+    datasets: Mapping[str, Dataset], result: Result, rejected: list[tuple[str, str]],
+    say: Callable[[str], None],
+) -> tuple[str, Path, Result] | None:
+    """Try the lead and the members of its group (the constraints cannot tell them apart;
+    a held-out reference may): keep the one that pays and predicts the held-out data
+    best, or None."""
+    labels = [lead.label, *lead.indistinguishable[:GROUP - 1]]
+    best: tuple[float, str, Path, Result] | None = None
+    for i, label in enumerate(labels):
+        path = _revision(diag, label, directory, f"{name}_try{i}")
+        revised = load_problem(path)
+        new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
+        why = _pays(new, result)
+        if why is None:
+            score = held_out_change(new, result)
+            if best is None or score < best[0]:
+                if best is not None:
+                    best[2].unlink(missing_ok=True)
+                best = (score, label, path, new)
+                continue
+        else:
+            rejected.append((label, why))
+            say(f"tried {label}: not kept, {why}")
+        path.unlink(missing_ok=True)
+    if best is None:
+        return None
+    _, label, path, new = best
+    final = directory / f"{name}.yaml"
+    text = path.read_text(encoding="utf-8").replace(f"problem: {path.stem}\n",
+                                                      f"problem: {name}\n", 1)
+    write_output(final, text)
+    path.unlink()
+    return label, final, solve(load_problem(final), {n: d for n, d in datasets.items()
+                                                      if n in new.problem.datasets})
+
+
+def siblings(diag: Diagnosis, lead: Candidate) -> tuple[Candidate, ...]:
+    """The same effect in the lead's sibling instances (instances of the same model file):
+    for each, its most significant candidate of the same kind, order and period on the
+    same output, when the diagnosis finds one significant, on a variable no other member
+    uses (two siblings' terms in the same variable are alike in a constraint where both
+    sensors enter, as the segments of one axis do in g_p: one of them is an alias).  One
+    physical effect of a sensor model (a lateral dependence of every platen segment) is
+    then added to every instance that shows it in one round, each with its own
+    coefficients.  None while the model has an approximation of its own (an implicit
+    variant): its residue, significant or not, looks like the same effect in every
+    sibling."""
+    problem = diag.result.problem
+    inst, _, output = lead.output.partition(".")
+    if inst not in problem.instances or diag.variant is not None:
+        return ()   # the model's own approximation shows in every sibling: it goes first
+    model = problem.instances[inst].model.path
+    shape = (lead.basis.kind, lead.basis.order, lead.basis.period, bool(lead.basis.angle))
+    found: dict[str, Candidate] = {}
+    used = {lead.basis.variable}
+    for cand in diag.significant:
+        other, _, out = cand.output.partition(".")
+        if (other != inst and other not in found and out == output
+                and cand.basis.variable not in used
+                and other in problem.instances
+                and problem.instances[other].model.path == model
+                and (cand.basis.kind, cand.basis.order, cand.basis.period,
+                     bool(cand.basis.angle)) == shape):
+            found[other] = cand
+            used.add(cand.basis.variable)
+    return tuple(found.values())
+
+
+def _try_siblings(
+    diag: Diagnosis, lead: Candidate, single: tuple[str, Path, Result] | None,
+    directory: Path, name: str, datasets: Mapping[str, Dataset], result: Result,
+    rejected: list[tuple[str, str]], say: Callable[[str], None],
+) -> tuple[str, Path, Result] | None:
+    """The lead with the same effect in its sibling instances, in one revision, when it
+    pays and beats the lead alone (``single``) on BIC: a sibling candidate that is only
+    significant because it is aliased with the lead adds parameters the BIC refuses."""
+    also = siblings(diag, lead)
+    if not also:
+        return single
+    label = "; ".join(c.label for c in (lead, *also))
+    path = write_revision(diag.result.problem, lead, directory, f"{name}_all", also)
+    revised = load_problem(path)
+    new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
+    why = _pays(new, result)
+    if why is None and single is not None and new.bic >= single[2].bic:
+        why = (f"its BIC ({new.bic:.1f}) is not below that of {single[0]} alone "
+               f"({single[2].bic:.1f})")
+    if why is not None:
+        rejected.append((label, why))
+        say(f"tried {label}: not kept, {why}")
+        path.unlink(missing_ok=True)
+        return single
+    final = directory / f"{name}.yaml"
+    write_output(final, path.read_text(encoding="utf-8").replace(
+        f"problem: {path.stem}\n", f"problem: {name}\n", 1))
+    path.unlink()
+    return label, final, solve(load_problem(final), {n: d for n, d in datasets.items()
+                                                      if n in new.problem.datasets})
+
+
+def _revision(diag: Diagnosis, cand_label: str, directory: Path, name: str) -> Path:
+    problem = diag.result.problem
+    cand = next(c for c in (*diag.candidates, *diag.uncalibratable) if c.label == cand_label)
+    if cand.basis.kind == "approximation":
+        assert diag.variant is not None
+        path = directory / f"{name}.yaml"
+        for target, text in diag.variant.files(directory).items():
+            write_output(target, text)
+        write_output(path, diag.variant.overlay(Path(problem.path), name, directory))
+        return path
+    return write_revision(problem, cand, directory, name)
+
+
+def improve(
+    problem: str | Path,
+    out: str | Path,
+    data: Mapping[str, Dataset | str | Path] | None = None,
+    max_rounds: int = 5,
+    alpha: float = 0.01,
+    drop_invalid: bool = False,
+    progress: Callable[[str], None] | None = None,
+) -> Improvement:
+    """Run the improvement loop on ``problem`` and write every revision into ``out``.
+
+    Parameters
+    ----------
+    problem
+        The starting problem file.
+    out
+        The folder for the revisions (``round_K.yaml``, their models in ``models/``) and
+        ``final.yaml``; created if absent.
+    data
+        Datasets replacing the problem's (objects or files), as ``--data``.
+    max_rounds
+        At most this many revisions are kept.
+    alpha
+        The diagnosis's family-wise significance level.
+    drop_invalid
+        Drop rows with NaN/inf instead of refusing the data.
+    progress
+        Called with one line per round (None: silent).
+
+    Returns
+    -------
+    Improvement
+    """
+    say = progress or (lambda _line: None)
+    directory = Path(out)
+    directory.mkdir(parents=True, exist_ok=True)
+    current: Problem = load_problem(problem)
+    datasets = load_datasets(current, data, drop_invalid)
+    result = solve(current, datasets)
+    diag = diagnose(result, alpha)
+    rounds = [Round(0, None, Path(problem), result, len(diag.significant))]
+    rejected: list[tuple[str, str]] = []
+    say(f"round 0: {current.name}: {len(diag.significant)} significant candidate(s)")
+    last_try = len(rejected)
+    for k in range(1, max_rounds + 1):
+        if not diag.significant:
+            break
+        last_try = len(rejected)
+        kept = None
+        name = f"{Path(problem).stem}_round{k}"
+
+        def say_round(line: str, k: int = k) -> None:
+            say(f"round {k}: {line}")
+
+        # every round tries its leads afresh: what did not pay against the last model
+        # may pay against this one (the approximation once the effect is in, say)
+        leads = list(diag.significant)
+        # the model's own approximation is a known defect, not a hypothesis: it goes
+        # first, and the effects are then looked for in the model that has it right
+        leads.sort(key=lambda c: c.basis.kind != "approximation")
+        for lead in leads[:TRIES]:
+            single = _best_of_group(diag, lead, directory, name, datasets, result,
+                                    rejected, say_round)
+            kept = _try_siblings(diag, lead, single, directory, name, datasets, result,
+                                 rejected, say_round)
+            if kept is not None:
+                break
+        if kept is None:
+            break
+        label, path, result = kept
+        last_try = len(rejected)
+        diag = diagnose(result, alpha)
+        rounds.append(Round(k, label, path, result, len(diag.significant)))
+        say(f"round {k}: added {label}: {len(diag.significant)} significant candidate(s) left")
+    final = directory / "final.yaml"
+    base = Path(os.path.relpath(rounds[-1].problem_file.resolve(), directory.resolve()))
+    write_output(final, f"problem: {Path(problem).stem}_final\n"
+                             f"extends: {base.as_posix()}\n"
+                             f"doc: the last revision symcal improve kept ({len(rounds) - 1} "
+                             "round(s))\n")
+    aliased = _aliased(diag, rejected[last_try:])
+    left = [c for c in diag.significant if c.label not in dict(aliased)]
+    return Improvement(tuple(rounds), not left, final, tuple(rejected), diag, aliased)
+
+
+def _aliased(diag: Diagnosis, tried: list[tuple[str, str]]) -> tuple[tuple[str, str], ...]:
+    """The last diagnosis's significant candidates that the last round found aliased with
+    existing parameters, themselves and every member of their group tried."""
+    why = dict(tried)
+    out = []
+    for cand in diag.significant:
+        members = [cand.label, *cand.indistinguishable[:GROUP - 1]]
+        reasons = [why.get(m, "") for m in members]
+        if all(r.startswith("it is nearly aliased") for r in reasons):
+            out.append((cand.label, reasons[0]))
+    return tuple(out)
