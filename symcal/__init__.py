@@ -31,7 +31,7 @@ _LAZY = {
     "read_table": "symcal.data.dataset",
     "load_datasets": "symcal.data.loading", "FleetResult": "symcal.calibrate.fleet",
     "solve_fleet": "symcal.calibrate.fleet", "SolveOptions": "symcal.language.options",
-    "Problem": "symcal.problem.compiler", "load_problem": "symcal.problem.compiler",
+    "Problem": "symcal.problem.symbolic", "load_problem": "symcal.problem.build",
     "text_report": "symcal.report.text", "Result": "symcal.calibrate.result",
     "solve_partitioned": "symcal.calibrate.partitioned", "open_shards": "symcal.data.shards",
 }
@@ -45,7 +45,8 @@ if _TYPE_CHECKING:
     from symcal.data.loading import load_datasets
     from symcal.data.shards import open_shards
     from symcal.language.options import SolveOptions
-    from symcal.problem.compiler import Problem, load_problem
+    from symcal.problem.build import load_problem
+    from symcal.problem.symbolic import Problem
     from symcal.report.text import text_report
 
 

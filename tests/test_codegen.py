@@ -29,7 +29,7 @@ from symcal.base.numeric import mapped
 from symcal.calibrate.solve import load_datasets
 from symcal.cli import codegen as cli_codegen
 from symcal.codegen import c as codegen
-from symcal.problem.compiler import Problem, Quantity
+from symcal.problem.symbolic import Problem, Quantity
 
 PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"
 DUAL = ROOT / "problems" / "dual_sensor_calibration.yaml"

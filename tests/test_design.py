@@ -19,7 +19,7 @@ from symcal.data.dataset import make_dataset
 from symcal.data.loading import needed_columns
 from symcal.design.optimize import design, parse_target, with_motion
 from symcal.design.predict import predict, quiet
-from symcal.problem.compiler import load_problem
+from symcal.problem.build import load_problem
 from symcal.simulate import load_scenario, simulate_run
 from symcal.simulate.motion import ideal_columns
 

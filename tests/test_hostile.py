@@ -173,7 +173,7 @@ def test_a_csv_line_without_end_is_refused(toy: Path, monkeypatch) -> None:
 
 def test_dataset_columns_are_read_only_without_a_copy(toy: Path) -> None:
     from symcal.data.loading import load_datasets
-    from symcal.problem.compiler import load_problem
+    from symcal.problem.build import load_problem
 
     data = load_datasets(load_problem("prob.yaml"))["calibration"]
     for column in data.columns.values():

@@ -36,7 +36,7 @@ def single_stage_problem(problem: str) -> Any:
     """The problem file with one stage over every parameter and all constraints, and
     equal weights: the cost every method minimises."""
     from symcal.language.problem_file import load_problem_spec
-    from symcal.problem.compiler import build_problem
+    from symcal.problem.build import build_problem
 
     spec = load_problem_spec(ROOT / PROBLEMS[problem]["path"])
     study = dataclasses.replace(spec.study, stages=())

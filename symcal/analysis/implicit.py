@@ -16,7 +16,7 @@ import numpy as np
 
 from symcal.base.numeric import mapped
 from symcal.data.dataset import Dataset
-from symcal.problem.compiler import Problem
+from symcal.problem.symbolic import Problem
 
 
 @dataclass(frozen=True)

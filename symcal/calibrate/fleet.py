@@ -35,7 +35,8 @@ from symcal.calibrate.fleet_summary import failure_reason, summarise
 from symcal.calibrate.result import Result, file_hashes
 from symcal.calibrate.solve import solve
 from symcal.language.options import SolveOptions
-from symcal.problem.compiler import Problem, load_problem
+from symcal.problem.build import load_problem
+from symcal.problem.symbolic import Problem
 from symcal.solvers.executor import usable_cores
 
 if TYPE_CHECKING:
@@ -352,7 +353,7 @@ def solve_fleet(
     Parameters
     ----------
     problem
-        A :class:`~symcal.problem.compiler.Problem` or the path of a problem file.
+        A :class:`~symcal.problem.symbolic.Problem` or the path of a problem file.
     fleet
         The fleet folder: one subfolder per unit.
     data

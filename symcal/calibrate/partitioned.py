@@ -34,7 +34,8 @@ from symcal.data.dataset import Dataset
 from symcal.data.loading import needed_columns
 from symcal.data.shards import ShardedDataset, open_shards
 from symcal.language.options import SolveOptions
-from symcal.problem.compiler import Problem, Stage, load_problem
+from symcal.problem.build import load_problem
+from symcal.problem.symbolic import Problem, Stage
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.executor import Executor, SerialExecutor, current, using
 from symcal.solvers.objective import Objective, Source

@@ -1,6 +1,6 @@
 """The frozen outcome of a calibration: its problem, estimate, data, identifiability, fit.
 
-A :class:`Result` carries the :class:`~symcal.problem.compiler.Problem` it solved, the estimate
+A :class:`Result` carries the :class:`~symcal.problem.symbolic.Problem` it solved, the estimate
 and the datasets, so that diagnosis, comparison and code generation work from it without
 solving again.  :meth:`Result.save` and :meth:`Result.load` are the one writer and reader
 of ``result.json``.
@@ -30,7 +30,7 @@ from symcal.base.files import atomic_write_text, json_text
 from symcal.base.numeric import mapped
 from symcal.data.dataset import Dataset
 from symcal.language.yamlio import display_path
-from symcal.problem.compiler import Problem
+from symcal.problem.symbolic import Problem
 
 #: Version of the ``result.json`` layout.
 FORMAT = 1
@@ -462,7 +462,7 @@ class Result:
         """
         doc, label = read_result_document(path)
         if problem is None:
-            from symcal.problem.compiler import load_problem
+            from symcal.problem.build import load_problem
 
             file = doc.get("problem_file")
             if not isinstance(file, str):

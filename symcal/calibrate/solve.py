@@ -28,7 +28,8 @@ from symcal.calibrate.result import (
 from symcal.data.dataset import Dataset
 from symcal.data.loading import load_datasets
 from symcal.language.options import METHODS, SolveOptions
-from symcal.problem.compiler import Problem, Stage, load_problem
+from symcal.problem.build import load_problem
+from symcal.problem.symbolic import Problem, Stage
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.linear import solve_linear
 from symcal.solvers.objective import Objective
@@ -273,7 +274,7 @@ def solve(
     Parameters
     ----------
     problem
-        A :class:`~symcal.problem.compiler.Problem` or the path of a problem file.
+        A :class:`~symcal.problem.symbolic.Problem` or the path of a problem file.
     data
         Datasets by name, as :class:`~symcal.data.dataset.Dataset` objects or file paths; those not
         given come from the problem's ``datasets`` section.

@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     """Generate the code; print one ``wrote PATH`` line per file; return the exit code."""
     from symcal.base.files import input_refusal
     from symcal.codegen.c import generate
-    from symcal.problem.compiler import load_problem
+    from symcal.problem.build import load_problem
 
     problem = load_problem(args.problem)
     if args.result:

@@ -26,7 +26,7 @@ from symcal.base.errors import (
 
 if TYPE_CHECKING:
     from symcal.base.progress import Bars
-    from symcal.problem.compiler import Problem
+    from symcal.problem.symbolic import Problem
 
 
 class UsageError(SymcalError):

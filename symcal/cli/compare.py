@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     from symcal.base.files import OutputSet, check_output_folder
     from symcal.calibrate.solve import solve
     from symcal.data.loading import load_datasets
-    from symcal.problem.compiler import load_problem
+    from symcal.problem.build import load_problem
     from symcal.report.text import plain_json
     from symcal.revise.ladder import compare, ladder_report, save_ladder_plot
 

@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     from symcal.calibrate.result import Result
     from symcal.design.optimize import Design, design, parse_target
     from symcal.design.predict import predict
-    from symcal.problem.compiler import load_problem
+    from symcal.problem.build import load_problem
     from symcal.report.text import design_document, design_report
     from symcal.simulate import load_scenario
 

@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     """Diagnose; print the findings; write plots and the HTML page when asked."""
     from symcal.base.files import check_output_folder, check_outputs
     from symcal.calibrate.solve import solve
-    from symcal.problem.compiler import load_problem
+    from symcal.problem.build import load_problem
     from symcal.report.plots import FORMATS
     from symcal.report.text import diagnosis_document, diagnosis_report, plain_json, text_report
     from symcal.revise.diagnose import diagnose

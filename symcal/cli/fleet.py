@@ -70,7 +70,7 @@ def run_fleet(args: argparse.Namespace) -> int:
     ``--out``; return the exit code."""
     from symcal.base.files import OutputSet, atomic_write_bytes, atomic_write_text, json_text
     from symcal.calibrate.fleet import find_units, solve_fleet
-    from symcal.problem.compiler import load_problem
+    from symcal.problem.build import load_problem
     from symcal.report.fleet import fleet_png, fleet_text
     from symcal.report.text import text_report
 

@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from symcal.base.files import check_outputs
     from symcal.calibrate.solve import solve
     from symcal.language.options import MAX_ITER_LIMIT
-    from symcal.problem.compiler import load_problem
+    from symcal.problem.build import load_problem
     from symcal.report.text import json_report, text_report
 
     if args.max_iter is not None and not 1 <= args.max_iter <= MAX_ITER_LIMIT:

@@ -39,7 +39,7 @@ from symcal.base.errors import SymcalError
 from symcal.base.files import STAGING_PREFIX, atomic_write_text, clean_stale
 from symcal.base.units import internal_unit
 from symcal.calibrate.result import Result, check_result_problem, read_result_document
-from symcal.problem.compiler import Problem
+from symcal.problem.symbolic import Problem
 
 #: A calibration result: the object, its ``result.json`` file, or that file's document.
 ResultLike = Result | str | Path | Mapping[str, Any]

@@ -16,7 +16,7 @@ from symcal.base.errors import DataError
 from symcal.data.dataset import Dataset, make_dataset, read_table
 from symcal.language.problem_file import DatasetSpec
 from symcal.language.yamlio import display_path
-from symcal.problem.compiler import Problem
+from symcal.problem.symbolic import Problem
 
 
 def needed_columns(problem: Problem) -> list[str]:

@@ -39,7 +39,7 @@ from symcal.base.errors import SymcalError
 from symcal.base.linalg import sqrt_psd, whitening
 from symcal.base.units import internal_unit, size
 from symcal.design.predict import Prediction, last_stage, operating_point, predict
-from symcal.problem.compiler import Problem
+from symcal.problem.symbolic import Problem
 from symcal.simulate import Scenario
 from symcal.simulate.motion import ideal_columns
 from symcal.simulate.scenario import DESIGN_KEYS, DesignSpace, Run, Scatter

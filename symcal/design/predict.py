@@ -46,7 +46,7 @@ from symcal.base.numeric import chunks, mapped
 from symcal.base.units import size
 from symcal.data.dataset import Dataset, make_dataset
 from symcal.data.loading import needed_columns
-from symcal.problem.compiler import Problem, Stage
+from symcal.problem.symbolic import Problem, Stage
 from symcal.simulate import Scenario, input_noise, simulate_run, truth
 from symcal.solvers.objective import Objective
 

@@ -37,7 +37,7 @@ from symcal.base.numeric import mapped
 from symcal.base.units import ANGLE_UNITS, DISPLAY_UNITS
 from symcal.calibrate.result import Result
 from symcal.data.dataset import Dataset
-from symcal.problem.compiler import Problem
+from symcal.problem.symbolic import Problem
 from symcal.revise.effects import effect_yaml
 from symcal.revise.variants import Variant, implicit_variant
 
@@ -672,7 +672,7 @@ def _better_problem(problem: Problem) -> str:
         if path.resolve() == here:
             continue
         try:
-            from symcal.problem.compiler import load_problem
+            from symcal.problem.build import load_problem
 
             other = load_problem(path)
         except Exception:  # noqa: BLE001 - any file that does not load is not a pointer

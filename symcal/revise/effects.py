@@ -25,7 +25,8 @@ from pathlib import Path
 from symcal.analysis.discovery import Candidate
 from symcal.base.files import write_output
 from symcal.base.units import internal_unit
-from symcal.problem.compiler import Problem, load_problem
+from symcal.problem.build import load_problem
+from symcal.problem.symbolic import Problem
 
 _TAGS = {"harmonic": "h", "linear": "lin", "quadratic": "quad", "drift": "drift",
          "angle_harmonic": "ah"}

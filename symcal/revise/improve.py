@@ -23,7 +23,8 @@ from symcal.calibrate.result import Result
 from symcal.calibrate.solve import solve
 from symcal.data.dataset import Dataset
 from symcal.data.loading import load_datasets
-from symcal.problem.compiler import Problem, load_problem
+from symcal.problem.build import load_problem
+from symcal.problem.symbolic import Problem
 from symcal.revise.diagnose import Diagnosis, diagnose
 from symcal.revise.effects import write_revision
 

@@ -26,7 +26,8 @@ from pathlib import Path
 from symcal.base.errors import SymcalError
 from symcal.language.model_file import ModelSpec, load_model
 from symcal.language.yamlio import YMap, load_yaml
-from symcal.problem.compiler import Problem, load_problem
+from symcal.problem.build import load_problem, with_instance
+from symcal.problem.symbolic import Problem
 
 
 @dataclass(frozen=True)
@@ -35,7 +36,7 @@ class Variant:
 
     ``models`` maps instance name → the implicit model file it switches to (empty for a
     problem variant); ``problem_file`` is the variant problem file (None for model
-    variants, which are applied with :meth:`Problem.with_instance`).  ``rebased`` are
+    variants, which are applied with :func:`~symcal.problem.build.with_instance`).  ``rebased`` are
     model files to create (name → text): a model that extends one with an implicit
     variant (e.g. a term added by symcal) gets the same additions on top of the variant.
     """
@@ -177,7 +178,7 @@ def implicit_variant(problem: Problem) -> Variant | None:
         variant = problem
         try:
             for name, path in models.items():
-                variant = variant.with_instance(name, load_model(path))
+                variant = with_instance(variant, name, load_model(path))
         except SymcalError:
             return None
     if variant.parameter_names != problem.parameter_names:

@@ -24,7 +24,7 @@ from symcal.base.errors import SolveError
 from symcal.base.numeric import Mapped, chunks, shared_mapped
 from symcal.data.dataset import Dataset
 from symcal.data.shards import ShardedDataset
-from symcal.problem.compiler import Problem
+from symcal.problem.symbolic import Problem
 from symcal.solvers import instrument
 from symcal.solvers.executor import Executor, SerialExecutor, current, default_executor
 from symcal.solvers.passes import Kind, Pass, run_pass

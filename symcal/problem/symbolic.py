@@ -1,0 +1,293 @@
+"""The symbolic problem: parameters θ, per-observation inputs u, named residuals, and the
+views of one build (:attr:`Problem.explicit`, :attr:`Problem.diagnostic`).
+
+A :class:`Problem` is plain, frozen data: it holds its views as values, made by the
+compiler (:mod:`symcal.problem.build`) by substitution from one build, and keeps no
+pointer to the compiler.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+from pathlib import Path
+
+import casadi as ca
+
+from symcal.base.didyoumean import did_you_mean
+from symcal.base.errors import Where
+from symcal.language.loss import LossSpec
+from symcal.language.model_file import ModelSpec
+from symcal.language.options import SolveOptions
+from symcal.language.problem_file import ColumnSpec, DatasetSpec, ProblemSpec
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One scalar parameter of the problem, named ``instance.name`` or ``name``."""
+
+    name: str
+    value: float
+    unit: str
+    lower: float
+    upper: float
+    fixed: bool
+    scale: float
+    doc: str
+    where: Where
+
+
+@dataclass(frozen=True, eq=False)
+class Quantity:
+    """A named symbolic quantity of one observation (constraint, expression or signal)."""
+
+    name: str
+    sx: ca.SX
+    unit: str = ""
+    sigma: float = 1.0
+    doc: str = ""
+    period: float | None = None
+    loss: LossSpec | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Comparison:
+    """An estimate of a quantity and its independent reference."""
+
+    name: str
+    estimate: ca.SX
+    reference: ca.SX
+    unit: str
+    datasets: tuple[str, ...] | None
+    remove_mean: bool
+    doc: str
+
+
+@dataclass(frozen=True, eq=False)
+class ImplicitOutput:
+    """A definition solved by fixed-point steps ``x = F(x)``, with what checks it.
+
+    ``derivative`` is ∂F/∂x at the final iterate (the map contracts where |·| < 1);
+    ``last_step`` is the change made by the last step (how far from converged).
+    """
+
+    name: str
+    steps: int
+    derivative: ca.SX
+    last_step: ca.SX
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One step of a calibration: constraints used and parameters freed (by name)."""
+
+    name: str
+    constraints: tuple[str, ...]
+    free: tuple[str, ...]
+    method: str = "auto"
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Instance:
+    """A sensor instance of the problem: its model, its input bindings (as written)."""
+
+    name: str
+    model: ModelSpec
+    bindings: Mapping[str, str]
+    doc: str
+
+
+@dataclass(frozen=True)
+class Study:
+    """On what data and in which steps a problem is solved.
+
+    ``weighting``: ``"equal"`` (the cost is Σ (g/σ)² as written) or ``"estimated"`` (each
+    stage with several constraints is solved again, weighted by the inverse of their
+    covariance estimated from the residuals: feasible generalised least squares).
+    """
+
+    datasets: Mapping[str, DatasetSpec]
+    stages: tuple[Stage, ...]
+    weighting: str
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """A calibration problem in symbolic form: the system, the study, the solve options.
+
+    Attributes
+    ----------
+    parameters
+        Every scalar parameter, in the order of ``theta``.
+    theta
+        SX column of parameter symbols.
+    columns
+        Names of the data columns the problem reads, in the order of ``u``.
+    u
+        SX column of per-observation input symbols.
+    constraints
+        Named residuals g(θ, u) that must vanish for consistent measurements.
+    expressions
+        The problem's named expressions.
+    signals
+        Every instance input and output (``s1.p``, ``s1.p_hat``).
+    comparisons
+        Estimates to compare with a reference sensor.
+    study
+        Datasets, stages and weighting (:class:`Study`).
+    options
+        The solve options the problem file declares (``solver:``).
+    instances
+        The sensor instances by name.
+    column_specs
+        Every column the problem declares (used or not), with unit, role and doc.
+    implicit
+        Definitions solved by fixed-point steps, with their convergence checks.
+    hooks
+        Instance output → its hook symbol (see :attr:`diagnostic`).
+    spec
+        The validated spec the problem was built from (for derived problems).
+    views
+        The other views of the same build (:class:`Views`); None on a view itself.
+    """
+
+    name: str
+    doc: str
+    path: Path
+    parameters: tuple[Parameter, ...]
+    theta: ca.SX
+    columns: tuple[str, ...]
+    u: ca.SX
+    constraints: tuple[Quantity, ...]
+    expressions: tuple[Quantity, ...]
+    signals: tuple[Quantity, ...]
+    comparisons: tuple[Comparison, ...]
+    study: Study
+    options: SolveOptions
+    instances: Mapping[str, Instance]
+    column_specs: Mapping[str, ColumnSpec]
+    implicit: tuple[ImplicitOutput, ...]
+    hooks: Mapping[str, ca.SX]
+    spec: ProblemSpec = field(repr=False)
+    views: Views | None = field(default=None, repr=False)
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        """Names of all parameters, in the order of ``theta``."""
+        return tuple(p.name for p in self.parameters)
+
+    @cached_property
+    def index(self) -> dict[str, int]:
+        """Position of each parameter in θ, by name."""
+        return {p.name: i for i, p in enumerate(self.parameters)}
+
+    @property
+    def free(self) -> tuple[bool, ...]:
+        """Which parameters are free (not fixed)."""
+        return tuple(not p.fixed for p in self.parameters)
+
+    @property
+    def datasets(self) -> Mapping[str, DatasetSpec]:
+        """Where each named dataset comes from (``study.datasets``)."""
+        return self.study.datasets
+
+    @property
+    def stages(self) -> tuple[Stage, ...]:
+        """The ordered steps of the calibration (``study.stages``)."""
+        return self.study.stages
+
+    @property
+    def weighting(self) -> str:
+        """``"equal"`` or ``"estimated"`` (``study.weighting``)."""
+        return self.study.weighting
+
+    def constraint(self, name: str) -> Quantity:
+        """The constraint called ``name``."""
+        return next(c for c in self.constraints if c.name == name)
+
+    def columns_of(self, sx: ca.SX) -> list[str]:
+        """Data columns an expression depends on, in ``u`` order."""
+        used = {v.name() for v in ca.symvar(sx)}
+        return [c for c in self.columns if c in used]
+
+    def quantity(self, name: str) -> ca.SX:
+        """The SX of a named constraint, expression, signal or comparison (estimate minus
+        reference), looked up in that order: a comparison named like an expression is
+        reached through the expression it compares.
+
+        Raises
+        ------
+        KeyError
+            With the names there are, for an unknown name.
+        """
+        for group in (self.constraints, self.expressions, self.signals):
+            for q in group:
+                if q.name == name:
+                    return q.sx
+        for comp in self.comparisons:
+            if comp.name == name:
+                return comp.estimate - comp.reference
+        known = [q.name for g in (self.constraints, self.expressions, self.signals) for q in g]
+        known += [c.name for c in self.comparisons]
+        raise KeyError(f"problem '{self.name}' has no quantity '{name}'"
+                       f"{did_you_mean(name, known)}")
+
+    def source_files(self) -> tuple[Path, ...]:
+        """Every file the problem was built from: the problem file, the files it extends,
+        and its model files (through their ``extends`` too)."""
+        own = self.spec.sources or (Path(self.path),)
+        return (*own, *(f for f in self.model_files() if f not in own))
+
+    def model_files(self) -> tuple[Path, ...]:
+        """Every model file the problem's instances read, through ``extends`` too."""
+        files: list[Path] = []
+        for inst in self.instances.values():
+            model: ModelSpec | None = inst.model
+            while model is not None:
+                if model.path not in files:
+                    files.append(model.path)
+                model = model.extends
+        return tuple(files)
+
+    @property
+    def explicit(self) -> Problem | None:
+        """With implicit definitions: the same problem with every one at its start (zero
+        fixed-point steps: the explicit model), to start the solver from a closed form."""
+        return self.views.explicit if self.views is not None else None
+
+    @property
+    def diagnostic(self) -> Problem:
+        """The problem with the hooks left open: evaluate with the hooks as extra rows of
+        u set to zero; the derivative of a residual by a hook is its derivative by that
+        sensor output."""
+        return self.views.diagnostic if self.views is not None else self
+
+    def with_weighting(self, weighting: str) -> Problem:
+        """The problem with another weighting of its constraints (no rebuild)."""
+        if weighting == self.weighting:
+            return self
+        views = self.views
+        if views is not None:
+            views = Views(views.diagnostic.with_weighting(weighting),
+                          views.explicit.with_weighting(weighting)
+                          if views.explicit is not None else None)
+        return replace(self, study=replace(self.study, weighting=weighting), views=views)
+
+
+@dataclass(frozen=True, eq=False)
+class Views:
+    """The other views of one build, derived by substitution.
+
+    Attributes
+    ----------
+    diagnostic
+        The hooks left open (:attr:`Problem.diagnostic`).
+    explicit
+        Every implicit definition at its start (:attr:`Problem.explicit`); None without
+        implicit definitions.
+    """
+
+    diagnostic: Problem
+    explicit: Problem | None
