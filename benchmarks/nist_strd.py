@@ -67,7 +67,7 @@ def run_symcal(name: str, start: int, method: str) -> dict:
                 "values": None, "se": None, "rss": None}
     seconds = time.perf_counter() - began
     stage = result.stages[-1]
-    params = {p.name: p for p in result.parameters}
+    params = dict(result.params)
     return {"success": result.success, "message": stage.message, "seconds": seconds,
             "values": {k: p.value for k, p in params.items()},
             "se": {k: p.se for k, p in params.items()}, "rss": stage.cost_after}

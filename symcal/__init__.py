@@ -6,7 +6,7 @@ The public API follows the one-way flow of ARCHITECTURE.md::
     result = symcal.solve(problem)                       # datasets from the problem file
     result = symcal.solve(problem, {"calibration": "run.csv"},
                           symcal.SolveOptions(method="ipopt", max_iter=50))
-    print(symcal.text_report(result)); result.params["s1.k1"]; result.to_dict()
+    print(symcal.text_report(result)); result.params["s1.k1"].value; result.to_dict()
     result.save("out/result.json"); symcal.Result.load("out/result.json")
 """
 

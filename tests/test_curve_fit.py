@@ -45,8 +45,8 @@ def test_a_curve_fit_needs_no_instance(folder: Path) -> None:
     data = np.loadtxt(folder / "d.csv", delimiter=",", skiprows=1)
     popt, pcov = scipy.optimize.curve_fit(lambda x, a, k: a * np.exp(-k * x), data[:, 0],
                                           data[:, 1], p0=[1, 1])
-    np.testing.assert_allclose([result.params["a"], result.params["k"]], popt, rtol=1e-7)
-    se = [p.se for p in result.parameters]
+    np.testing.assert_allclose([result.params[n].value for n in "ak"], popt, rtol=1e-7)
+    se = [p.se for p in result.params.values()]
     np.testing.assert_allclose(se, np.sqrt(np.diag(pcov)), rtol=1e-5)
 
 

@@ -186,7 +186,7 @@ def _monte_carlo(problem, scenario, seeds):
                             needed_columns(problem))
         result = symcal.solve(problem, {"calibration": data})
         assert result.success
-        values.append([result.params[name] for name in MOUNT])
+        values.append([result.params[name].value for name in MOUNT])
     return np.std(np.array(values), axis=0, ddof=1)
 
 

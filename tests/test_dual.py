@@ -83,7 +83,7 @@ def paper_result(repeated) -> tuple[symcal.Result, dict[str, float]]:
 
 
 def _rms_error(results: list[symcal.Result], true: dict[str, float], name: str) -> float:
-    return float(np.sqrt(np.mean([(r.params[name] - true[name]) ** 2 for r in results])))
+    return float(np.sqrt(np.mean([(r.params[name].value - true[name]) ** 2 for r in results])))
 
 
 @pytest.mark.slow
@@ -105,7 +105,7 @@ def test_paper_claim_rest_within_1_um(repeated) -> None:
     """k1..k10 of every segment within 1 µm in every repetition."""
     results, true = repeated
     for result in results:
-        rest = [p for p in result.parameters if p.se is not None and p.name.startswith("s")]
+        rest = [p for p in result.params.values() if p.se is not None and p.name.startswith("s")]
         assert len(rest) == 40
         worst = max(abs(p.value - true[p.name]) for p in rest)
         assert worst < 1 * UM, worst
@@ -114,7 +114,7 @@ def test_paper_claim_rest_within_1_um(repeated) -> None:
 @pytest.mark.slow
 def test_paper_experiment_within_four_standard_errors(paper_result) -> None:
     result, true = paper_result
-    for p in result.parameters:
+    for p in result.params.values():
         if p.se is not None:
             assert abs(p.value - true[p.name]) < 4 * p.se, (p.name, p.value, true[p.name])
     for combo in result.identifiability.identifiable_combinations:
@@ -163,7 +163,7 @@ def test_staged_solve_reports_every_stage() -> None:
     assert full.conditioning_before.condition_number > 1e6
     true = _true_values(scenario)
     for name in MOUNT:
-        assert abs(result.params[name] - true[name]) < 4 * result.uncertainty.se[name]
+        assert abs(result.params[name].value - true[name]) < 4 * result.uncertainty.se[name]
 
 
 def test_linear_problem_same_estimate_through_both_paths() -> None:
@@ -171,8 +171,8 @@ def test_linear_problem_same_estimate_through_both_paths() -> None:
     linear = symcal.solve(problem, options=symcal.SolveOptions(method="linear"))
     ipopt = symcal.solve(problem, options=symcal.SolveOptions(method="ipopt"))
     assert (linear.method, ipopt.method) == ("linear", "ipopt")
-    a = np.array(list(linear.params.values()))
-    b = np.array(list(ipopt.params.values()))
+    a = np.array([p.value for p in linear.params.values()])
+    b = np.array([p.value for p in ipopt.params.values()])
     np.testing.assert_allclose(b, a, rtol=0, atol=1e-9)
     assert ipopt.stages[0].cost_after == pytest.approx(linear.stages[0].cost_after, rel=1e-9)
 
@@ -226,4 +226,4 @@ def test_parameter_at_bound_is_reported(tmp_path) -> None:
     assert coordination.notes[0] == ("the closed-form estimate put cs.h outside its bounds; "
                                      "solved again with IPOPT, which respects them")
     assert "cs.h" in coordination.at_bound
-    assert result.params["cs.h"] == pytest.approx(49.5, abs=1e-6)
+    assert result.params["cs.h"].value == pytest.approx(49.5, abs=1e-6)

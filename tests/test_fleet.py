@@ -105,10 +105,10 @@ def test_each_unit_equals_its_local_solve(fleet, result) -> None:
     fleet_dir, _ = fleet
     for unit in (*GOOD, ODD):
         local = symcal.solve(PROBLEM, _local(fleet_dir, unit))
-        doc = result.units[unit]
-        assert doc["solver"]["success"] and local.success
+        doc = result.to_dict()["units"][unit]
+        assert doc["solver"]["success"] and local.success and result.results[unit].success
         got = {p["name"]: p for p in doc["parameters"]}
-        for p in local.parameters:
+        for p in local.params.values():
             assert abs(got[p.name]["value"] - p.value) <= 1e-12, (unit, p.name)
             if p.se is not None:
                 assert abs(got[p.name]["se"] - p.se) <= 1e-12 * max(1.0, p.se)
@@ -117,35 +117,33 @@ def test_each_unit_equals_its_local_solve(fleet, result) -> None:
         assert files["calibration"] == str(Path(_local(fleet_dir, unit)["calibration"])
                                            .resolve())
     # b_npz has no fly-by of its own: the problem's simulated one stands in
-    assert {d["name"]: d["file"] for d in result.units["b_npz"]["datasets"]}["flyby"] is None
+    assert {d.name: d.file for d in result.results["b_npz"].provenance}["flyby"] is None
 
 
 @pytest.mark.slow
 def test_units_recover_their_own_truth(result, fleet) -> None:
     _, truths = fleet
     for unit, k in truths.items():
-        params = {p["name"]: p for p in result.units[unit]["parameters"]}
+        params = result.results[unit].params
         for i in range(4):
             for j in range(1, 9):
                 p = params[f"s{i + 1}.k{j}"]
-                assert abs(p["value"] - k[i, j]) < 4 * p["se"], (unit, p["name"])
+                assert abs(p.value - k[i, j]) < 4 * p.se, (unit, p.name)
 
 
 @pytest.mark.slow
 def test_failed_units_have_their_reason_and_stop_nobody(result, fleet) -> None:
     fleet_dir, _ = fleet
     broken = fleet_dir / BROKEN / "calibration.csv"
-    assert result.units[BROKEN] == {
-        "error": f"{broken}:5: column 'p2': 'n/a' is not a number"}
-    assert result.units[TYPO] == {
-        "error": f"{fleet_dir / TYPO / 'calibraton.csv'}: the problem has no dataset "
-                 "'calibraton' (did you mean 'calibration'?); its datasets: calibration, "
-                 "flyby"}
-    assert result.failed == {u: result.units[u]["error"] for u in (BROKEN, TYPO)}
+    assert result.errors[BROKEN] == f"{broken}:5: column 'p2': 'n/a' is not a number"
+    assert result.errors[TYPO] == (
+        f"{fleet_dir / TYPO / 'calibraton.csv'}: the problem has no dataset "
+        "'calibraton' (did you mean 'calibration'?); its datasets: calibration, flyby")
+    assert result.to_dict()["units"][BROKEN] == {"error": result.errors[BROKEN]}
+    assert result.failed == {u: result.errors[u] for u in (BROKEN, TYPO)}
     assert not result.success
     assert result.summary["counts"] == {"units": 6, "solved": 4, "failed": 2, "outliers": 2}
-    with pytest.raises(KeyError, match="has no result"):
-        result.params(BROKEN)
+    assert BROKEN not in result.results and TYPO not in result.results
 
 
 @pytest.mark.slow
@@ -161,18 +159,17 @@ def test_outlier_units_are_named_with_their_reason(result) -> None:
     finding = next(f for f in result.outliers[ODD] if f["name"] == "s2.k1")
     # the score again, with numpy alone, from the units' documents
     solved = [*GOOD, ODD]
-    values = np.array([result.params(u)["s2.k1"] for u in solved])
-    ses = [next(p["se"] for p in result.units[u]["parameters"] if p["name"] == "s2.k1")
-           for u in solved]
+    values = np.array([result.results[u].params["s2.k1"].value for u in solved])
+    ses = [result.results[u].params["s2.k1"].se for u in solved]
     median = np.median(values)
     spread = max(MAD_TO_SIGMA * np.median(np.abs(values - median)), np.median(ses))
-    score = (result.params(ODD)["s2.k1"] - median) / spread
+    score = (result.results[ODD].params["s2.k1"].value - median) / spread
     assert finding["score"] == pytest.approx(score, rel=1e-12)
     assert score > OUTLIER_SCORE
     assert finding["reason"].startswith(f"parameter s2.k1 = {values[-1]:.4g} mm is ")
     dist = result.summary["parameters"]["s2.k1"]
     assert dist["median"] == pytest.approx(median, rel=1e-12)
-    assert dist["values"] == {u: result.params(u)["s2.k1"] for u in solved}
+    assert dist["values"] == {u: result.results[u].params["s2.k1"].value for u in solved}
 
 
 @pytest.mark.slow
@@ -205,7 +202,7 @@ def test_cli_json_shape_and_outputs(fleet, client, tmp_path, capsys) -> None:
     assert (out / "fleet.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "Outlier units" in (out / "fleet.txt").read_text()
     loaded = symcal.Result.load(out / "a_csv" / "result.json")
-    assert loaded.params == result_params(doc, "a_csv")
+    assert {n: p.value for n, p in loaded.params.items()} == result_params(doc, "a_csv")
     assert json.loads((out / BROKEN / "result.json").read_text()) == doc["units"][BROKEN]
 
 

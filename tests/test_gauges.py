@@ -42,7 +42,7 @@ def test_parameters_that_enter_only_through_a_sum_are_an_offset(tmp_path) -> Non
     assert offset.fix == "fix one of a, b"
     # the identifiability analysis names the same direction, and the sum is determined
     assert [c.text for c in result.identifiability.null_space] == ["a - b"]
-    assert result.params["a"] + result.params["b"] == pytest.approx(2.0, abs=1e-3)
+    assert result.params["a"].value + result.params["b"].value == pytest.approx(2.0, abs=1e-3)
 
 
 def test_a_weighted_homogeneity_is_a_scale_with_its_powers(tmp_path) -> None:
@@ -90,4 +90,4 @@ def test_an_exact_fit_is_no_gauge(tmp_path, line) -> None:
                                       noise=0.0))
     assert gauges == ()
     assert result.success and result.identifiability.rank == 2
-    assert result.params["a"] == pytest.approx(line(1.0) - line(0.0), abs=1e-9)
+    assert result.params["a"].value == pytest.approx(line(1.0) - line(0.0), abs=1e-9)

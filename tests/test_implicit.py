@@ -51,7 +51,7 @@ def test_implicit_platen_recovers_truth_where_explicit_is_biased(platen_pair) ->
     true = truth(scenario)["parameters"]
 
     def worst(result: symcal.Result) -> float:
-        return max(abs(p.value - true[p.name]) / p.se for p in result.parameters if p.se)
+        return max(abs(p.value - true[p.name]) / p.se for p in result.params.values() if p.se)
 
     assert worst(implicit) < 4
     assert worst(explicit) > 8  # biased by many standard errors
@@ -95,9 +95,9 @@ def test_explicit_and_implicit_agree_when_errors_are_tiny() -> None:
     data = _data(scenario, seed=22)
     explicit = symcal.solve(PROBLEMS / "platen_self_calibration.yaml", data)
     implicit = symcal.solve(PROBLEMS / "platen_self_calibration_implicit.yaml", data)
-    for p in explicit.parameters:
+    for p in explicit.params.values():
         if p.se is not None:
-            assert abs(implicit.params[p.name] - p.value) < 0.01 * p.se, p.name
+            assert abs(implicit.params[p.name].value - p.value) < 0.01 * p.se, p.name
 
 
 @pytest.fixture(scope="module")
@@ -126,8 +126,8 @@ def test_implicit_dual_removes_the_mounting_bias(dual_noiseless) -> None:
     true, explicit, implicit = dual_noiseless
     assert implicit.success
     for name in ("cs.h", "l_x", "l_y"):
-        assert abs(implicit.params[name] - true[name]) < 2 * UM, name
-    bias = {n: explicit.params[n] - true[n] for n in ("cs.h", "l_x", "l_y")}
+        assert abs(implicit.params[name].value - true[name]) < 2 * UM, name
+    bias = {n: explicit.params[n].value - true[n] for n in ("cs.h", "l_x", "l_y")}
     assert abs(bias["l_y"]) > 20 * UM and abs(bias["l_x"]) > 5 * UM, bias
     for cost in implicit.stages[-1].costs:  # noiseless: residuals vanish
         assert cost.rms_after < 0.01, cost

@@ -99,7 +99,7 @@ def _fitted(result: symcal.Result, case: str, scenario, seed: int
     uncalibrated theta_raw; but θ_raw - θ is a sum of the segments' modelled errors, which
     the fit compensates through their coefficients, so the coefficient of theta_raw is
     the gain itself (no errors-in-variables attenuation)."""
-    params = {p.name: p for p in result.parameters}
+    params = dict(result.params)
     if case == "harmonic":
         names = sorted((n for n in params if re.fullmatch(r"s[24]\.h3_(sin|cos)_[pu]", n)),
                        key=lambda n: "_cos_" in n)   # sin first, as Harmonic(n, sin, cos)
@@ -350,7 +350,7 @@ def test_improve_fixes_the_coordination_gain_and_ends_quiet(tmp_path) -> None:
         label for label, _ in result.aliased}
     final = result.rounds[-1].result
     _assert_dual_at_floor(final, scenario)
-    gain = next(p for p in final.parameters if p.name == "cs.lin_psi_y")
+    gain = next(p for p in final.params.values() if p.name == "cs.lin_psi_y")
     assert abs(gain.value - (-50.0 * 0.02)) < 3 * gain.se
 
 
@@ -420,7 +420,7 @@ def test_lateral_dependence_in_the_dual_problem_is_found_and_fixed(start, seed,
     final = result.rounds[-1].result
     _assert_dual_at_floor(final, scenario)
     lateral = scenario.platen.effects.lateral
-    params = {p.name: p for p in final.parameters}
+    params = dict(final.params)
     for i, other in enumerate(("s4", "s1", "s2", "s3")):
         true = lateral[i]
         for name, value in ((f"s{i + 1}.h1_sin_{other}_u", true.k9),

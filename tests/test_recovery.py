@@ -45,7 +45,7 @@ def test_every_identifiable_parameter_within_four_standard_errors(clean_result) 
     scenario, result = clean_result
     true = truth(scenario)["parameters"]
     checked = 0
-    for p in result.parameters:
+    for p in result.params.values():
         if p.se is not None:
             assert abs(p.value - true[p.name]) < 4 * p.se, (p.name, p.value, true[p.name], p.se)
             checked += 1

@@ -59,7 +59,7 @@ def test_save_load_round_trip(project, tmp_path) -> None:
 def test_value_agrees_with_an_independent_evaluation(project) -> None:
     result = _solve(project["problem"], project)
     fly = result.data["flyby"].columns
-    k = {n: v for n, v in result.params.items()}
+    k = {n: p.value for n, p in result.params.items()}
     rho = 1.016
 
     def p_hat(i: int) -> np.ndarray:

@@ -90,7 +90,7 @@ def test_each_loss_finds_scipys_minimum_on_a_nonlinear_fit(tmp_path: Path, loss:
     assert result.success, result.stages[-1].message
     expected = _scipy(lambda p: y - p[0] * np.exp(-p[1] * x) - p[2], [1.0, 1.0, 0.0], loss,
                       0.02)
-    np.testing.assert_allclose([result.params[n] for n in "akb"], expected, rtol=1e-7)
+    np.testing.assert_allclose([result.params[n].value for n in "akb"], expected, rtol=1e-7)
     assert sorted(o.row for o in result.outliers.listed) == [5, 17, 40]
 
 
@@ -112,7 +112,7 @@ def test_the_closed_form_and_ipopt_paths_find_scipys_minimum(tmp_path: Path, los
     # σ = 0.5 whitens the residual: scipy sees (y - a - b x)/0.5 with f_scale 1.2/0.5
     expected = _scipy(lambda p: (y - p[0] - p[1] * x) / 0.5, [0.0, 0.0], loss, 2.4)
     rtol = 1e-9 if method == "auto" else 1e-6
-    np.testing.assert_allclose([result.params["a"], result.params["b"]], expected, rtol=rtol)
+    np.testing.assert_allclose([result.params[n].value for n in "ab"], expected, rtol=rtol)
 
 
 def test_standard_errors_are_the_sandwich_with_the_final_weights(tmp_path: Path) -> None:
@@ -122,7 +122,7 @@ def test_standard_errors_are_the_sandwich_with_the_final_weights(tmp_path: Path)
     _write(tmp_path, x, y)
     (tmp_path / "fit.yaml").write_text(DECAY.format(loss="huber", scale=20, method="lm"))
     result = symcal.solve(tmp_path / "fit.yaml")
-    a, k, b = (result.params[n] for n in "akb")
+    a, k, b = (result.params[n].value for n in "akb")
     g = y - a * np.exp(-k * x) - b
     jac = np.column_stack([-np.exp(-k * x), a * x * np.exp(-k * x), -np.ones_like(x)])
     z = (g / 0.02) ** 2
@@ -131,7 +131,7 @@ def test_standard_errors_are_the_sandwich_with_the_final_weights(tmp_path: Path)
     psi = w * g
     s2 = float(psi @ psi) / (len(x) - 3)
     cov = bread @ (s2 * jac.T @ jac) @ bread
-    se = [p.se for p in result.parameters]
+    se = [p.se for p in result.params.values()]
     np.testing.assert_allclose(se, np.sqrt(np.diag(cov)), rtol=1e-6)
 
 
@@ -150,8 +150,8 @@ def test_robust_standard_errors_are_honest_over_repeated_draws(tmp_path: Path) -
         y[bad] += rng.choice([-1.0, 1.0], bad.sum()) * rng.uniform(5, 20, bad.sum())
         data = make_dataset("calibration", "drawn", {"x": x, "y": y}, ["x", "y"])
         result = symcal.solve(problem, {"calibration": data})
-        z += [(result.params["a"] - 0.4) / result.parameters[0].se,
-              (result.params["b"] - 1.7) / result.parameters[1].se]
+        z += [(result.params["a"].value - 0.4) / list(result.params.values())[0].se,
+              (result.params["b"].value - 1.7) / list(result.params.values())[1].se]
     assert 0.8 < float(np.std(z)) < 1.2, np.std(z)
 
 
@@ -198,7 +198,7 @@ def slips(tmp_path_factory):
 def _within(result: symcal.Result, scenario, limit: float) -> int:
     true = truth(scenario)["parameters"]
     checked = 0
-    for p in result.parameters:
+    for p in result.params.values():
         if p.se is not None:
             assert abs(p.value - true[p.name]) < limit * p.se, (p.name, p.value,
                                                                  true[p.name], p.se)

@@ -154,15 +154,16 @@ def test_a_model_in_m_and_deg_solves_to_the_same_physical_estimate(solved) -> No
     assert mm.success and m.success
     to_internal = {"L": 1e3, "enc.q0": math.pi / 180, "sx.x0": 1e3, "sy.x0": 1e3}
     for name, factor in to_internal.items():
-        assert m.params[name] * factor == pytest.approx(mm.params[name], rel=1e-9, abs=1e-12)
+        assert m.params[name].value * factor == pytest.approx(mm.params[name].value, rel=1e-9,
+                                                              abs=1e-12)
     # and both recover the truth within 3 standard errors (in internal units)
-    se = {p.name: p.se for p in mm.parameters}
+    se = {p.name: p.se for p in mm.params.values()}
     truth = {"L": TRUTH["L"], "enc.q0": TRUTH["q0"], "sx.x0": TRUTH["x0"],
              "sy.x0": TRUTH["y0"]}
     for name, value in truth.items():
-        assert abs(mm.params[name] - value) < 3 * se[name], name
+        assert abs(mm.params[name].value - value) < 3 * se[name], name
     # standard errors convert too
-    se_m = {p.name: p.se for p in m.parameters}
+    se_m = {p.name: p.se for p in m.params.values()}
     for name, factor in to_internal.items():
         assert se_m[name] * factor == pytest.approx(se[name], rel=1e-6)
 
@@ -183,7 +184,7 @@ def test_the_model_in_m_and_deg_is_reported_in_m_and_deg(solved) -> None:
     assert f"{std_m:.4g}" in row
     # parameters in their own units
     param = next(line for line in text.splitlines() if line.strip().startswith("enc.q0"))
-    assert param.split()[1] == f"{m.params['enc.q0']:.6g}" and param.split()[-1] == "deg"
+    assert param.split()[1] == f"{m.params['enc.q0'].value:.6g}" and param.split()[-1] == "deg"
 
 
 # --------------------------------------------------------------- dimension errors

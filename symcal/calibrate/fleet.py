@@ -199,29 +199,34 @@ def solve_unit(task: UnitTask) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class FleetResult:
-    """The result of a fleet.
+    """The result of a fleet: a :class:`~symcal.calibrate.result.Result` per unit that
+    was solved, the reason for each unit that could not be, and the summary.
 
     Attributes
     ----------
     problem
-        The problem file.
-    units
-        Unit name (sorted) → the unit's ``symcal solve --json`` document, or
-        ``{"error": MESSAGE}`` when it could not be solved.
-    reports
-        Unit name → the unit's text report (units that have a document).
+        The problem every unit was solved with.
+    results
+        Unit name (sorted) → its result (``success`` False for a failed solve).
+    errors
+        Unit name → why it has no result (bad data, a worker that died).
     summary
-        :func:`symcal.calibrate.fleet_summary.summarise` of ``units``: parameter distributions,
-        outliers and failures with their reasons.
+        :func:`symcal.calibrate.fleet_summary.summarise` of the units' documents:
+        parameter distributions, outliers and failures with their reasons.
     seconds
         Wall time of the whole fleet.
     """
 
-    problem: str
-    units: Mapping[str, Mapping[str, Any]]
-    reports: Mapping[str, str]
+    problem: Problem
+    results: Mapping[str, Result]
+    errors: Mapping[str, str]
     summary: Mapping[str, Any]
     seconds: float = 0.0
+
+    @property
+    def units(self) -> tuple[str, ...]:
+        """Every unit's name, sorted (those with a result and those without)."""
+        return tuple(sorted({*self.results, *self.errors}))
 
     @property
     def success(self) -> bool:
@@ -238,23 +243,12 @@ class FleetResult:
         """Outlier unit → its findings, each with its ``reason``."""
         return self.summary["outliers"]
 
-    def params(self, unit: str) -> dict[str, float]:
-        """The estimated parameters of ``unit`` by name.
-
-        Raises
-        ------
-        KeyError
-            An unknown unit, or one that has no result (its error is the message).
-        """
-        doc = self.units[unit]
-        if "error" in doc:
-            raise KeyError(f"unit '{unit}' has no result: {doc['error']}")
-        return {p["name"]: p["value"] for p in doc["parameters"]}
-
     def to_dict(self) -> dict[str, Any]:
         """``{"units": {UNIT: document or {"error": MESSAGE}}, "summary": {...}}``: what
         ``symcal solve --fleet DIR --json`` prints."""
-        return {"units": dict(self.units), "summary": dict(self.summary)}
+        units = {u: (self.results[u].to_dict() if u in self.results
+                     else {"error": self.errors[u]}) for u in self.units}
+        return {"units": units, "summary": dict(self.summary)}
 
 
 @contextlib.contextmanager
@@ -380,7 +374,7 @@ def solve_fleet(
     Returns
     -------
     FleetResult
-        Every unit's document or error, their text reports, and the summary.
+        Every unit's result or error, and the summary.
 
     Raises
     ------
@@ -403,13 +397,10 @@ def solve_fleet(
     units = find_units(problem, fleet)
     tasks = _tasks(problem, units, data, options, drop_invalid, report)
     docs: dict[str, Mapping[str, Any]] = {}
-    reports: dict[str, str] = {}
 
     def finish(unit: str, outcome: dict[str, Any]) -> None:
         doc = outcome["document"] if "document" in outcome else {"error": outcome["error"]}
         docs[unit] = doc
-        if "report" in outcome:
-            reports[unit] = outcome["report"]
         if on_unit is not None:
             on_unit(unit, doc, outcome.get("report"))
 
@@ -424,6 +415,8 @@ def solve_fleet(
             with fleet_client(scheduler, local) as client:
                 _run(client, tasks, bars, finish)
     ordered = {u.name: docs[u.name] for u in units}
-    return FleetResult(str(problem.path), ordered, {u: reports[u] for u in ordered
-                                                    if u in reports},
-                       summarise(ordered), time.perf_counter() - start)
+    results = {u: Result.from_document(doc, problem) for u, doc in ordered.items()
+               if "error" not in doc}
+    errors = {u: str(doc["error"]) for u, doc in ordered.items() if "error" in doc}
+    return FleetResult(problem, results, errors, summarise(ordered),
+                       time.perf_counter() - start)

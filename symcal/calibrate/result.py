@@ -12,7 +12,7 @@ import hashlib
 import json
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
@@ -45,7 +45,23 @@ REGRESSION_TOLERANCE = 0.2
 
 @dataclass(frozen=True)
 class ParameterResult:
-    """One parameter after the solve."""
+    """One parameter after the solve: value, standard error, unit, fixed, bounds and its
+    correlations with the other free parameters of the last stage (the lmfit-like view of
+    :attr:`Result.params`).
+
+    Attributes
+    ----------
+    value, initial
+        The estimate and the start, in ``unit``.
+    se
+        Standard error in ``unit``; None when it has none (``se_reason`` says why).
+    fixed
+        Fixed by the problem (never estimated).
+    lower, upper
+        Bounds (infinite when none).
+    correlations
+        Other free parameter → correlation coefficient (finite values only).
+    """
 
     name: str
     value: float
@@ -57,6 +73,7 @@ class ParameterResult:
     lower: float
     upper: float
     doc: str
+    correlations: Mapping[str, float] = field(default_factory=dict)
 
     @property
     def at_bound(self) -> str | None:
@@ -75,7 +92,8 @@ class ParameterResult:
         return {"name": self.name, "value": self.value, "initial": self.initial,
                 "unit": self.unit, "fixed": self.fixed, "se": self.se,
                 "se_reason": self.se_reason, "lower": bound(self.lower),
-                "upper": bound(self.upper), "at_bound": self.at_bound, "doc": self.doc}
+                "upper": bound(self.upper), "at_bound": self.at_bound, "doc": self.doc,
+                "correlations": dict(self.correlations)}
 
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any]) -> ParameterResult:
@@ -83,7 +101,8 @@ class ParameterResult:
         lower = -math.inf if doc.get("lower") is None else doc["lower"]
         upper = math.inf if doc.get("upper") is None else doc["upper"]
         return cls(doc["name"], doc["value"], doc["initial"], doc["unit"], doc["fixed"],
-                   doc["se"], doc["se_reason"], lower, upper, doc.get("doc", ""))
+                   doc["se"], doc["se_reason"], lower, upper, doc.get("doc", ""),
+                   dict(doc.get("correlations", {})))
 
 
 @dataclass(frozen=True)
@@ -266,8 +285,9 @@ def file_hashes(problem: Problem) -> dict[str, str]:
 class Result:
     """A calibration result.
 
-    Use ``.params`` for the estimated values by name, :func:`symcal.report.text.text_report`
-    for the table a person reads and ``.to_dict()`` for the machine-readable document
+    Use ``.params`` for the parameters by name (``result.params["s1.k1"].value``, ``.se``,
+    ``.unit``, ``.correlations``), :func:`symcal.text_report` for the table a person
+    reads and ``.to_dict()`` for the machine-readable document
     (``symcal solve --json``).  ``identifiability`` and ``uncertainty`` are those of the
     last stage; each stage's own are in ``stages``.  ``success`` is False when a stage
     failed (the estimate is then the failed stage's last iterate and later stages did not
@@ -280,9 +300,11 @@ class Result:
         The problem solved.
     theta0, theta
         The parameter vector at the start and the estimate, in ``problem.theta`` order.
+    params
+        Every parameter by name (:class:`ParameterResult`), in ``problem.theta`` order.
     data
         The datasets by name (loaded again from their files for a loaded result).
-    datasets
+    provenance
         What each dataset was: source, size, file and hash.
     """
 
@@ -290,11 +312,11 @@ class Result:
     theta0: np.ndarray
     theta: np.ndarray
     stages: tuple[StageResult, ...]
-    parameters: tuple[ParameterResult, ...]
+    params: Mapping[str, ParameterResult]
     identifiability: Identifiability
     uncertainty: Uncertainty
     statistics: tuple[SeriesStats, ...]
-    datasets: tuple[DatasetInfo, ...]
+    provenance: tuple[DatasetInfo, ...]
     notes: tuple[str, ...]
     implicit: tuple[ImplicitCheck, ...] = ()
     _data: Mapping[str, Dataset] | None = field(default=None, repr=False)
@@ -320,11 +342,6 @@ class Result:
         return "+".join(st.method for st in self.stages)
 
     @property
-    def params(self) -> MappingProxyType:
-        """Estimated parameter values by name (read-only)."""
-        return MappingProxyType({p.name: p.value for p in self.parameters})
-
-    @property
     def data(self) -> Mapping[str, Dataset]:
         """The datasets by name; for a loaded result, read again from their sources (and
         refused when a file changed since the solve)."""
@@ -336,22 +353,22 @@ class Result:
     def _reload(self) -> dict[str, Dataset]:
         from symcal.data.loading import load_datasets
 
-        files = {d.name: d.file for d in self.datasets if d.file is not None}
-        for info in self.datasets:
+        files = {d.name: d.file for d in self.provenance if d.file is not None}
+        for info in self.provenance:
             if info.file is not None and info.sha256 is not None:
                 if _sha256(Path(info.file)) != info.sha256:
                     raise SymcalError(f"dataset '{info.name}' ({info.file}) changed since the "
                                       "result was computed; solve again")
-        for info in self.datasets:
+        for info in self.provenance:
             spec = self.problem.datasets.get(info.name)
             if info.file is None and (spec is None or spec.source != info.source):
                 raise SymcalError(f"dataset '{info.name}' ({info.source}) was given as data in "
                                   "memory, not as a file: it cannot be read again; solve again "
                                   "with it")
         data = load_datasets(self.problem, files, drop_invalid=any(d.dropped
-                                                                   for d in self.datasets),
-                             names=[d.name for d in self.datasets])
-        for info in self.datasets:
+                                                                   for d in self.provenance),
+                             names=[d.name for d in self.provenance])
+        for info in self.provenance:
             if data[info.name].n != info.n:
                 raise SymcalError(f"dataset '{info.name}' ({info.source}) has "
                                   f"{data[info.name].n} observations now, {info.n} when the "
@@ -425,8 +442,8 @@ class Result:
             "solver": {"method": self.method, "success": self.success,
                        "seconds": sum(st.seconds for st in self.stages)},
             "stages": [st.to_dict() for st in self.stages],
-            "datasets": [d.__dict__ for d in self.datasets],
-            "parameters": [p.to_dict() for p in self.parameters],
+            "datasets": [d.__dict__ for d in self.provenance],
+            "parameters": [p.to_dict() for p in self.params.values()],
             "identifiability": self.identifiability.to_dict(),
             "uncertainty": self.uncertainty.to_dict(),
             "statistics": [s.to_dict() for s in self.statistics],
@@ -461,6 +478,29 @@ class Result:
             problem, or changed problem or model files.
         """
         doc, label = read_result_document(path)
+        return cls.from_document(doc, problem, label)
+
+    @classmethod
+    def from_document(cls, doc: Mapping[str, Any], problem: Problem | None = None,
+                      label: str = "the result") -> Result:
+        """The result a document of :meth:`to_dict` describes (what :meth:`load` reads).
+
+        Parameters
+        ----------
+        doc
+            The document (``symcal solve --json``).
+        problem
+            The problem it is for (default: load the file it names); refused as in
+            :meth:`load`.
+        label
+            How to name the document in messages.
+
+        Raises
+        ------
+        SymcalError
+            As :meth:`load`.
+        """
+        doc, label = read_result_document(doc) if label == "the result" else (doc, label)
         if problem is None:
             from symcal.problem.build import load_problem
 
@@ -473,12 +513,17 @@ class Result:
         theta0 = np.array([_value_of(doc, label, p.name, "initial") for p in problem.parameters])
         return cls(problem, theta0, theta,
                    tuple(StageResult.from_dict(s) for s in doc["stages"]),
-                   tuple(ParameterResult.from_dict(p) for p in doc["parameters"]),
+                   parameter_table(ParameterResult.from_dict(p) for p in doc["parameters"]),
                    Identifiability.from_dict(doc["identifiability"]),
                    Uncertainty.from_dict(doc["uncertainty"]),
                    tuple(SeriesStats.from_dict(s) for s in doc["statistics"]),
                    tuple(DatasetInfo(**d) for d in doc["datasets"]), tuple(doc["notes"]),
                    tuple(ImplicitCheck.from_dict(c) for c in doc.get("implicit", [])))
+
+
+def parameter_table(entries: Iterable[ParameterResult]) -> Mapping[str, ParameterResult]:
+    """Parameters by name, in the given order (read-only)."""
+    return MappingProxyType({p.name: p for p in entries})
 
 
 def _sha256(path: Path) -> str | None:

@@ -11,7 +11,7 @@ import numpy as np
 
 from symcal.analysis.fit import series_statistics
 from symcal.analysis.gauges import find_gauges
-from symcal.analysis.identifiability import analyse, conditioning
+from symcal.analysis.identifiability import Uncertainty, analyse, conditioning
 from symcal.analysis.implicit import implicit_checks
 from symcal.analysis.outliers import Outliers, find_outliers
 from symcal.base.didyoumean import did_you_mean
@@ -24,6 +24,7 @@ from symcal.calibrate.result import (
     ParameterResult,
     Result,
     StageResult,
+    parameter_table,
 )
 from symcal.data.dataset import Dataset
 from symcal.data.loading import load_datasets
@@ -343,12 +344,12 @@ def _result(problem: Problem, datasets: dict[str, Dataset],
             given: Mapping[str, Dataset | str | Path], theta0: np.ndarray,
             theta: np.ndarray, stages: tuple[StageResult, ...]) -> Result:
     last = stages[-1]
-    params = tuple(
+    params = parameter_table(
         ParameterResult(p.name, float(theta[i]), float(theta0[i]), p.unit, p.fixed,
                         last.uncertainty.se.get(p.name),
                         last.uncertainty.reason.get(p.name, _no_se_reason(p.name, p.fixed,
                                                                           last)),
-                        p.lower, p.upper, p.doc)
+                        p.lower, p.upper, p.doc, correlations(last.uncertainty, p.name))
         for i, p in enumerate(problem.parameters)
     )
     stats, skipped = series_statistics(problem, datasets, theta0, theta)
@@ -362,6 +363,15 @@ def _result(problem: Problem, datasets: dict[str, Dataset],
                   for d in datasets.values())
     return Result(problem, theta0, theta, stages, params, last.identifiability,
                   last.uncertainty, stats, infos, tuple(notes), checks, datasets)
+
+
+def correlations(unc: Uncertainty, name: str) -> dict[str, float]:
+    """``name``'s finite correlations with the other free parameters of a stage."""
+    if name not in unc.names:
+        return {}
+    row = unc.correlation[unc.names.index(name)]
+    return {other: float(v) for other, v in zip(unc.names, row, strict=True)
+            if other != name and np.isfinite(v)}
 
 
 def _no_se_reason(name: str, fixed: bool, last: StageResult) -> str | None:

@@ -71,7 +71,7 @@ def noise_floors(result: Result) -> dict[tuple[str, str], float]:
     names = {s.name for s in result.statistics}
     by_scenario: dict[str, dict[str, float]] = {}
     out: dict[tuple[str, str], float] = {}
-    for info in result.datasets:
+    for info in result.provenance:
         spec = result.problem.datasets.get(info.name)
         if (spec is None or spec.scenario is None or info.file is not None
                 or info.source != spec.source):
@@ -337,7 +337,7 @@ def _identifiability_lines(result: Result) -> list[str]:
         lines += [f"    {c.text}" for c in ident.null_space]
     if ident.identifiable_combinations:
         lines.append("  determined only in combination:")
-        units = {p.name: p.unit for p in result.parameters}
+        units = {p.name: p.unit for p in result.params.values()}
         for c in ident.identifiable_combinations:
             unit = {units[n] for n in c.coefficients}
             shown = f" {symbol(unit.pop())}" if len(unit) == 1 else ""
@@ -362,7 +362,7 @@ def _correlation_lines(result: Result, limit: float = 0.99, most: int = 8) -> li
 
 def _parameter_lines(result: Result) -> list[str]:
     rows = [["parameter", "value", "± se", "initial", "unit", "note"]]
-    for p in result.parameters:
+    for p in result.params.values():
         note = "fixed" if p.fixed else ""
         if not p.fixed and p.se is None:
             note = "only in combination" if "combination" in (p.se_reason or "") else (
@@ -398,7 +398,7 @@ def text_report(result: Result) -> str:
     lines += ["", "Data"]
     lines += _table([[d.name, f"{d.n} observations", d.source
                       + (f" ({d.dropped} invalid rows dropped)" if d.dropped else "")]
-                     for d in result.datasets], "lrl")
+                     for d in result.provenance], "lrl")
     lines += ["", "Stages (each starts from the previous estimate)"]
     lines += _stage_lines(result)
     lines += ["", f"Identifiability (last stage, '{result.stages[-1].name}')"]
@@ -787,7 +787,7 @@ def design_report(design: Design, result: Result | None = None) -> str:
     head = ["parameter", "unit", "SE given motion"] + (["SE designed"] if optimised else [])
     head += ["SE of --result"] if result is not None else []
     rows = [head]
-    reported = {} if result is None else {p.name: p.se for p in result.parameters}
+    reported = {} if result is None else {p.name: p.se for p in result.params.values()}
     for name, se in base.se.items():
         row = [name, symbol(base.units.get(name, "")), _se_text(se)]
         if optimised:

@@ -137,7 +137,7 @@ class Diagnosis:
         ranked = list(self.leads)
         return {
             "problem": self.result.name, "alpha": self.alpha, "tested": self.tested,
-            "datasets": [{"name": d.name, "n": d.n} for d in self.result.datasets],
+            "datasets": [{"name": d.name, "n": d.n} for d in self.result.provenance],
             "residuals": [v.to_dict(series) for v in self.residuals],
             "candidates": [
                 {"rank": i + 1, "label": c.label, "output": c.output,

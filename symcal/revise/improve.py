@@ -131,8 +131,8 @@ def _pays(new: Result, old: Result) -> str | None:
 def _inflated(new: Result, old: Result) -> str | None:
     """Why the new terms are nearly aliased with parameters already there (a standard
     error grows more than :data:`INFLATION` times), or None."""
-    before = {p.name: p.se for p in old.parameters if p.se}
-    worst = max(((p.se / before[p.name], p.name) for p in new.parameters
+    before = {p.name: p.se for p in old.params.values() if p.se}
+    worst = max(((p.se / before[p.name], p.name) for p in new.params.values()
                  if p.se and p.name in before), default=None)
     if worst is not None and worst[0] > INFLATION:
         return (f"it is nearly aliased with the parameters already there: the standard "

@@ -50,10 +50,6 @@ def make_fleet(folder: Path, units: int, n: int) -> Path:
     return folder
 
 
-def _params(doc: dict[str, Any]) -> dict[str, float]:
-    return {p["name"]: p["value"] for p in doc["parameters"]}
-
-
 def child(job: dict[str, Any]) -> dict[str, Any]:
     """``job["how"]`` is ``"loop"`` (``symcal.solve`` unit by unit, estimates saved to
     ``job["estimates"]``) or ``"fleet"`` (``symcal.solve_fleet`` with ``job["workers"]``
@@ -71,7 +67,7 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
         for unit in units:
             files = {p.stem: str(p) for p in unit.iterdir()}
             result = symcal.solve(problem, files)
-            estimates[unit.name] = dict(result.params)
+            estimates[unit.name] = {n: p.value for n, p in result.params.items()}
             failed += not result.success
         seconds = time.perf_counter() - t0
         Path(job["estimates"]).write_text(json.dumps(estimates))
@@ -81,10 +77,9 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     seconds = time.perf_counter() - t0
     reference = json.loads(Path(job["estimates"]).read_text())
     worst = 0.0
-    for unit, doc in fleet.units.items():
-        if "error" not in doc:
-            got = _params(dict(doc))
-            worst = max(worst, max(abs(got[k] - v) for k, v in reference[unit].items()))
+    for unit, res in fleet.results.items():
+        got = {n: p.value for n, p in res.params.items()}
+        worst = max(worst, max(abs(got[k] - v) for k, v in reference[unit].items()))
     return {"seconds": seconds, "import": imported, "units": len(fleet.units),
             "failed": len(fleet.failed), "max_diff": worst, "peak_mib": peak_rss_mib()}
 
