@@ -105,8 +105,12 @@ def test_valid_files_load(tmp_path: Path, monkeypatch) -> None:
     (MODEL, PROBLEM.replace("s2: {model: seg.yaml", "s2: {model: segg.yaml"),
      "prob.yaml:6: instances.s2.model: model file not found: segg.yaml"),
     (MODEL, PROBLEM.replace("calibration:", "validation:"),
-     "prob.yaml:11: datasets: a problem needs a dataset named 'calibration' (the data it is "
-     "solved on)"),
+     "prob.yaml:11: datasets: a problem needs a dataset to fit (the data it is solved on): "
+     "one named 'calibration', or one with 'role: fit'"),
+    (MODEL, PROBLEM.replace("calibration:", "validation:").replace(
+        "{path: data.csv}", "{path: data.csv, role: fitt}"),
+     "prob.yaml:12: datasets.validation.role: unknown role 'fitt' (did you mean 'fit'?); "
+     "choose from: fit, check"),
     (MODEL, PROBLEM.replace("{path: data.csv}", "{}"),
      "prob.yaml:12: datasets.calibration: a dataset needs exactly one of 'path' (a CSV or "
      "NPZ file) or 'simulate' (a scenario file)"),

@@ -207,7 +207,7 @@ def solve_partitioned(
     if isinstance(calibration, ShardedDataset | Dataset):
         data = calibration
     else:
-        data = open_shards("calibration", calibration, needed_columns(problem))
+        data = open_shards(problem.fit_dataset, calibration, needed_columns(problem))
     if data.n == 0:
         raise DataError(f"{data.source}: no observations")
     theta0 = np.array([p.value for p in problem.parameters], dtype=float)

@@ -408,17 +408,19 @@ class Result:
         return (self.rows * float(np.log(self.rss / self.rows))
                 + self.identifiability.rank * float(np.log(self.rows)))
 
-    def stat(self, name: str, dataset: str = "calibration") -> SeriesStats:
-        """The statistics of constraint or comparison ``name`` on ``dataset``."""
+    def stat(self, name: str, dataset: str | None = None) -> SeriesStats:
+        """The statistics of constraint or comparison ``name`` on ``dataset`` (default:
+        the fitted one)."""
+        dataset = dataset or self.problem.fit_dataset
         for s in self.statistics:
             if s.name == name and s.dataset == dataset:
                 return s
         raise KeyError(f"no statistics for '{name}' on dataset '{dataset}'")
 
-    def value(self, name: str, dataset: str = "calibration") -> np.ndarray:
+    def value(self, name: str, dataset: str | None = None) -> np.ndarray:
         """A named constraint, expression, sensor signal or comparison (estimate minus
-        reference) evaluated at the estimate on every observation of ``dataset``, in
-        internal units.
+        reference) evaluated at the estimate on every observation of ``dataset`` (default:
+        the fitted one), in internal units.
 
         Raises
         ------
@@ -426,6 +428,7 @@ class Result:
             An unknown quantity or dataset, naming the ones there are.
         """
         sx = self.problem.quantity(name)
+        dataset = dataset or self.problem.fit_dataset
         if dataset not in self.data:
             raise KeyError(f"no dataset '{dataset}'; datasets: {', '.join(self.data)}")
         ds = self.data[dataset]

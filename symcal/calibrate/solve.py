@@ -309,7 +309,7 @@ def solve(
     theta = theta0
     stages: list[StageResult] = []
     for stage in problem.stages:
-        theta, result = run_stage(problem, stage, datasets["calibration"], theta, options,
+        theta, result = run_stage(problem, stage, datasets[problem.fit_dataset], theta, options,
                                   progress)
         stages.append(result)
         if not result.success:

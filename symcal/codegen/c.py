@@ -830,7 +830,8 @@ def _sample(p: Plan) -> tuple[list[float], str]:
     if not p.inputs:
         return [], "without inputs"
     try:
-        data = load_datasets(p.problem, names=["calibration"])["calibration"]
+        fit = p.problem.fit_dataset
+        data = load_datasets(p.problem, names=[fit])[fit]
     except SymcalError as exc:
         return [0.0] * len(p.inputs), f"zeros (the calibration dataset cannot be read: {exc})"
     if data.n == 0:
@@ -838,7 +839,7 @@ def _sample(p: Plan) -> tuple[list[float], str]:
     row = data.matrix([c.name for c in p.inputs])[:, 0]
     values = [float(v) if math.isfinite(v) else 0.0 for v in row]
     missing = [c.name for c, v in zip(p.inputs, row, strict=True) if not math.isfinite(v)]
-    note = f"the first row of dataset 'calibration' ({data.source})"
+    note = f"the first row of dataset '{fit}' ({data.source})"
     if missing:
         note += f", with 0 for {', '.join(missing)} (not in it)"
     return values, note

@@ -126,15 +126,15 @@ def quiet(scenario: Scenario) -> Scenario:
 
 
 def design_run(problem: Problem, scenario: Scenario) -> str:
-    """The run whose motion is the calibration data: the one the scenario's ``design``
-    section names, else the one the problem's ``calibration`` dataset simulates, else
-    ``calibration``."""
+    """The run whose motion is the fitted data: the one the scenario's ``design`` section
+    names, else the one the problem's fitted dataset simulates, else the run of that
+    dataset's name."""
     if scenario.design is not None:
         return scenario.design.run
-    spec = problem.datasets.get("calibration")
+    spec = problem.datasets.get(problem.fit_dataset)
     if spec is not None and getattr(spec, "run", None):
         return str(spec.run)
-    return "calibration"
+    return problem.fit_dataset
 
 
 def last_stage(problem: Problem) -> tuple[Stage, np.ndarray]:
@@ -255,7 +255,7 @@ def covariance_of(objective: Objective, data: Dataset, theta: np.ndarray, cov: n
 def noiseless_data(problem: Problem, scenario: Scenario, run: str, seed: int) -> Dataset:
     """The run simulated without noise, as the calibration dataset."""
     columns = simulate_run(quiet(scenario), run, seed=seed)
-    return make_dataset("calibration", f"{scenario.name} run '{run}' without noise",
+    return make_dataset(problem.fit_dataset, f"{scenario.name} run '{run}' without noise",
                         columns, needed_columns(problem))
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +54,14 @@ WEIGHTINGS = ("equal", "estimated")
 #: What a column may be declared as (``role:``): the time of an observation, or a raw
 #: position reading along which residuals are plotted.
 ROLES = ("time", "axis")
+
+
+#: A dataset's roles: the data a problem is fitted on, and data held out to check it.
+FIT, CHECK = "fit", "check"
+ROLES = (FIT, CHECK)
+#: The one place the name is written: a dataset of this name is the one fitted unless a
+#: dataset declares ``role: fit``.
+DEFAULT_FIT = "calibration"
 
 
 @dataclass(frozen=True)
@@ -112,7 +120,9 @@ class ComparisonSpec:
 
 @dataclass(frozen=True)
 class DatasetSpec:
-    """Where a named dataset comes from: a CSV/NPZ file or a simulated scenario run."""
+    """Where a named dataset comes from (a CSV/NPZ file or a simulated scenario run) and
+    its role: ``fit`` (the data the problem is solved on: one per problem) or ``check``
+    (held out: evaluated at the estimate, never fitted)."""
 
     name: str
     path: Path | None
@@ -122,6 +132,7 @@ class DatasetSpec:
     n: int | None
     doc: str
     where: Where
+    role: str = "check"
 
     @property
     def source(self) -> str:
@@ -288,7 +299,11 @@ def _parse_comparison(name: str, value: Any, where: Where) -> ComparisonSpec:
 
 def _parse_dataset(name: str, value: Any, where: Where, base: Path) -> DatasetSpec:
     expect_name(name, where, "a dataset's name")
-    entry = check_keys(value, where, optional=["path", "simulate", "run", "seed", "n", "doc"])
+    entry = check_keys(value, where,
+                       optional=["path", "simulate", "run", "seed", "n", "role", "doc"])
+    role = ""                                   # not declared: resolved with the others
+    if "role" in entry:
+        role = expect_choice(entry["role"], child_where(entry, where, "role"), ROLES, "role")
     has_path, has_sim = "path" in entry, "simulate" in entry
     if has_path == has_sim:
         raise SpecError(where, "a dataset needs exactly one of 'path' (a CSV or NPZ file) "
@@ -299,7 +314,7 @@ def _parse_dataset(name: str, value: Any, where: Where, base: Path) -> DatasetSp
                 raise SpecError(child_where(entry, where, key),
                                 f"'{key}' only applies to simulated datasets")
         path = _relative(base, entry["path"], child_where(entry, where, "path"))
-        return DatasetSpec(name, path, None, None, 0, None, _doc(entry, where), where)
+        return DatasetSpec(name, path, None, None, 0, None, _doc(entry, where), where, role)
     scenario = _relative(base, entry["simulate"], child_where(entry, where, "simulate"))
     run = (expect_name(entry["run"], child_where(entry, where, "run"), "a run name")
            if "run" in entry else name)
@@ -307,7 +322,21 @@ def _parse_dataset(name: str, value: Any, where: Where, base: Path) -> DatasetSp
             if "seed" in entry else 0)
     n = (expect_int(entry["n"], child_where(entry, where, "n"), 1, MAX_SAMPLES)
          if "n" in entry else None)
-    return DatasetSpec(name, None, scenario, run, seed, n, _doc(entry, where), where)
+    return DatasetSpec(name, None, scenario, run, seed, n, _doc(entry, where), where, role)
+
+
+def _resolve_roles(datasets: dict[str, DatasetSpec]) -> dict[str, DatasetSpec]:
+    """Datasets with their roles: a declared role as declared; without one, the dataset
+    named :data:`DEFAULT_FIT` is fitted when no dataset declares ``role: fit``, and every
+    other is held out."""
+    declared_fit = any(d.role == FIT for d in datasets.values())
+
+    def role(d: DatasetSpec) -> str:
+        if d.role:
+            return d.role
+        return FIT if d.name == DEFAULT_FIT and not declared_fit else CHECK
+
+    return {k: replace(d, role=role(d)) for k, d in datasets.items()}
 
 
 def _parse_stage(index: int, value: Any, where: Where, constraints: dict) -> StageSpec:
@@ -435,9 +464,16 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
     for key, at in (("constraints", constraints), ("datasets", datasets)):
         if not at:
             raise SpecError(child_where(doc, where, key), f"'{key}' must not be empty")
-    if "calibration" not in datasets:
+    datasets = _resolve_roles(datasets)
+    fit = [d for d in datasets.values() if d.role == FIT]
+    if not fit:
         raise SpecError(child_where(doc, where, "datasets"),
-                        "a problem needs a dataset named 'calibration' (the data it is solved on)")
+                        f"a problem needs a dataset to fit (the data it is solved on): one "
+                        f"named '{DEFAULT_FIT}', or one with 'role: {FIT}'")
+    if len(fit) > 1:
+        raise SpecError(fit[1].where, f"datasets '{fit[0].name}' and '{fit[1].name}' both "
+                                      f"have role '{FIT}'; a problem is fitted on one dataset "
+                                      f"(give the others 'role: {CHECK}')")
     for comp in comparisons.values():
         for ds in comp.datasets or ():
             if ds not in datasets:

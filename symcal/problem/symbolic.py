@@ -194,6 +194,12 @@ class Problem:
         return self.study.datasets
 
     @property
+    def fit_dataset(self) -> str:
+        """The name of the dataset the problem is fitted on (``role: fit``); every other
+        dataset is held out to check the fit."""
+        return next(d.name for d in self.study.datasets.values() if d.role == "fit")
+
+    @property
     def stages(self) -> tuple[Stage, ...]:
         """The ordered steps of the calibration (``study.stages``)."""
         return self.study.stages

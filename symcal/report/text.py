@@ -574,7 +574,7 @@ def design_pointer(result: Result) -> list[str]:
     near = result.stages[-1].conditioning_after.near_null
     if not near:
         return []
-    spec = result.problem.datasets.get("calibration")
+    spec = result.problem.datasets.get(result.problem.fit_dataset)
     scenario = getattr(spec, "scenario", None) if spec is not None else None
     where = f"--scenario {_shown(scenario)}" if scenario else "--scenario SCENARIO.yaml"
     return [f"poorly determined by this motion: {near[0][0].text} (singular value "

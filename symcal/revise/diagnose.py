@@ -489,7 +489,7 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
     if result.outliers is not None and result.outliers.dominate:
         # outliers first: F-tests for missing effects mean nothing while they dominate
         return Diagnosis(result, tuple(_views(blocks)), (), {}, alpha, 0)
-    cal = list(data).index("calibration")
+    cal = list(data).index(result.problem.fit_dataset)
     own_names = [c.name for c in result.stages[-1].costs]
     own_cols = [blocks[cal].names.index(n) for n in own_names]
     own_blocks = [_subset(blocks[cal], own_cols)]
@@ -542,7 +542,7 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
 def _library_regressors(hp: Problem, blocks: list[_Block], keep: set[str]
                         ) -> list[tuple[Candidate, Raw]]:
     """Every (sensor output × shape) candidate with its unwhitened regressor per block."""
-    cal = next(i for i, b in enumerate(blocks) if b.dataset.name == "calibration")
+    cal = next(i for i, b in enumerate(blocks) if b.dataset.name == hp.fit_dataset)
     shapes = _library([v for v in blocks[cal].variables if v.name in keep])
     out: list[tuple[Candidate, Raw]] = []
     for h, output in enumerate(hp.hooks):

@@ -88,11 +88,12 @@ class Improvement:
 
 def held_out_change(new: Result, old: Result, kind: str | None = None) -> float:
     """Mean log ratio of the residual spreads on the held-out datasets (every dataset but
-    ``calibration``; only residuals of ``kind`` when given), new over old: negative when
+    the fitted one; only residuals of ``kind`` when given), new over old: negative when
     the new model predicts them better; 0 when there is none."""
     ratios = []
+    fit = new.problem.fit_dataset
     for s in new.statistics:
-        if s.dataset == "calibration" or (kind is not None and s.kind != kind):
+        if s.dataset == fit or (kind is not None and s.kind != kind):
             continue
         try:
             before = old.stat(s.name, s.dataset).after.std
@@ -120,7 +121,7 @@ def _pays(new: Result, old: Result) -> str | None:
     if inflated:
         return inflated
     for s in new.statistics:
-        if s.dataset != "calibration" and s.kind == "comparison":
+        if s.dataset != new.problem.fit_dataset and s.kind == "comparison":
             before = _spread(old, s.name, s.dataset)
             if before and s.after.std > (1 + WORSE) * before:
                 return (f"{s.dataset} {s.name} against the reference gets worse "
