@@ -38,8 +38,8 @@ import scipy.optimize
 
 import symcal
 from symcal.base.numeric import mapped
+from symcal.base.options import SolveOptions
 from symcal.data.loading import load_datasets
-from symcal.language.options import SolveOptions
 from symcal.solvers.objective import Objective
 
 NIST = Path(__file__).resolve().parent.parent / "tests" / "nist"

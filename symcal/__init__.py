@@ -30,13 +30,14 @@ _LAZY = {
     "solve": "symcal.calibrate.solve", "Dataset": "symcal.data.dataset",
     "read_table": "symcal.data.dataset",
     "load_datasets": "symcal.data.loading", "FleetResult": "symcal.calibrate.fleet",
-    "solve_fleet": "symcal.calibrate.fleet", "SolveOptions": "symcal.language.options",
+    "solve_fleet": "symcal.calibrate.fleet", "SolveOptions": "symcal.base.options",
     "Problem": "symcal.problem.symbolic", "load_problem": "symcal.problem.build",
     "text_report": "symcal.report.text", "Result": "symcal.calibrate.result",
     "solve_partitioned": "symcal.calibrate.partitioned", "open_shards": "symcal.data.shards",
 }
 
 if _TYPE_CHECKING:
+    from symcal.base.options import SolveOptions
     from symcal.calibrate.fleet import FleetResult, solve_fleet
     from symcal.calibrate.partitioned import solve_partitioned
     from symcal.calibrate.result import Result
@@ -44,7 +45,6 @@ if _TYPE_CHECKING:
     from symcal.data.dataset import Dataset, read_table
     from symcal.data.loading import load_datasets
     from symcal.data.shards import open_shards
-    from symcal.language.options import SolveOptions
     from symcal.problem.build import load_problem
     from symcal.problem.symbolic import Problem
     from symcal.report.text import text_report

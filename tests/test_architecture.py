@@ -115,3 +115,12 @@ def test_the_architecture_document_lists_every_module() -> None:
     missing = [name for name, path in _modules().items() if path.name != "__init__.py"
                and f"`{path.relative_to(ROOT / 'symcal')}`" not in text]
     assert missing == []
+
+
+def test_solvers_never_read_yaml() -> None:
+    """Solvers read SolveOptions (base/options.py), never the YAML language."""
+    modules = _modules()
+    wrong = [f"{name} imports {dep}" for name, path in modules.items()
+             if _package(name) == "symcal.solvers"
+             for dep in _imports(path, modules) if _package(dep) == "symcal.language"]
+    assert wrong == []

@@ -27,7 +27,7 @@ import pytest
 from conftest import ROOT
 
 import symcal
-from symcal.language.options import SolveOptions
+from symcal.base.options import SolveOptions
 
 NIST = ROOT / "tests" / "nist"
 CERTIFIED: dict[str, dict] = json.loads((NIST / "certified.json").read_text())

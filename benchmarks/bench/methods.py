@@ -51,9 +51,9 @@ def symcal_solver(problem: str, cols: Columns, method: str = "auto") -> Method:
     """symcal's default path for the single stage: ``Objective`` and the method choice of
     ``solve()`` (``symcal.solvers.stage``: closed form when linear, else ``lm``), or the
     method given (``ipopt``: the IPOPT row)."""
+    from symcal.base.options import SolveOptions
     from symcal.data.dataset import make_dataset
     from symcal.data.loading import needed_columns
-    from symcal.language.options import SolveOptions
     from symcal.solvers.instrument import counting
     from symcal.solvers.objective import Objective
     from symcal.solvers.stage import solve_stage

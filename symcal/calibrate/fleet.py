@@ -30,11 +30,11 @@ from typing import TYPE_CHECKING, Any
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, SymcalError, excerpt
 from symcal.base.files import display_path, json_text
+from symcal.base.options import SolveOptions
 from symcal.base.progress import Bars, meter
 from symcal.calibrate.fleet_summary import failure_reason, summarise
 from symcal.calibrate.result import Result, file_hashes
 from symcal.calibrate.solve import solve
-from symcal.language.options import SolveOptions
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
 from symcal.solvers.executor import usable_cores

@@ -29,11 +29,11 @@ import numpy as np
 from symcal.analysis.identifiability import analyse
 from symcal.base.errors import DataError, SolveError
 from symcal.base.linalg import is_singular, numerical_rank, whitening
+from symcal.base.options import SolveOptions
 from symcal.base.progress import Bars, Meter, meter
 from symcal.data.dataset import Dataset
 from symcal.data.loading import needed_columns
 from symcal.data.shards import ShardedDataset, open_shards
-from symcal.language.options import SolveOptions
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem, Stage
 from symcal.solvers.base import SolverOutput

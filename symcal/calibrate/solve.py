@@ -17,6 +17,7 @@ from symcal.analysis.outliers import Outliers, find_outliers
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, SolveError, SymcalError
 from symcal.base.linalg import is_singular, numerical_rank, sqrt_psd, whitening
+from symcal.base.options import METHODS, SolveOptions
 from symcal.base.units import DISPLAY_UNITS
 from symcal.calibrate.result import (
     ConstraintCost,
@@ -28,7 +29,6 @@ from symcal.calibrate.result import (
 )
 from symcal.data.dataset import Dataset
 from symcal.data.loading import load_datasets
-from symcal.language.options import METHODS, SolveOptions
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem, Stage
 from symcal.solvers.base import SolverOutput
@@ -280,7 +280,7 @@ def solve(
         Datasets by name, as :class:`~symcal.data.dataset.Dataset` objects or file paths; those not
         given come from the problem's ``datasets`` section.
     options
-        How to solve (:class:`~symcal.language.options.SolveOptions`: method, iteration
+        How to solve (:class:`~symcal.base.options.SolveOptions`: method, iteration
         limit, IPOPT options); default: the problem file's ``solver:`` section.
     drop_invalid
         Drop rows with NaN/inf instead of refusing them.

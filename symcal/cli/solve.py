@@ -60,8 +60,8 @@ def run(args: argparse.Namespace) -> int:
     printed before they are written, so a failed write never loses them.
     """
     from symcal.base.files import check_outputs
+    from symcal.base.options import MAX_ITER_LIMIT
     from symcal.calibrate.solve import solve
-    from symcal.language.options import MAX_ITER_LIMIT
     from symcal.problem.build import load_problem
     from symcal.report.text import json_report, text_report
 

@@ -9,6 +9,7 @@ from typing import Any
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SpecError, Where, excerpt
 from symcal.base.files import input_refusal
+from symcal.base.options import METHODS, SolveOptions
 from symcal.language import expr
 from symcal.language.common import (
     ConstantSpec,
@@ -44,8 +45,8 @@ from symcal.language.model_file import (
     load_model,
     parse_implicit,
 )
-from symcal.language.options import METHODS, SolveOptions, parse_solver
 from symcal.language.overlay import extends_chain, load_with_extends, merge_problem
+from symcal.language.solver import parse_solver
 from symcal.language.yamlio import MAX_BYTES, YMap, display_path
 
 PROBLEM_KEYS = ["doc", "extends", "constants", "parameters", "columns", "expressions",
@@ -58,7 +59,7 @@ ROLES = ("time", "axis")
 
 #: A dataset's roles: the data a problem is fitted on, and data held out to check it.
 FIT, CHECK = "fit", "check"
-ROLES = (FIT, CHECK)
+DATASET_ROLES = (FIT, CHECK)
 #: The one place the name is written: a dataset of this name is the one fitted unless a
 #: dataset declares ``role: fit``.
 DEFAULT_FIT = "calibration"
@@ -303,7 +304,8 @@ def _parse_dataset(name: str, value: Any, where: Where, base: Path) -> DatasetSp
                        optional=["path", "simulate", "run", "seed", "n", "role", "doc"])
     role = ""                                   # not declared: resolved with the others
     if "role" in entry:
-        role = expect_choice(entry["role"], child_where(entry, where, "role"), ROLES, "role")
+        role = expect_choice(entry["role"], child_where(entry, where, "role"), DATASET_ROLES,
+                             "role")
     has_path, has_sim = "path" in entry, "simulate" in entry
     if has_path == has_sim:
         raise SpecError(where, "a dataset needs exactly one of 'path' (a CSV or NPZ file) "

@@ -17,9 +17,9 @@ import casadi as ca
 
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import Where
+from symcal.base.options import SolveOptions
 from symcal.language.loss import LossSpec
 from symcal.language.model_file import ModelSpec
-from symcal.language.options import SolveOptions
 from symcal.language.problem_file import ColumnSpec, DatasetSpec, ProblemSpec
 
 

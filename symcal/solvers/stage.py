@@ -15,7 +15,7 @@ from typing import Any, cast
 import numpy as np
 
 from symcal.base.errors import SolveError
-from symcal.language.options import SolveOptions
+from symcal.base.options import SolveOptions
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.linear import solve_linear
 from symcal.solvers.nlp import solve_ipopt

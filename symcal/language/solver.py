@@ -1,17 +1,12 @@
-"""How a problem is solved: the solver options, apart from what is measured and on what data.
-
-A problem file may declare them under ``solver:``; the Python API and the command line
-override them field by field (:meth:`SolveOptions.over`).
-"""
+"""A problem's ``solver:`` section into :class:`~symcal.base.options.SolveOptions`."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
-from types import MappingProxyType
+from dataclasses import replace
 from typing import Any
 
 from symcal.base.errors import SpecError, Where
+from symcal.base.options import MAX_ITER_LIMIT, METHODS, SolveOptions
 from symcal.language.fields import (
     check_keys,
     child_where,
@@ -20,41 +15,6 @@ from symcal.language.fields import (
     expect_map,
     expect_number,
 )
-
-METHODS = ("auto", "linear", "ipopt", "lm")
-#: The largest iteration limit accepted (IPOPT stores it in a C int).
-MAX_ITER_LIMIT = 1_000_000
-
-
-@dataclass(frozen=True)
-class SolveOptions:
-    """Solver options of a calibration.
-
-    Attributes
-    ----------
-    method
-        ``"auto"`` (closed form when the stage is linear, else ``"lm"``), ``"linear"``,
-        ``"ipopt"`` or ``"lm"`` (symcal's trust-region Levenberg-Marquardt) for every
-        stage; None keeps each stage's own ``method``.
-    max_iter
-        Iteration limit of each IPOPT or LM stage (every run of a stage counts against it).
-    tol
-        IPOPT's optimality tolerance.
-    ipopt
-        Further IPOPT options by name (numbers or text), passed as given.
-    """
-
-    method: str | None = None
-    max_iter: int = 200
-    tol: float = 1e-8
-    ipopt: Mapping[str, float | int | str] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "ipopt", MappingProxyType(dict(self.ipopt)))
-
-    def over(self, **changes: Any) -> SolveOptions:
-        """These options with the fields given (not None) replaced."""
-        return replace(self, **{k: v for k, v in changes.items() if v is not None})
 
 
 def parse_solver(value: Any, where: Where) -> SolveOptions:
