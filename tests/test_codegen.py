@@ -28,7 +28,7 @@ import symcal
 from symcal.base.numeric import mapped
 from symcal.calibrate.solve import load_datasets
 from symcal.cli import codegen as cli_codegen
-from symcal.codegen import c as codegen
+from symcal.export import c as codegen
 from symcal.problem.symbolic import Problem, Quantity
 
 PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"

@@ -17,11 +17,11 @@ from symcal.base.errors import SpecError, SymcalError
 from symcal.cli import main
 from symcal.data.dataset import make_dataset
 from symcal.data.loading import needed_columns
-from symcal.design.optimize import design, parse_target, with_motion
-from symcal.design.predict import predict, quiet
+from symcal.experiment.optimize import design, parse_target, with_motion
+from symcal.experiment.predict import predict, quiet
 from symcal.problem.build import load_problem
-from symcal.simulate import load_scenario, simulate_run
-from symcal.simulate.motion import ideal_columns
+from symcal.simulation import load_scenario, simulate_run
+from symcal.simulation.motion import ideal_columns
 
 PROBLEM = ROOT / "problems" / "dual_sensor_calibration.yaml"
 SCENARIO = ROOT / "problems" / "scenarios" / "courier_dual.yaml"

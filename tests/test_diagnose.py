@@ -20,8 +20,15 @@ from symcal.cli import main
 from symcal.data.dataset import make_dataset
 from symcal.revise.diagnose import diagnose
 from symcal.revise.effects import revised_problem
-from symcal.simulate import load_scenario, noise_floor, simulate_run
-from symcal.simulate.scenario import AngleTerm, AxisNonlinearity, Drift, Effects, Harmonic, Lateral
+from symcal.simulation import load_scenario, noise_floor, simulate_run
+from symcal.simulation.scenario import (
+    AngleTerm,
+    AxisNonlinearity,
+    Drift,
+    Effects,
+    Harmonic,
+    Lateral,
+)
 
 PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"
 DUAL = ROOT / "problems" / "dual_sensor_calibration.yaml"

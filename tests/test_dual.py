@@ -14,7 +14,7 @@ from symcal.cli import main
 from symcal.data.dataset import make_dataset
 from symcal.language.problem_file import load_problem_spec
 from symcal.problem.build import build_problem
-from symcal.simulate import load_scenario, simulate_run, truth
+from symcal.simulation import load_scenario, simulate_run, truth
 
 DUAL = ROOT / "problems" / "dual_sensor_calibration.yaml"
 PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"

@@ -17,7 +17,7 @@ from symcal.calibrate.partitioned import solve_partitioned
 from symcal.data.dataset import make_dataset, read_table, write_table
 from symcal.data.loading import needed_columns
 from symcal.data.shards import open_shards
-from symcal.simulate import load_scenario, simulate_run
+from symcal.simulation import load_scenario, simulate_run
 from symcal.solvers.executor import SerialExecutor, ThreadExecutor
 from symcal.solvers.objective import Objective
 

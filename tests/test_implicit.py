@@ -15,7 +15,7 @@ from symcal.analysis.implicit import implicit_checks
 from symcal.base.errors import SpecError
 from symcal.cli import main
 from symcal.data.dataset import make_dataset
-from symcal.simulate import load_scenario, noise_floor, simulate_run, truth
+from symcal.simulation import load_scenario, noise_floor, simulate_run, truth
 from symcal.solvers.objective import Objective
 
 PROBLEMS = ROOT / "problems"

@@ -18,14 +18,14 @@ import pytest
 from conftest import ROOT
 
 import symcal
-import symcal.simulate
+import symcal.simulation
 from symcal.base.numeric import mapped
 from symcal.cli import main
 from symcal.data.dataset import make_dataset
 from symcal.revise.diagnose import diagnose
 from symcal.revise.improve import improve
-from symcal.simulate import load_scenario, noise_floor, simulate_run
-from symcal.simulate.scenario import AngleTerm, Drift, Effects, Harmonic, Lateral
+from symcal.simulation import load_scenario, noise_floor, simulate_run
+from symcal.simulation.scenario import AngleTerm, Drift, Effects, Harmonic, Lateral
 
 PROBLEMS = ROOT / "problems"
 EXPLICIT = PROBLEMS / "platen_self_calibration.yaml"
@@ -64,7 +64,7 @@ def _realized_floor(seed: int) -> float:
     scenario = _scenario(Effects())
     flyby = _data(scenario, seed)["flyby"]
     problem = symcal.load_problem(IMPLICIT)
-    true = symcal.simulate.truth(scenario)["parameters"]
+    true = symcal.simulation.truth(scenario)["parameters"]
     theta = np.array([true[n] for n in problem.parameter_names])
     fn = mapped(problem.theta, problem.u, [problem.constraint("g_p").sx])
     return float(np.std(fn(theta, flyby.matrix(problem.columns))[0]))
@@ -279,7 +279,7 @@ DUAL_IMPLICIT = PROBLEMS / "dual_sensor_calibration_implicit.yaml"
 
 
 def _dual(gain_y: float = 0.0):
-    from symcal.simulate.scenario import AxisNonlinearity
+    from symcal.simulation.scenario import AxisNonlinearity
 
     sc = load_scenario(PROBLEMS / "scenarios" / "courier_dual_clean.yaml")
     coord = dataclasses.replace(sc.coordination,

@@ -11,7 +11,7 @@ from conftest import ROOT
 
 import symcal
 from symcal.data.dataset import make_dataset
-from symcal.simulate import load_scenario, simulate_run
+from symcal.simulation import load_scenario, simulate_run
 from symcal.solvers import instrument
 from symcal.solvers.instrument import Counters, counting
 from symcal.solvers.linear import solve_linear

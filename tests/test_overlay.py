@@ -25,7 +25,7 @@ from symcal.language.overlay import (
     merge_scenario,
 )
 from symcal.language.yamlio import YList, YMap, load_yaml
-from symcal.simulate import load_scenario, simulate_run
+from symcal.simulation import load_scenario, simulate_run
 
 ROOT = Path(__file__).resolve().parent.parent
 CASES = Path(__file__).resolve().parent / "overlay_cases"

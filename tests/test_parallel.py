@@ -16,7 +16,7 @@ import symcal
 from symcal.base.errors import SymcalError
 from symcal.data.dataset import make_dataset
 from symcal.data.loading import needed_columns
-from symcal.simulate import load_scenario, simulate_run
+from symcal.simulation import load_scenario, simulate_run
 from symcal.solvers import executor as ex
 from symcal.solvers.nlp import solve_ipopt
 from symcal.solvers.objective import Objective

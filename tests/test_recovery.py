@@ -11,8 +11,8 @@ from conftest import ROOT
 
 import symcal
 from symcal.data.dataset import make_dataset
-from symcal.simulate import load_scenario, noise_floor, simulate_run, truth
-from symcal.simulate.scenario import Effects, Lateral
+from symcal.simulation import load_scenario, noise_floor, simulate_run, truth
+from symcal.simulation.scenario import Effects, Lateral
 
 PROBLEM = ROOT / "problems" / "platen_self_calibration.yaml"
 SCENARIO = ROOT / "problems" / "scenarios" / "courier_platen.yaml"

@@ -20,6 +20,7 @@ from symcal.calibrate.result import REGRESSION_TOLERANCE, Regression, regression
 from symcal.data.dataset import make_dataset
 from symcal.report import plots
 from symcal.report.html import html_report
+from symcal.report.ladder import ladder_report, save_ladder_plot
 from symcal.report.text import (
     diagnosis_document,
     diagnosis_report,
@@ -31,8 +32,8 @@ from symcal.report.text import (
     verdict_lines,
 )
 from symcal.revise.diagnose import diagnose
-from symcal.revise.ladder import compare, ladder_report, revision_labels, save_ladder_plot
-from symcal.simulate import load_scenario, noise_floor
+from symcal.revise.ladder import compare, revision_labels
+from symcal.simulation import load_scenario, noise_floor
 
 PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"
 SCENARIOS = ROOT / "problems" / "scenarios"

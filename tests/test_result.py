@@ -11,7 +11,7 @@ import pytest
 from conftest import ROOT, courier_data, write_csv
 
 import symcal
-import symcal.codegen.c
+import symcal.export.c
 import symcal.language.yamlio
 from symcal.base.errors import SymcalError
 from symcal.revise.diagnose import diagnose
@@ -124,7 +124,7 @@ def test_consumers_of_a_result_never_solve_again(project, tmp_path) -> None:
         first = diagnose(result)
         again = diagnose(loaded)
         compare([result, loaded])
-        symcal.codegen.c.generate(result.problem, tmp_path / "c", loaded)
+        symcal.export.c.generate(result.problem, tmp_path / "c", loaded)
     assert counts.iterations == 0 and counts.r_passes == 0
     assert [c.label for c in first.candidates] == [c.label for c in again.candidates]
     assert [c.f_stat for c in first.candidates] == pytest.approx(

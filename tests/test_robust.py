@@ -28,8 +28,8 @@ from symcal.base.errors import SpecError
 from symcal.data.dataset import make_dataset
 from symcal.report.text import diagnosis_document, diagnosis_report, text_report
 from symcal.revise.diagnose import diagnose
-from symcal.simulate import load_scenario, simulate_run, slipped_rows, truth
-from symcal.simulate.scenario import CountSlip, Effects
+from symcal.simulation import load_scenario, simulate_run, slipped_rows, truth
+from symcal.simulation.scenario import CountSlip, Effects
 
 LOSSES = ("huber", "soft_l1", "cauchy", "arctan")
 

@@ -1,4 +1,4 @@
-"""Tests of the courier simulator (symcal.simulate).
+"""Tests of the courier simulator (symcal.simulation).
 
 Every numerical check compares the simulator with an independent numpy computation of
 the documented physics, written out here from the formulas (not imported).
@@ -17,7 +17,7 @@ import yaml
 
 from symcal.base.errors import SpecError
 from symcal.language.yamlio import display_path
-from symcal.simulate import (
+from symcal.simulation import (
     load_scenario,
     noise_floor,
     simulate,

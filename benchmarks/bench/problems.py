@@ -46,7 +46,7 @@ def single_stage_problem(problem: str) -> Any:
 def make_data(workdir: Path, sizes: tuple[int, ...]) -> Files:
     """Simulate every (problem, N) once; the same file feeds every method."""
     from symcal.data.dataset import write_table
-    from symcal.simulate import load_scenario, simulate_run
+    from symcal.simulation import load_scenario, simulate_run
 
     files: Files = {}
     for problem, info in PROBLEMS.items():
@@ -64,7 +64,7 @@ def check_residuals() -> dict[str, float]:
     import casadi as ca
 
     import symcal
-    from symcal.simulate import load_scenario, simulate_run
+    from symcal.simulation import load_scenario, simulate_run
 
     out = {}
     for problem, info in PROBLEMS.items():

@@ -1,4 +1,4 @@
-"""``symcal codegen``: export the calibrated model as C99 (:func:`symcal.codegen.c.generate`)."""
+"""``symcal codegen``: export the calibrated model as C99 (:func:`symcal.export.c.generate`)."""
 
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Generate the code; print one ``wrote PATH`` line per file; return the exit code."""
     from symcal.base.files import input_refusal
-    from symcal.codegen.c import generate
+    from symcal.export.c import generate
     from symcal.problem.build import load_problem
 
     problem = load_problem(args.problem)

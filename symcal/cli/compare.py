@@ -28,8 +28,9 @@ def run(args: argparse.Namespace) -> int:
     from symcal.calibrate.solve import solve
     from symcal.data.loading import load_datasets
     from symcal.problem.build import load_problem
+    from symcal.report.ladder import ladder_report, save_ladder_plot
     from symcal.report.text import plain_json
-    from symcal.revise.ladder import compare, ladder_report, save_ladder_plot
+    from symcal.revise.ladder import compare
 
     problems = [load_problem(path) for path in args.problems]
     data = data_map(args)

@@ -49,11 +49,11 @@ def run(args: argparse.Namespace) -> int:
     """
     from symcal.base.files import check_outputs, json_text
     from symcal.calibrate.result import Result
-    from symcal.design.optimize import Design, design, parse_target
-    from symcal.design.predict import predict
+    from symcal.experiment.optimize import Design, design, parse_target
+    from symcal.experiment.predict import predict
     from symcal.problem.build import load_problem
     from symcal.report.text import design_document, design_report
-    from symcal.simulate import load_scenario
+    from symcal.simulation import load_scenario
 
     if (args.target or args.criterion) and not args.optimize:
         raise SymcalError("--target and --criterion choose a motion: they need --optimize")

@@ -35,9 +35,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Run the loop; write the ladder; print the rounds; exit 0 when the model is quiet."""
     from symcal.base.files import OutputSet, atomic_write_text, check_outputs
+    from symcal.report.ladder import ladder_report, save_ladder_plot
     from symcal.report.text import plain_json
     from symcal.revise.improve import improve
-    from symcal.revise.ladder import compare, ladder_report, save_ladder_plot
+    from symcal.revise.ladder import compare
 
     if not 1 <= args.max_rounds <= MAX_ROUNDS:
         raise SymcalError(f"--max-rounds {args.max_rounds}: must be between 1 and "

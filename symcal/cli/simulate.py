@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from symcal.base.files import OutputSet, atomic_write_text, check_outputs
     from symcal.data.dataset import write_table
     from symcal.language.fields import MAX_SAMPLES
-    from symcal.simulate import load_scenario, simulate_run, truth
+    from symcal.simulation import load_scenario, simulate_run, truth
 
     if args.n is not None and not 1 <= args.n <= MAX_SAMPLES:
         raise SymcalError(f"-n {args.n}: the number of samples must be between 1 and "

@@ -38,7 +38,7 @@ def load_dataset(
     if spec.path is not None:
         return make_dataset(spec.name, spec.source, read_table(spec.path), needed, drop_invalid,
                             copy=False)
-    from symcal.simulate import load_scenario, simulate_run
+    from symcal.simulation import load_scenario, simulate_run
 
     assert spec.scenario is not None and spec.run is not None
     columns = simulate_run(load_scenario(spec.scenario), spec.run, seed=spec.seed, n=spec.n)

@@ -22,7 +22,7 @@ from symcal.calibrate.result import REGRESSION_TOLERANCE, Regression, Result
 
 if TYPE_CHECKING:
     from symcal.analysis.fit import SeriesStats
-    from symcal.design.optimize import Design
+    from symcal.experiment.optimize import Design
     from symcal.revise.diagnose import Diagnosis
 
 #: At most this many regressions are listed in a verdict (all are in the tables).
@@ -53,7 +53,7 @@ def noise_floors(result: Result) -> dict[tuple[str, str], float]:
 
     A dataset simulated from a scenario (a problem's ``simulate:`` dataset, not replaced
     by other data) has the floors the simulator states
-    (:func:`symcal.simulate.noise_floor`); a residual or comparison ``NAME`` has one when
+    (:func:`symcal.simulation.noise_floor`); a residual or comparison ``NAME`` has one when
     they include ``NAME_std``.  Elsewhere the floor is unknown and absent.
 
     Parameters
@@ -66,7 +66,7 @@ def noise_floors(result: Result) -> dict[tuple[str, str], float]:
     dict
         ``(dataset, name)`` → the standard deviation noise alone leaves, internal units.
     """
-    from symcal.simulate import load_scenario, noise_floor
+    from symcal.simulation import load_scenario, noise_floor
 
     names = {s.name for s in result.statistics}
     by_scenario: dict[str, dict[str, float]] = {}
@@ -737,7 +737,7 @@ def design_report(design: Design, result: Result | None = None) -> str:
     Parameters
     ----------
     design
-        What :func:`symcal.design.optimize.design` returned (or a design of the given scenario
+        What :func:`symcal.experiment.optimize.design` returned (or a design of the given scenario
         alone).
     result
         A calibration result to compare the predictions with (``--result``).

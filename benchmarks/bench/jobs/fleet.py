@@ -38,7 +38,7 @@ def shape(ctx: Run) -> tuple[int, int]:
 def make_fleet(folder: Path, units: int, n: int) -> Path:
     """Simulate ``units`` units' calibration runs (N = ``n``) and fly-bys into ``folder``."""
     from symcal.data.dataset import write_table
-    from symcal.simulate import load_scenario, simulate_run
+    from symcal.simulation import load_scenario, simulate_run
 
     scenario = load_scenario(ROOT / PROBLEMS["linear"]["scenario"])
     for i in range(units):

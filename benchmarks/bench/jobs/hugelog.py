@@ -64,7 +64,7 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
 
     from symcal.data.loading import needed_columns
     from symcal.data.shards import open_shards
-    from symcal.simulate import load_scenario, simulate_run
+    from symcal.simulation import load_scenario, simulate_run
     from symcal.solvers.dask_executor import dask_executor
     from symcal.solvers.objective import Objective
 

@@ -83,7 +83,7 @@ def run(ctx: Run) -> JobSummary:
     """Simulate one chunk's worth of data per problem and profile it in a child."""
     from symcal.base.numeric import CHUNK
     from symcal.data.dataset import write_table
-    from symcal.simulate import load_scenario, simulate_run
+    from symcal.simulation import load_scenario, simulate_run
 
     sizes = ctx.settings.sizes
     n_prof = min(max(sizes), CHUNK)

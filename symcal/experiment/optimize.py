@@ -4,7 +4,7 @@ A scenario's ``design`` section names a scatter run and the motion parameters th
 change, with their limits (``x``, ``y``, ``theta_deg``, ``dwell``, ``n``).
 :func:`design` chooses them with IPOPT on exact sensitivities: the Fisher information of
 the motion is a CasADi graph from the motion's parameters through the courier's pose
-(:mod:`symcal.simulate.motion`) and the problem's symbolic Jacobian, so its derivatives by
+(:mod:`symcal.simulation.motion`) and the problem's symbolic Jacobian, so its derivatives by
 the motion are exact.  The expectation over a scatter's random poses is a fixed sample of
 ``SAMPLES`` uniform draws (common random numbers), with the poses that dwell at the ends
 of the angle range as a second and third set.  Two goals:
@@ -16,7 +16,7 @@ of the angle range as a second and third set.  Two goals:
   minimises ``max_j n_j``, ``n_j`` the observations target ``j`` needs; when even the
   limit on ``n`` does not suffice, the best reachable errors and the limits that bind.
 
-Every design is then predicted exactly by :func:`symcal.design.predict.predict` (the simulator's
+Every design is then predicted exactly by :func:`symcal.experiment.predict.predict` (the simulator's
 readings, noise and misfit, the solve's weighting), which is what is reported; ``n`` is
 raised to meet the targets on that prediction when the limits allow.
 """
@@ -38,11 +38,11 @@ from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SymcalError
 from symcal.base.linalg import sqrt_psd, whitening
 from symcal.base.units import internal_unit, size
-from symcal.design.predict import Prediction, last_stage, operating_point, predict
+from symcal.experiment.predict import Prediction, last_stage, operating_point, predict
 from symcal.problem.symbolic import Problem
-from symcal.simulate import Scenario
-from symcal.simulate.motion import ideal_columns
-from symcal.simulate.scenario import DESIGN_KEYS, DesignSpace, Run, Scatter
+from symcal.simulation import Scenario
+from symcal.simulation.motion import ideal_columns
+from symcal.simulation.scenario import DESIGN_KEYS, DesignSpace, Run, Scatter
 from symcal.solvers.objective import Objective
 
 #: The design criteria (``--criterion``).
@@ -124,7 +124,7 @@ class Design:
     def poses(self, designed: bool, seed: int = 0) -> dict[str, np.ndarray]:
         """The true poses of the run (given or designed motion): ``x``, ``y`` (mm, as the
         motion states them) and ``theta_deg``."""
-        from symcal.simulate.courier import run_poses, stream
+        from symcal.simulation.courier import run_poses, stream
 
         scenario = self.scenario if designed else self.baseline.scenario
         index = scenario.run_index(self.baseline.run)

@@ -11,7 +11,7 @@ Public API::
     input_noise(scenario) -> dict    # standard deviation of each column's noise
 """
 
-from symcal.simulate.courier import (
+from symcal.simulation.courier import (
     COORDINATION_COLUMNS,
     PLATEN_COLUMNS,
     REFERENCE_COLUMNS,
@@ -25,7 +25,7 @@ from symcal.simulate.courier import (
     slipped_rows,
     truth,
 )
-from symcal.simulate.scenario import Scenario, load_scenario, parse_scenario
+from symcal.simulation.scenario import Scenario, load_scenario, parse_scenario
 
 __all__ = [
     "COORDINATION_COLUMNS",

@@ -67,7 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from symcal.base.errors import SpecError
-from symcal.simulate.scenario import (
+from symcal.simulation.scenario import (
     FOURIER_KEYS,
     SEGMENT_NAMES,
     Coordination,

@@ -5,7 +5,7 @@ stage would report on data simulated from it, with nothing recorded:
 
 1. the run is simulated *without noise* (the simulator's own geometry, sensor errors and
    hidden effects), at the scenario's true parameters (:func:`operating_point`);
-2. the noise model is the scenario's (:func:`symcal.simulate.input_noise`): each
+2. the noise model is the scenario's (:func:`symcal.simulation.input_noise`): each
    observation's constraints get the covariance ``S_i = G_i Σ G_iᵀ``, ``G_i = ∂g/∂u`` (exact,
    symbolic) and ``Σ`` the columns' noise variances;
 3. the weights are the solve's: ``weighting: estimated`` whitens by the covariance the
@@ -47,7 +47,7 @@ from symcal.base.units import size
 from symcal.data.dataset import Dataset, make_dataset
 from symcal.data.loading import needed_columns
 from symcal.problem.symbolic import Problem, Stage
-from symcal.simulate import Scenario, input_noise, simulate_run, truth
+from symcal.simulation import Scenario, input_noise, simulate_run, truth
 from symcal.solvers.objective import Objective
 
 

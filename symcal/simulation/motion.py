@@ -1,6 +1,6 @@
 """The courier's readings as a CasADi function of its pose, for designing motions.
 
-:mod:`symcal.simulate.courier` simulates readings with numpy; an experiment design needs
+:mod:`symcal.simulation.courier` simulates readings with numpy; an experiment design needs
 their derivatives by the motion's parameters.  Here the same geometry is written once for
 CasADi symbols (SX or MX): the pose of a run's motion (the platen centre, or the
 coordination sensor's centre with ``rotate_about: coordination``) gives every column the
@@ -8,7 +8,7 @@ simulator writes, for an *ideal* courier: the segments read their true positions
 errors, the hidden effects and the pitch variation, all of a few µm, are left out), the
 coordination sensor reads ``psi = atan(c / h)`` with its gain and nonlinearity, and the
 reference reads the true pose.  The conventions are those of
-:mod:`symcal.simulate.courier`.
+:mod:`symcal.simulation.courier`.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import Any
 
 import casadi as ca
 
-from symcal.simulate.scenario import Scatter, Scenario
+from symcal.simulation.scenario import Scatter, Scenario
 
 Symbolic = Any  # ca.SX or ca.MX (a scalar)
 
