@@ -91,7 +91,7 @@ def client():
 
 @pytest.fixture(scope="module")
 def result(fleet, client) -> symcal.FleetResult:
-    return solve_fleet(PROBLEM, fleet[0], scheduler=client)
+    return solve_fleet(PROBLEM, fleet[0], executor=client)
 
 
 def _local(fleet_dir: Path, unit: str) -> dict[str, str]:

@@ -11,7 +11,7 @@ failed document, and never stops the others.
 
 Dask is imported only here, inside :func:`solve_fleet` and :func:`fleet_client`, never at
 ``import symcal``.  By default the fleet runs on an embedded local cluster: one worker
-process per core, one thread each, BLAS pinned to one thread.  ``scheduler`` names a
+process per core, one thread each, BLAS pinned to one thread.  ``executor`` names a
 running Dask scheduler instead (its workers must have symcal installed and see the
 problem and data files at the same absolute paths).
 """
@@ -37,6 +37,7 @@ from symcal.calibrate.result import Result, file_hashes
 from symcal.calibrate.solve import solve
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
+from symcal.solvers.dask_executor import DaskExecutor
 from symcal.solvers.executor import usable_cores
 
 if TYPE_CHECKING:
@@ -330,7 +331,7 @@ def solve_fleet(
     options: SolveOptions | None = None,
     *,
     drop_invalid: bool = False,
-    scheduler: str | Client | None = None,
+    executor: str | Client | DaskExecutor | None = None,
     workers: int | None = None,
     bars: Bars | None = None,
     on_unit: UnitCallback | None = None,
@@ -356,10 +357,11 @@ def solve_fleet(
         How to solve (default: the problem file's ``solver:`` section).
     drop_invalid
         Drop rows with NaN/inf instead of refusing a unit's data.
-    scheduler
-        None: an embedded local cluster (``workers`` processes, one per core by
-        default); a scheduler address; or a :class:`distributed.Client` of your own
-        (left open).
+    executor
+        Where to run, as for :func:`symcal.solve_partitioned`: None, an embedded local
+        cluster (``workers`` processes, one per core by default); a scheduler address;
+        a :class:`distributed.Client` of your own or a
+        :class:`~symcal.solvers.dask_executor.DaskExecutor` (left open).
     workers
         Worker processes of the embedded cluster.
     bars
@@ -408,11 +410,13 @@ def solve_fleet(
         if unit.error is not None:
             finish(unit.name, {"error": unit.error})
     if tasks:
-        if scheduler is not None and not isinstance(scheduler, str):
-            _run(scheduler, tasks, bars, finish)
+        if isinstance(executor, DaskExecutor):
+            _run(executor.client, tasks, bars, finish)
+        elif executor is not None and not isinstance(executor, str):
+            _run(executor, tasks, bars, finish)
         else:
             local = min(workers or usable_cores(), len(tasks))
-            with fleet_client(scheduler, local) as client:
+            with fleet_client(executor, local) as client:
                 _run(client, tasks, bars, finish)
     ordered = {u.name: docs[u.name] for u in units}
     results = {u: Result.from_document(doc, problem) for u, doc in ordered.items()

@@ -22,7 +22,7 @@ import contextlib
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import numpy as np
 
@@ -40,6 +40,9 @@ from symcal.solvers.base import SolverOutput
 from symcal.solvers.executor import Executor, SerialExecutor, current, using
 from symcal.solvers.objective import Objective, Source
 from symcal.solvers.stage import solve_stage
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 T = TypeVar("T")
 
@@ -164,7 +167,9 @@ def solve_partitioned(
     problem: Problem | str | Path,
     calibration: ShardedDataset | Dataset | str | Path,
     options: SolveOptions | None = None,
-    executor: Executor | None = None,
+    *,
+    executor: Executor | str | Any | None = None,
+    workers: int | None = None,
     progress: Callable[[str], None] | None = None,
     bars: Bars | None = None,
 ) -> PartitionedResult:
@@ -180,10 +185,14 @@ def solve_partitioned(
     options
         Solve options (default: the problem's).
     executor
-        Who runs the passes over the shards: a
-        :class:`~symcal.solvers.dask_executor.DaskExecutor` (``with
-        dask_executor() as ex: ...``), a thread executor, or None: the executor of an
-        enclosing ``using`` block, else shard after shard in this process.
+        Where to run, as for :func:`symcal.solve_fleet`: a scheduler address (a Dask
+        cluster, opened and closed here), a :class:`distributed.Client` or a
+        :class:`~symcal.solvers.dask_executor.DaskExecutor` of your own (left open), a
+        thread executor, or None: the executor of an enclosing ``using`` block, else
+        shard after shard in this process.
+    workers
+        Unused unless ``executor`` is ``"local"``: the worker processes of an embedded
+        local Dask cluster (default one per core).
     progress
         Called with one line per IPOPT iteration (None: silent).
     bars
@@ -212,6 +221,22 @@ def solve_partitioned(
         raise DataError(f"{data.source}: no observations")
     theta0 = np.array([p.value for p in problem.parameters], dtype=float)
     theta = theta0.copy()
+    with contextlib.ExitStack() as opened:
+        if isinstance(executor, str):
+            from symcal.solvers.dask_executor import dask_executor
+
+            executor = opened.enter_context(dask_executor(
+                None if executor == "local" else executor, workers))
+        elif executor is not None and not hasattr(executor, "remote"):
+            from symcal.solvers.dask_executor import DaskExecutor
+
+            executor = DaskExecutor(cast("Client", executor))   # a distributed.Client
+        return _solve(problem, data, options, theta0, theta, executor, progress, bars)
+
+
+def _solve(problem: Problem, data: Source, options: SolveOptions, theta0: np.ndarray,
+           theta: np.ndarray, executor: Executor | None,
+           progress: Callable[[str], None] | None, bars: Bars | None) -> PartitionedResult:
     inner = executor or current()
     if inner is None and isinstance(data, ShardedDataset):
         inner = SerialExecutor()

@@ -101,7 +101,7 @@ def run_fleet(args: argparse.Namespace) -> int:
             call(unit, doc, report)
 
     result = solve_fleet(problem, fleet, data, options, drop_invalid=args.drop_invalid,
-                         scheduler=args.scheduler, workers=args.workers, bars=bars,
+                         executor=args.scheduler, workers=args.workers, bars=bars,
                          on_unit=on_unit, report=text_report)
     document = json_text(result.to_dict())
     text = fleet_text(result.summary, str(fleet))
