@@ -366,3 +366,14 @@ def test_dask_and_tqdm_are_not_imported_up_front() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_units_are_sent_in_balanced_contiguous_batches() -> None:
+    from symcal.calibrate.fleet import BATCHES_PER_WORKER, batches
+
+    names = [f"u{i}" for i in range(203)]
+    groups = batches(names, 2)
+    assert len(groups) == 2 * BATCHES_PER_WORKER
+    assert [u for g in groups for u in g] == names            # every unit once, in order
+    assert max(map(len, groups)) - min(map(len, groups)) <= 1
+    assert batches(names[:3], 2) == [["u0"], ["u1"], ["u2"]]  # never an empty batch

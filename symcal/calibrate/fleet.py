@@ -293,30 +293,68 @@ def _tasks(problem: Problem, units: list[Unit], data: Mapping[str, str | Path],
     return out
 
 
+def solve_units(tasks: tuple[UnitTask, ...]) -> list[dict[str, Any]]:
+    """Solve a batch of units one after the other (one Dask task): their outcomes as
+    :func:`solve_unit` gives them, in order."""
+    return [solve_unit(task) for task in tasks]
+
+
+#: Batches per worker: units are sent in batches, so that a quick unit does not pay a
+#: task's round trip of its own, and several per worker, so that the load stays balanced.
+BATCHES_PER_WORKER = 4
+
+
+def batches(units: list[str], workers: int) -> list[list[str]]:
+    """``units`` in contiguous batches, :data:`BATCHES_PER_WORKER` per worker (at most one
+    batch per unit)."""
+    count = max(1, min(len(units), BATCHES_PER_WORKER * max(1, workers)))
+    size, extra = divmod(len(units), count)
+    out, start = [], 0
+    for i in range(count):
+        end = start + size + (i < extra)
+        out.append(units[start:end])
+        start = end
+    return [b for b in out if b]
+
+
+def _workers_of(client: Client) -> int:
+    try:
+        return max(1, len(client.scheduler_info().get("workers", {})))
+    except Exception:  # noqa: BLE001 - a scheduler that does not say: one batch per unit
+        return 0
+
+
 def _run(client: Client, tasks: Mapping[str, UnitTask], bars: Bars | None,
          finish: Callable[[str, dict[str, Any]], None]) -> None:
-    """Submit every task; hand each unit's outcome to ``finish`` as it completes."""
+    """Submit the units in batches (:func:`batches`); hand each unit's outcome to
+    ``finish`` as its batch completes."""
     from distributed import as_completed
 
     token = uuid.uuid4().hex[:12]
-    futures = {client.submit(solve_unit, task, key=f"symcal-unit-{i}-{token}", pure=False):
-               unit for i, (unit, task) in enumerate(tasks.items())}
+    names = list(tasks)
+    workers = _workers_of(client)
+    groups = batches(names, workers) if workers else [[n] for n in names]
+    futures = {client.submit(solve_units, tuple(tasks[u] for u in group),
+                             key=f"symcal-units-{i}-{token}", pure=False): group
+               for i, group in enumerate(groups)}
     failed = 0
     try:
-        with meter(bars, "fleet", total=len(futures), unit="unit") as m:
+        with meter(bars, "fleet", total=len(names), unit="unit") as m:
             for future in as_completed(futures):
-                unit = futures[future]
+                group = futures[future]
                 try:
-                    outcome = future.result()
+                    outcomes = future.result()
                 except Exception as exc:  # noqa: BLE001 - a worker died, a task was lost
-                    outcome = {"error": f"the Dask task of unit '{unit}' failed: "
-                                        f"{exc.__class__.__name__}: {excerpt(exc, 200)}"}
+                    why = f"{exc.__class__.__name__}: {excerpt(exc, 200)}"
+                    outcomes = [{"error": f"the Dask task of unit '{unit}' failed: {why}"}
+                                for unit in group]
                 finally:
                     future.release()
-                finish(unit, outcome)
-                doc = outcome.get("document", outcome)
-                failed += failure_reason(doc) is not None
-                m.advance()
+                for unit, outcome in zip(group, outcomes, strict=True):
+                    finish(unit, outcome)
+                    doc = outcome.get("document", outcome)
+                    failed += failure_reason(doc) is not None
+                    m.advance()
                 if failed:
                     m.note(f"failed={failed}")
     except BaseException:
@@ -399,10 +437,13 @@ def solve_fleet(
     units = find_units(problem, fleet)
     tasks = _tasks(problem, units, data, options, drop_invalid, report)
     docs: dict[str, Mapping[str, Any]] = {}
+    results: dict[str, Result] = {}
 
     def finish(unit: str, outcome: dict[str, Any]) -> None:
         doc = outcome["document"] if "document" in outcome else {"error": outcome["error"]}
         docs[unit] = doc
+        if "error" not in doc:        # built while the workers go on with other units
+            results[unit] = Result.from_document(doc, problem)
         if on_unit is not None:
             on_unit(unit, doc, outcome.get("report"))
 
@@ -419,8 +460,7 @@ def solve_fleet(
             with fleet_client(executor, local) as client:
                 _run(client, tasks, bars, finish)
     ordered = {u.name: docs[u.name] for u in units}
-    results = {u: Result.from_document(doc, problem) for u, doc in ordered.items()
-               if "error" not in doc}
+    results = {u: results[u] for u in ordered if u in results}
     errors = {u: str(doc["error"]) for u, doc in ordered.items() if "error" in doc}
     return FleetResult(problem, results, errors, summarise(ordered),
                        time.perf_counter() - start)
