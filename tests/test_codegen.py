@@ -532,6 +532,10 @@ def test_another_target_is_a_template_set(platen, tmp_path) -> None:
                                          f"{prefix}_units.csv"]
     lines = (tmp_path / "out" / f"{prefix}_units.csv").read_text(encoding="utf-8").split()
     assert lines[0] == "name,unit" and lines[1] == "s1.p_hat,mm" and lines[-1] == "g_p,um"
+    with pytest.raises(symcal.SymcalError) as err:
+        codegen.generate(platen.problem, tmp_path / "other", target="rust")
+    assert str(err.value) == ("no code generation target 'rust'; symcal has c (or give a "
+                              "Target of your own templates)")
 
 
 def test_templates_ship_as_package_data() -> None:

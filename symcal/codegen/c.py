@@ -151,10 +151,13 @@ def generate(problem: Problem, outdir: str | Path, result: ResultLike | None = N
         A result for another problem, from a failed solve, or computed from other files
         or data; names that collide in C; a part that cannot be written in C (the message
         names it and why); an output that is an input file, a file symcal did not write
-        (unless ``force``), or a folder that cannot be written.
+        (unless ``force``), or a folder that cannot be written; an unknown target.
     """
     from symcal.base.files import OutputSet, check_outputs
 
+    if isinstance(target, str) and target not in TARGETS:
+        raise SymcalError(f"no code generation target '{target}'; symcal has "
+                          f"{', '.join(TARGETS)} (or give a Target of your own templates)")
     chosen = TARGETS[target] if isinstance(target, str) else target
     p = plan(problem, result)
     outdir = Path(outdir)
