@@ -15,7 +15,7 @@ The whole product, by public name (imported on first use)::
     symcal.improve("problems/platen_self_calibration.yaml", "revisions")   # the loop
     symcal.compare([result, other])                      # the ladder of revisions
     symcal.design(problem, symcal.load_scenario("scenario.yaml"), criterion="D")
-    symcal.codegen(problem, "firmware", result)          # C of the calibrated model
+    symcal.export(problem, "firmware", result)          # C of the calibrated model
     symcal.simulate(symcal.load_scenario("scenario.yaml"), seed=1)
     symcal.solve_fleet(problem, "fleet"); symcal.solve_partitioned(problem, "shards")
 

@@ -3,9 +3,12 @@
 The generated functions are compiled with the system C compiler and evaluated on the
 first N_OBS observations of each problem's calibration dataset; every residual, every
 entry of the Jacobian and every instance output must agree with symcal's own evaluation
-of the problem's SX (``symcal.base.numeric.mapped``) to RTOL relative.  Values below 1 in
-symcal's internal units (mm, rad) are held to RTOL absolute instead: the residuals are
-differences of readings of order 1-100 mm, so their rounding is relative to those.
+of the problem's SX (``symcal.base.numeric.mapped``), converted from symcal's internal
+units (mm, rad, s) to the unit the YAML declares by the hand-written table SIZE, to RTOL
+relative.  Values below 1 internal unit are held to RTOL absolute (in internal units)
+instead: the residuals are differences of readings of order 1-100 mm, so their rounding
+is relative to those.  An accelerometer read in m/s**2, with a tilt output in degrees,
+checks the units end to end, also against numpy.
 """
 
 from __future__ import annotations
@@ -13,10 +16,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import re
 import shutil
 import subprocess
+import tomllib
 from pathlib import Path
 
 import casadi as ca
@@ -29,6 +34,7 @@ from symcal.base.numeric import mapped
 from symcal.calibrate.solve import load_datasets
 from symcal.cli import codegen as cli_codegen
 from symcal.export import c as codegen
+from symcal.export import render
 from symcal.problem.symbolic import Problem, Quantity
 
 PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"
@@ -39,6 +45,10 @@ N_OBS = 200
 RTOL = 1e-12
 #: The test driver is built with every warning an error; -O0 keeps compiling fast.
 STRICT = ["-std=c99", "-O0", "-Wall", "-Wextra", "-Werror", "-pedantic"]
+#: The size of each unit the tests meet in symcal's internal units (mm, rad, s), written
+#: out by hand: the C's value is symcal's internal value divided by it.
+SIZE = {"mm": 1.0, "um": 1e-3, "m": 1e3, "m/s**2": 1e3, "rad": 1.0, "mrad": 1e-3,
+        "deg": math.pi / 180, "1": 1.0, "": 1.0}
 
 
 @dataclasses.dataclass
@@ -70,13 +80,62 @@ def dual(tmp_path_factory) -> Case:
     return _case(DUAL, tmp_path_factory.mktemp("dual"))
 
 
+#: An accelerometer on a tilt table, in the units a user writes: m/s**2 and degrees.
+G0 = 9.80665
+ACCEL_MODEL = """\
+model: accel
+doc: one accelerometer axis, read in m/s**2
+constants:
+  g0: {value: 9.80665, unit: m/s**2}
+inputs:
+  f: {unit: m/s**2, doc: raw specific force}
+parameters:
+  bias: {value: 0, unit: m/s**2, scale: 0.1, doc: zero offset}
+  gain: {value: 0, unit: "1", scale: 0.01, doc: scale factor error}
+outputs:
+  a: {expr: (f - bias) / (1 + gain), unit: m/s**2, doc: calibrated specific force}
+  tilt: {expr: asin((f - bias) / (1 + gain) / g0), unit: deg, doc: tilt from level}
+"""
+ACCEL_PROBLEM = """\
+problem: accel_tilt
+doc: an accelerometer on a tilt table
+constants:
+  g0: {value: 9.80665, unit: m/s**2}
+columns:
+  t: {unit: s, role: time, doc: time}
+  f_x: {unit: m/s**2, doc: raw reading of the accelerometer}
+  tilt_ref: {unit: deg, doc: tilt of the table}
+instances:
+  ax: {model: accel.yaml, inputs: {f: f_x}, doc: the x axis}
+constraints:
+  g_a: {expr: ax.a - g0*sin(tilt_ref), unit: m/s**2, sigma: 0.01, doc: it reads gravity}
+  g_tilt: {expr: ax.tilt - tilt_ref, unit: mrad, sigma: 1, doc: it finds the tilt}
+datasets:
+  calibration: {path: data.csv}
+"""
+
+
+@pytest.fixture(scope="module")
+def accel(tmp_path_factory) -> Case:
+    folder = tmp_path_factory.mktemp("accel")
+    (folder / "accel.yaml").write_text(ACCEL_MODEL, encoding="utf-8")
+    (folder / "accel_tilt.yaml").write_text(ACCEL_PROBLEM, encoding="utf-8")
+    rng = np.random.default_rng(1)
+    tilt = rng.uniform(-70, 70, N_OBS)
+    f = G0 * np.sin(np.radians(tilt)) * 1.02 + 0.15 + rng.normal(0, 0.01, N_OBS)
+    np.savetxt(folder / "data.csv", np.column_stack([np.arange(N_OBS) * 0.1, f, tilt]),
+               delimiter=",", header="t,f_x,tilt_ref", comments="", fmt="%.17g")
+    return _case(folder / "accel_tilt.yaml", folder)
+
+
 def _theta(case: Case) -> np.ndarray:
     values = {p["name"]: p["value"] for p in case.result["parameters"]}
     return np.array([values[n] for n in case.problem.parameter_names])
 
 
 def _reference(case: Case, theta: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """symcal's Python evaluation, one row per observation, in the driver's order."""
+    """symcal's Python evaluation, one row per observation, in the driver's order, in
+    internal units."""
     problem = case.problem
     g = ca.vertcat(*(c.sx for c in problem.constraints))
     signals = {s.name: s.sx for s in problem.signals}
@@ -85,6 +144,16 @@ def _reference(case: Case, theta: np.ndarray, u: np.ndarray) -> np.ndarray:
     fn = mapped(problem.theta, problem.u,
                 [g, ca.jacobian(g, problem.theta).T, ca.vertcat(*outputs)], "reference")
     return np.hstack(fn(theta, u))
+
+
+def _sizes(plan: codegen.Plan) -> np.ndarray:
+    """Per value of the driver's row (residuals, Jacobian row by row, outputs): the size
+    of the unit the C returns it in (a Jacobian entry: its residual's unit per its
+    parameter's declared unit, the parameter being in that unit already)."""
+    residuals = [SIZE[c.unit] for c in plan.residuals]
+    jacobian = [SIZE[c.unit] for c in plan.residuals for _ in plan.params]
+    outputs = [SIZE[o.unit] for inst in plan.instances for o in inst.outputs]
+    return np.array(residuals + jacobian + outputs)
 
 
 def _driver(plan: codegen.Plan, u: np.ndarray, theta: np.ndarray | None) -> str:
@@ -138,12 +207,15 @@ def _run_driver(plan: codegen.Plan, outdir: Path, u: np.ndarray,
     return np.array([[float(v) for v in line.split()] for line in run.stdout.splitlines()])
 
 
-def _assert_close(c: np.ndarray, py: np.ndarray) -> None:
+def _assert_close(c: np.ndarray, py: np.ndarray, sizes: np.ndarray) -> None:
+    """C values (declared units) against Python's (internal units)."""
     assert c.shape == py.shape
-    tol = RTOL * np.maximum(np.abs(py), 1.0)
-    worst = np.unravel_index(np.argmax(np.abs(c - py) / tol), c.shape)
-    assert np.all(np.abs(c - py) <= tol), (
-        f"C {c[worst]!r} vs Python {py[worst]!r} at observation {worst[0]}, value {worst[1]}")
+    want = py / sizes
+    tol = RTOL * np.maximum(np.abs(want), 1.0 / sizes)
+    worst = np.unravel_index(np.argmax(np.abs(c - want) / tol), c.shape)
+    assert np.all(np.abs(c - want) <= tol), (
+        f"C {c[worst]!r} vs Python {want[worst]!r} at observation {worst[0]}, value "
+        f"{worst[1]}")
 
 
 def _check_against_python(case: Case, outdir: Path, baked: bool) -> None:
@@ -154,20 +226,22 @@ def _check_against_python(case: Case, outdir: Path, baked: bool) -> None:
     c_values = _run_driver(plan, outdir, u[[index[c.name] for c in plan.inputs]],
                            None if baked else theta)
     py = _reference(case, theta, u)
-    _assert_close(c_values, py)
+    _assert_close(c_values, py, _sizes(plan))
     assert np.abs(py[:, :len(plan.residuals)]).max() > 1e-4  # residuals really evaluated
 
 
-def _parse_example(stdout: str) -> tuple[str, dict[str, float]]:
+def _parse_example(stdout: str) -> tuple[str, dict[str, tuple[float, str]]]:
     hashes = re.findall(r"^hash (\w+)$", stdout, re.MULTILINE)
-    values = {f"{kind} {name}": float(v) for kind, name, v in
-              re.findall(r"^(input|output|residual)\s+(\S+) = (\S+)", stdout, re.MULTILINE)}
+    values = {f"{kind} {name}": (float(v), unit) for kind, name, v, unit in
+              re.findall(r"^(input|output|residual)\s+(\S+) = (\S+) ?(\S*)$", stdout,
+                         re.MULTILINE)}
     assert len(hashes) == 1
     return hashes[0], values
 
 
 def _check_example(case: Case, outdir: Path, theta: np.ndarray, baked: bool) -> None:
-    """``make`` builds the example warning-free; it prints the hash and Python's values."""
+    """``make`` builds the example warning-free; it prints the hash and Python's values,
+    each in the unit it names."""
     build = _make(outdir)
     assert build.returncode == 0, build.stderr
     assert "warning" not in build.stderr.lower(), build.stderr
@@ -180,14 +254,19 @@ def _check_example(case: Case, outdir: Path, theta: np.ndarray, baked: bool) -> 
     u = case.data[:, :1]
     py = _reference(case, theta, u)[0]
     n_res, n_par = len(plan.residuals), len(plan.params)
-    expected = {f"residual {c.name}": py[i] for i, c in enumerate(plan.residuals)}
-    outs = [o.name for inst in plan.instances for o in inst.outputs]
-    expected |= {f"output {n}": py[n_res * (1 + n_par) + i] for i, n in enumerate(outs)}
+    # symcal's values in internal units, converted; the inputs are in their units already
+    expected = {f"residual {c.name}": (py[i] / SIZE[c.unit], c.unit)
+                for i, c in enumerate(plan.residuals)}
+    outs = [o for inst in plan.instances for o in inst.outputs]
+    expected |= {f"output {o.name}": (py[n_res * (1 + n_par) + i] / SIZE[o.unit], o.unit)
+                 for i, o in enumerate(outs)}
     index = {c: i for i, c in enumerate(case.problem.columns)}
-    expected |= {f"input {c.name}": u[index[c.name], 0] for c in plan.inputs}
+    expected |= {f"input {c.name}": (u[index[c.name], 0], c.unit) for c in plan.inputs}
     assert set(values) == set(expected)
-    for key, want in expected.items():
-        assert abs(values[key] - want) <= RTOL * max(abs(want), 1.0), key
+    for key, (want, unit) in expected.items():
+        value, printed = values[key]
+        assert printed == unit, key
+        assert abs(value - want) <= RTOL * max(abs(want), 1.0 / SIZE[unit]), key
 
 
 # ----------------------------------------------------------------------- compiled
@@ -203,7 +282,8 @@ def test_dual_baked_matches_python_and_example_runs(dual, tmp_path) -> None:
          "Makefile"])
     header = (out / f"{prefix}.h").read_text(encoding="utf-8")
     assert "double p1;  /* mm: raw reading of platen segment 1 (x) */" in header
-    assert "double g_x;  /* mm: the two sensors agree on the position along x" in header
+    assert "double g_x;  /* um: the two sensors agree on the position along x (eq. 11) */" \
+        in header  # the constraint's declared unit
     assert (f"double dg_dtheta[{prefix.upper()}_N_RESIDUALS][{prefix.upper()}_N_PARAMS];"
             in header)
     assert f"int {prefix}_eval_outputs_s1(const {prefix}_input *in, " \
@@ -229,6 +309,61 @@ def test_platen_baked_and_unbaked_match_python(platen, tmp_path) -> None:
     assert ("int symcal_platen_self_calibration_eval_residuals(const "
             "symcal_platen_self_calibration_input *in, const symcal_platen_self_calibration_"
             "params *params, symcal_platen_self_calibration_residuals *out);") in text
+
+
+def _flat(text: str) -> str:
+    """A header's text with its comment leaders and line breaks as single spaces."""
+    return " ".join(text.replace("\n *", "\n").split())
+
+
+@needs_cc
+def test_accelerometer_takes_and_returns_its_declared_units(accel, tmp_path) -> None:
+    baked_dir, free_dir = tmp_path / "baked", tmp_path / "free"
+    codegen.generate(accel.problem, baked_dir, accel.result_path)
+    codegen.generate(accel.problem, free_dir)
+    header = (free_dir / "symcal_accel_tilt.h").read_text(encoding="utf-8")
+    for field in ["double f_x;  /* m/s**2: raw reading of the accelerometer */",
+                  "double tilt_ref;  /* deg: tilt of the table */",
+                  "double ax_bias;  /* m/s**2: zero offset ('ax.bias') */",
+                  "double ax_gain;  /* 1: scale factor error ('ax.gain') */",
+                  "double g_a;  /* m/s**2: it reads gravity */",
+                  "double g_tilt;  /* mrad: it finds the tilt */",
+                  "double a;  /* m/s**2: calibrated specific force */",
+                  "double tilt;  /* deg: tilt from level */"]:
+        assert field in header, field
+    flat = _flat(header)
+    assert ("The residuals and dg_dtheta of one observation. Takes in: f_x in m/s**2, "
+            "tilt_ref in deg; params: theta, each in its parameter's unit (the fields of "
+            "symcal_accel_tilt_params). Returns out: g_a in m/s**2, g_tilt in mrad; "
+            "dg_dtheta in each residual's unit per each parameter's unit.") in flat
+    assert ("The outputs of 'ax' of one observation. Takes in: f_x in m/s**2; params: "
+            "theta, each in its parameter's unit (the fields of symcal_accel_tilt_params). "
+            "Returns out: ax.a in m/s**2, ax.tilt in deg.") in flat
+    _check_against_python(accel, baked_dir, baked=True)
+    _check_against_python(accel, free_dir, baked=False)
+    _check_example(accel, baked_dir, _theta(accel), baked=True)
+
+    # against numpy, without symcal: the C in m/s**2, deg and mrad, to RTOL relative
+    bias, gain = _theta(accel)
+    index = {c: i for i, c in enumerate(accel.problem.columns)}
+    f, tilt_ref = accel.data[index["f_x"]], accel.data[index["tilt_ref"]]
+    plan = codegen.plan(accel.problem, accel.result_path)
+    assert [c.name for c in plan.inputs] == ["f_x", "tilt_ref"]
+    assert [c.name for c in plan.params] == ["ax.bias", "ax.gain"]
+    c = _run_driver(plan, baked_dir, np.vstack([f, tilt_ref]), None)
+    a = (f - bias) / (1 + gain)
+    slope = 1 / np.sqrt(1 - (a / G0) ** 2) / G0 * 1e3  # d tilt [mrad] / d a [m/s**2]
+    numpy = np.column_stack([
+        a - G0 * np.sin(np.radians(tilt_ref)),                   # g_a [m/s**2]
+        (np.arcsin(a / G0) - np.radians(tilt_ref)) * 1e3,        # g_tilt [mrad]
+        np.full_like(a, -1 / (1 + gain)), -a / (1 + gain),       # d g_a / d bias, d gain
+        -slope / (1 + gain), -slope * a / (1 + gain),            # d g_tilt / d bias, d gain
+        a, np.degrees(np.arcsin(a / G0))])                       # ax.a [m/s**2], ax.tilt [deg]
+    # each value to RTOL of the size of the terms it is a difference of
+    terms = np.column_stack([np.full_like(a, G0), np.full_like(a, 1e3), np.abs(numpy[:, 2:])])
+    assert np.all(np.abs(c - numpy) <= RTOL * terms), np.max(np.abs(c - numpy) / terms)
+    # the residuals at the noise (0.01 m/s**2, about 1 mrad of tilt): the units are right
+    assert 0.005 < np.std(c[:, 0]) < 0.02 and 0.5 < np.std(c[:, 1]) < 5
 
 
 def test_hash_covers_the_yaml_and_the_baked_values(platen) -> None:
@@ -271,8 +406,37 @@ def test_result_with_an_unknown_parameter_or_a_failed_solve_is_refused(platen) -
                               "'platen_self_calibration' does not have")
     doc = json.loads(json.dumps(platen.result))
     doc["solver"]["success"] = False
-    with pytest.raises(symcal.SymcalError, match="is from a failed solve"):
+    with pytest.raises(symcal.SymcalError) as err:
         codegen.plan(platen.problem, doc)
+    assert str(err.value) == ("the result says its solve failed but its stages say it "
+                              "succeeded; write it again with 'symcal solve PROBLEM --out "
+                              "DIR'")
+    doc["stages"][-1]["success"] = False
+    with pytest.raises(symcal.SymcalError) as err:
+        codegen.plan(platen.problem, doc)
+    assert str(err.value) == ("the result is from a failed solve; symcal exports only a "
+                              "successful calibration (or none: omit --result to pass the "
+                              "parameters at run time)")
+
+
+def test_a_result_with_a_non_finite_or_damaged_entry_is_refused(platen) -> None:
+    doc = json.loads(json.dumps(platen.result))
+    doc["parameters"][0]["value"] = None  # what result.json holds for NaN
+    with pytest.raises(symcal.SymcalError) as err:
+        codegen.plan(platen.problem, doc)
+    assert str(err.value) == ("the result: parameter 's1.k0' has the value nan, not a finite "
+                              "number")
+    doc = json.loads(json.dumps(platen.result))
+    doc["parameters"][0]["value"] = "0.1"
+    with pytest.raises(symcal.SymcalError) as err:
+        codegen.plan(platen.problem, doc)
+    assert str(err.value) == "the result: parameter 's1.k0' has the value 0.1, not a number"
+    doc = json.loads(json.dumps(platen.result))
+    del doc["stages"][0]["method"]
+    with pytest.raises(symcal.SymcalError) as err:
+        codegen.plan(platen.problem, doc)
+    assert str(err.value) == ("the result is damaged or incomplete (no 'method'); write it "
+                              "again with 'symcal solve PROBLEM --out DIR'")
 
 
 MODEL = """\
@@ -314,6 +478,83 @@ def test_a_function_without_c_translation_is_refused(platen, tmp_path) -> None:
         codegen.generate(bad, tmp_path / "c")
     assert str(err.value) == ("cannot export constraint 'g_p': it uses the function 'erfinv' "
                               "which has no C translation")
+
+
+HOSTILE_MODEL = """\
+model: seg
+doc: "ends a comment */ #error model ??/"
+inputs: {p: {unit: mm, doc: "raw */ #error input ??="}}
+parameters: {k: {value: 0.1, unit: mm, doc: "*/ #error parameter \\\\"}}
+outputs: {y: {expr: p + k, unit: um, doc: "/* nested */ #error output"}}
+"""
+HOSTILE_PROBLEM = """\
+problem: hostile
+doc: "a problem */ #error problem ??/"
+instances:
+  s1: {model: seg.yaml, inputs: {p: p1}, doc: "*/ #error instance"}
+  s2: {model: seg.yaml, inputs: {p: p2}}
+constraints:
+  g: {expr: s1.y - s2.y, unit: um, doc: "*/ #error constraint"}
+datasets:
+  calibration: {path: data.csv}
+columns: courier
+"""
+
+
+@needs_cc
+def test_text_from_the_yaml_stays_in_comments_and_strings(tmp_path) -> None:
+    (tmp_path / "seg.yaml").write_text(HOSTILE_MODEL, encoding="utf-8")
+    (tmp_path / "hostile.yaml").write_text(HOSTILE_PROBLEM, encoding="utf-8")
+    problem = symcal.load_problem(tmp_path / "hostile.yaml")
+    out = tmp_path / "c\\"  # a folder whose name ends in a backslash
+    codegen.generate(problem, out)
+    for name in ("symcal_hostile.c", "main.c"):
+        build = subprocess.run([CC, *STRICT, "-c", "-I", str(out), "-o", os.devnull,
+                                str(out / name)], capture_output=True, text=True, timeout=120)
+        assert build.returncode == 0 and build.stderr == "", build.stderr
+    header = (out / "symcal_hostile.h").read_text(encoding="utf-8")
+    assert "#error" in header and "*/ #error" not in header
+    dry = _make(out, "-n")  # the Makefile's comment does not swallow its first rule
+    assert dry.returncode == 0 and "-std=c99" in dry.stdout, dry.stdout + dry.stderr
+
+
+def test_another_target_is_a_template_set(platen, tmp_path) -> None:
+    folder = tmp_path / "templates"
+    folder.mkdir()
+    (folder / "units.csv.j2").write_text(
+        "name,unit\n{% for inst in instances %}{% for c in inst.outputs %}"
+        "{{ c.name }},{{ c.unit }}\n{% endfor %}{% endfor %}"
+        "{% for c in residuals %}{{ c.name }},{{ c.unit }}\n{% endfor %}", encoding="utf-8")
+    target = render.Target("csv", (("units.csv.j2", "{prefix}_units.csv"),), folder)
+    written = codegen.generate(platen.problem, tmp_path / "out", target=target)
+    prefix = "symcal_platen_self_calibration"
+    assert [f.name for f in written] == [f"{prefix}_casadi.c", f"{prefix}_casadi.h",
+                                         f"{prefix}_units.csv"]
+    lines = (tmp_path / "out" / f"{prefix}_units.csv").read_text(encoding="utf-8").split()
+    assert lines[0] == "name,unit" and lines[1] == "s1.p_hat,mm" and lines[-1] == "g_p,um"
+    with pytest.raises(symcal.SymcalError) as err:
+        codegen.generate(platen.problem, tmp_path / "other", target="rust")
+    assert str(err.value) == ("no code generation target 'rust'; symcal has c (or give a "
+                              "Target of your own templates)")
+
+
+def test_templates_ship_as_package_data() -> None:
+    """Every template is named by pyproject's package data (a wheel carries it: checked by
+    hand with 'pip install .' into another folder) and used by its target, and
+    importlib.resources finds it where the package is."""
+    import importlib.resources
+
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+    globs = pyproject["tool"]["setuptools"]["package-data"]["symcal.export"]
+    folder = ROOT / "symcal" / "export"
+    present = {p.relative_to(folder).as_posix() for p in (folder / "templates").rglob("*")
+               if p.is_file() and "__pycache__" not in p.parts}
+    shipped = {p.relative_to(folder).as_posix() for g in globs for p in folder.glob(g)}
+    used = {f"templates/{t.name}/{template}" for t in render.TARGETS.values()
+            for template, _ in t.files}
+    assert present and present == shipped == used
+    package = importlib.resources.files("symcal.export")
+    assert all(package.joinpath(*path.split("/")).is_file() for path in used)
 
 
 def test_c_identifiers() -> None:

@@ -383,8 +383,9 @@ def test_codegen_refuses_a_result_computed_on_other_data(toy: Path, capsys) -> N
     code, _, err = _run(["codegen", "prob.yaml", "--result", "r/result.json", "-o", "c"],
                         capsys)
     assert code == 2
-    assert err == ("symcal: error: result file r/result.json was computed on another version "
-                   "of dataset 'calibration' (data.csv changed since the solve); solve again\n")
+    assert err == ("symcal: error: result file r/result.json was computed on other data: "
+                   "dataset 'calibration' (data.csv) changed since the result was computed; "
+                   "solve again\n")
     assert not (toy / "c").exists()
 
 

@@ -25,7 +25,7 @@ from symcal.analysis.gauges import GaugeAnalysis
 from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
 from symcal.analysis.implicit import ImplicitCheck
 from symcal.analysis.outliers import Outliers
-from symcal.base.errors import SymcalError
+from symcal.base.errors import SymcalError, excerpt
 from symcal.base.files import atomic_write_text, json_text
 from symcal.base.numeric import mapped
 from symcal.data.dataset import Dataset
@@ -354,11 +354,7 @@ class Result:
         from symcal.data.loading import load_datasets
 
         files = {d.name: d.file for d in self.provenance if d.file is not None}
-        for info in self.provenance:
-            if info.file is not None and info.sha256 is not None:
-                if _sha256(Path(info.file)) != info.sha256:
-                    raise SymcalError(f"dataset '{info.name}' ({info.file}) changed since the "
-                                      "result was computed; solve again")
+        self.check_data()
         for info in self.provenance:
             spec = self.problem.datasets.get(info.name)
             if info.file is None and (spec is None or spec.source != info.source):
@@ -374,6 +370,28 @@ class Result:
                                   f"{data[info.name].n} observations now, {info.n} when the "
                                   "result was computed; solve again")
         return data
+
+    def check_data(self) -> None:
+        """Refuse the result when a data file it was computed on changed or vanished since.
+
+        Raises
+        ------
+        SymcalError
+            Naming the dataset and its file.  Datasets given as objects or simulated have
+            no file to check.
+        """
+        for info in self.provenance:
+            if info.file is None or info.sha256 is None:
+                continue
+            path = Path(str(info.file))
+            try:
+                digest = hashlib.sha256(path.read_bytes()).hexdigest()
+            except OSError as exc:
+                raise SymcalError(f"dataset '{info.name}' ({display_path(path)}) cannot be "
+                                  f"read now ({exc.strerror}); solve again") from None
+            if digest != info.sha256:
+                raise SymcalError(f"dataset '{info.name}' ({display_path(path)}) changed since "
+                                  "the result was computed; solve again")
 
     @property
     def outliers(self) -> Outliers | None:
@@ -463,13 +481,14 @@ class Result:
         return atomic_write_text(path, json_text(self.to_dict()))
 
     @classmethod
-    def load(cls, path: str | Path, problem: Problem | None = None) -> Result:
-        """Read a ``result.json`` written by :meth:`save`.
+    def load(cls, path: str | Path | Mapping[str, Any], problem: Problem | None = None
+             ) -> Result:
+        """Read a ``result.json`` written by :meth:`save` (or its document, :meth:`to_dict`).
 
         Parameters
         ----------
         path
-            The result file.
+            The result file, or its document as a dict.
         problem
             The problem it is for (default: load the file it names).  Refused when its
             name differs, or when the problem or model files changed since the solve.
@@ -478,7 +497,9 @@ class Result:
         ------
         SymcalError
             A missing, unreadable or foreign file, another format version, another
-            problem, or changed problem or model files.
+            problem, changed problem or model files, or a document that is incomplete:
+            without a record of its solve's success, without exactly one number for
+            every parameter of the problem.
         """
         doc, label = read_result_document(path)
         return cls.from_document(doc, problem, label)
@@ -512,28 +533,39 @@ class Result:
                 raise SymcalError(f"{label} does not name its problem file; give the problem")
             problem = load_problem(file)
         check_result_problem(doc, label, problem)
-        theta = np.array([_value_of(doc, label, p.name) for p in problem.parameters])
-        theta0 = np.array([_value_of(doc, label, p.name, "initial") for p in problem.parameters])
-        return cls(problem, theta0, theta,
-                   tuple(StageResult.from_dict(s) for s in doc["stages"]),
-                   parameter_table(ParameterResult.from_dict(p) for p in doc["parameters"]),
-                   Identifiability.from_dict(doc["identifiability"]),
-                   Uncertainty.from_dict(doc["uncertainty"]),
-                   tuple(SeriesStats.from_dict(s) for s in doc["statistics"]),
-                   tuple(DatasetInfo(**d) for d in doc["datasets"]), tuple(doc["notes"]),
-                   tuple(ImplicitCheck.from_dict(c) for c in doc.get("implicit", [])))
+        solver = doc.get("solver")
+        if not isinstance(solver, Mapping) or not isinstance(solver.get("success"), bool):
+            raise SymcalError(f"{label} does not record whether its solve succeeded (no "
+                              "'solver': {'success': ...}); solve again")
+        entries = _parameter_entries(doc, label, problem)
+        theta = np.array([_number(entries[p.name], "value", label) for p in problem.parameters])
+        theta0 = np.array([_number(entries[p.name], "initial", label)
+                           for p in problem.parameters])
+        try:
+            result = cls(problem, theta0, theta,
+                         tuple(StageResult.from_dict(s) for s in doc["stages"]),
+                         parameter_table(ParameterResult.from_dict(p) for p in doc["parameters"]),
+                         Identifiability.from_dict(doc["identifiability"]),
+                         Uncertainty.from_dict(doc["uncertainty"]),
+                         tuple(SeriesStats.from_dict(s) for s in doc["statistics"]),
+                         tuple(DatasetInfo(**d) for d in doc["datasets"]),
+                         tuple(doc["notes"]),
+                         tuple(ImplicitCheck.from_dict(c) for c in doc.get("implicit", [])))
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            what = f"no {exc.args[0]!r}" if isinstance(exc, KeyError) and exc.args \
+                else excerpt(exc, 120)
+            raise SymcalError(f"{label} is damaged or incomplete ({what}); write it again "
+                              "with 'symcal solve PROBLEM --out DIR'") from None
+        if result.success != solver["success"]:
+            raise SymcalError(f"{label} says its solve {_verb(solver['success'])} but its "
+                              f"stages say it {_verb(result.success)}; write it again with "
+                              "'symcal solve PROBLEM --out DIR'")
+        return result
 
 
 def parameter_table(entries: Iterable[ParameterResult]) -> Mapping[str, ParameterResult]:
     """Parameters by name, in the given order (read-only)."""
     return MappingProxyType({p.name: p for p in entries})
-
-
-def _sha256(path: Path) -> str | None:
-    try:
-        return hashlib.sha256(path.read_bytes()).hexdigest()
-    except OSError:
-        return None
 
 
 def read_result_document(result: str | Path | Mapping[str, Any]) -> tuple[Mapping[str, Any],
@@ -559,6 +591,8 @@ def read_result_document(result: str | Path | Mapping[str, Any]) -> tuple[Mappin
             raise SymcalError(f"{label} cannot be read: {reason}") from None
         try:
             doc = json.loads(text)
+        except RecursionError:
+            raise SymcalError(f"{label} is nested too deeply to be a symcal result") from None
         except json.JSONDecodeError as exc:
             raise SymcalError(f"{label} is not valid JSON: {exc.msg} at line {exc.lineno}, "
                               f"column {exc.colno}") from None
@@ -591,8 +625,43 @@ def check_result_problem(doc: Mapping[str, Any], label: str, problem: Problem) -
                               f"{display_path(home / missing[0])}; solve again")
 
 
-def _value_of(doc: Mapping[str, Any], label: str, name: str, key: str = "value") -> float:
-    for entry in doc.get("parameters", []):
-        if isinstance(entry, Mapping) and entry.get("name") == name:
-            return float(entry[key])
-    raise SymcalError(f"{label} has no value for parameter '{name}'")
+def _parameter_entries(doc: Mapping[str, Any], label: str, problem: Problem
+                       ) -> dict[str, Mapping[str, Any]]:
+    """The entries of a result document's ``parameters`` by name: one for every parameter
+    of ``problem`` and no other."""
+    entries = doc.get("parameters")
+    if not isinstance(entries, list):
+        raise SymcalError(f"{label} has no 'parameters' list")
+    given: dict[str, Mapping[str, Any]] = {}
+    for entry in entries:
+        if not isinstance(entry, Mapping) or "name" not in entry or "value" not in entry:
+            raise SymcalError(f"{label}: every entry of 'parameters' needs a 'name' and a "
+                              f"'value', found {excerpt(entry, 120)}")
+        name = str(entry["name"])
+        if name in given:
+            raise SymcalError(f"{label} lists parameter '{name}' twice")
+        given[name] = entry
+    for p in problem.parameters:
+        if p.name not in given:
+            raise SymcalError(f"{label} has no value for parameter '{p.name}'")
+    names = set(problem.parameter_names)
+    for name in given:
+        if name not in names:
+            raise SymcalError(f"{label} has a value for parameter '{name}', which problem "
+                              f"'{problem.name}' does not have")
+    return given
+
+
+def _number(entry: Mapping[str, Any], key: str, label: str) -> float:
+    """A parameter entry's number (null, written for a non-finite number, is NaN)."""
+    value = entry.get(key)
+    if value is None:
+        return math.nan
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SymcalError(f"{label}: parameter '{entry['name']}' has the {key} "
+                          f"{excerpt(value, 60)}, not a number")
+    return float(value)
+
+
+def _verb(success: bool) -> str:
+    return "succeeded" if success else "failed"
