@@ -108,6 +108,11 @@ def test_python_blocks_use_public_names_only() -> None:
             assert unknown == set(), (path, unknown)
 
 
+def test_the_api_reference_documents_every_public_name() -> None:
+    documented = re.findall(r"^::: symcal\.(\w+)$", _text(DOCS / "api.md"), re.MULTILINE)
+    assert sorted(documented) == sorted(symcal.__all__)
+
+
 def _commands() -> dict[str, argparse.ArgumentParser]:
     action = next(a for a in _parser()._actions
                   if isinstance(a, argparse._SubParsersAction))
