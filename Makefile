@@ -1,5 +1,7 @@
 # symcal: `make demo` runs the bundled default calibration, `make test` runs the suite,
-# `make test-fast` the suite without the tests marked slow (about 50 s on 2 cores).
+# `make test-fast` the suite without the tests marked slow (about 50 s on 2 cores),
+# `make docs` builds the documentation site into build/site (strict: a broken link, a
+# page missing from the nav or a stale API name fails it).
 # Each target creates .venv and installs what it needs.
 PYTHON ?= python3
 VENV := .venv
@@ -9,7 +11,7 @@ DEMO_DIR := build/demo
 # tests: they import numpy first).  OpenBLAS's threads made it 2.5x slower on 2 busy cores.
 TEST_ENV := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 
-.PHONY: demo test test-fast lint bench clean
+.PHONY: demo test test-fast lint docs bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -34,7 +36,12 @@ lint: $(VENV)/.installed-test
 	$(BIN)/ruff check symcal tests benchmarks
 	$(BIN)/mypy
 
-test: lint
+# The documentation (mkdocs.yml): docs/*.md, the examples' walkthroughs and ARCHITECTURE.md,
+# with the API reference generated from the public API's docstrings (mkdocstrings).
+docs: $(VENV)/.installed-test
+	$(BIN)/mkdocs build --strict
+
+test: lint docs
 	$(TEST_ENV) $(BIN)/python -m pytest
 
 test-fast: $(VENV)/.installed-test
