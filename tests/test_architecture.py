@@ -115,3 +115,12 @@ def test_the_architecture_document_lists_every_module() -> None:
     missing = [name for name, path in _modules().items() if path.name != "__init__.py"
                and f"`{path.relative_to(ROOT / 'symcal')}`" not in text]
     assert missing == []
+
+
+def test_a_report_simulates_nothing() -> None:
+    """Reports are functions of the Result (issue 21 item 5): nothing in symcal/report/
+    imports the simulator (floors are found at solve time and stored in the Result)."""
+    modules = _modules()
+    found = {name: sorted(d for d in _imports(path, modules) if _package(d) == "symcal.simulate")
+             for name, path in modules.items() if _package(name) == "symcal.report"}
+    assert {k: v for k, v in found.items() if v} == {}
