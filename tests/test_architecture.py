@@ -124,3 +124,13 @@ def test_solvers_never_read_yaml() -> None:
              if _package(name) == "symcal.solvers"
              for dep in _imports(path, modules) if _package(dep) == "symcal.language"]
     assert wrong == []
+
+
+def test_a_report_simulates_nothing() -> None:
+    """Reports are functions of the Result (issue 21 item 5): nothing in symcal/report/
+    imports the simulator (floors are found at solve time and stored in the Result)."""
+    modules = _modules()
+    found = {name: sorted(d for d in _imports(path, modules)
+                         if _package(d) == "symcal.simulation")
+             for name, path in modules.items() if _package(name) == "symcal.report"}
+    assert {k: v for k, v in found.items() if v} == {}

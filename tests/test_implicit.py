@@ -62,8 +62,12 @@ def test_implicit_platen_keeps_the_explicit_null_space(platen_pair) -> None:
     assert implicit.method == "lm" and explicit.method == "linear"
     assert [c.text for c in implicit.identifiability.null_space] == [
         c.text for c in explicit.identifiability.null_space]
-    assert implicit.stages[0].notes == (
-        "started from the explicit model's closed-form estimate",)
+    assert implicit.stages[0].notes[0] == \
+        "started from the explicit model's closed-form estimate"
+    assert implicit.stages[0].notes[-1].startswith("weighting: each observation's "
+                                                   "constraints whitened by their covariance "
+                                                   "propagated from the readings' declared "
+                                                   "noise")
 
 
 def test_fixed_point_checks_reported(platen_pair) -> None:

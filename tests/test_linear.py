@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT, basis, courier_data
+from conftest import ROOT, F, basis, courier_data
 
 import symcal
 from symcal.base.errors import SolveError
@@ -35,12 +35,59 @@ def _numpy_design(cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
+def _true_k() -> np.ndarray:
+    rng = np.random.default_rng(42)
+    return rng.normal(0, 0.004, (4, 9)) / np.array([1, 1, 1, 2, 2, 4, 4, 6, 6])
+
+
 @pytest.fixture(scope="module")
 def solved() -> tuple[symcal.Result, dict, np.ndarray]:
-    rng = np.random.default_rng(42)
-    k = rng.normal(0, 0.004, (4, 9)) / np.array([1, 1, 1, 2, 2, 4, 4, 6, 6])
+    """Solved with the paper's equal weights (the eq. 7 least squares numpy solves)."""
+    k = _true_k()
     data = _data(k)
-    return symcal.solve(symcal.load_problem(PROBLEM), data), data, k
+    problem = symcal.load_problem(PROBLEM).with_weighting("equal")
+    return symcal.solve(problem, data), data, k
+
+
+def _slopes(cols: dict[str, np.ndarray], k: np.ndarray) -> np.ndarray:
+    """∂g_p/∂p_i (N × 4) for eq. (3) coefficients ``k`` (4 × 9), with numpy alone."""
+    out = []
+    for i, sign in enumerate((1, -1, -1, 1)):
+        p = cols[f"p{i + 1}"]
+        d = np.zeros_like(p)
+        for m, h in enumerate((1, 2, 4, 6)):
+            d += h * F * (k[i, 1 + 2 * m] * np.cos(h * F * p) - k[i, 2 + 2 * m] * np.sin(h * F * p))
+        out.append(sign * (1 + d))
+    return np.column_stack(out)
+
+
+def test_propagated_weighting_equals_numpy_weighted_least_squares() -> None:
+    """The default weighting: each row weighted by the inverse of g_p's variance
+    propagated from the 0.503 µm declared noise of its four readings.  The weights are
+    taken at the start (k = 0: all equal, the plain least squares) and again at that
+    estimate; numpy does the same with its own derivatives of eq. (3)."""
+    k = _true_k()
+    data = _data(k)
+    result = symcal.solve(symcal.load_problem(PROBLEM), data)
+    assert result.problem.weighting == "propagated" and result.method == "linear"
+    cols = {c: np.asarray(v) for c, v in data["calibration"].columns.items()}
+    a, b = _numpy_design(cols)
+    first = np.linalg.lstsq(a, -b, rcond=None)[0].reshape(4, 9)
+    var = 0.503e-3**2 * np.sum(_slopes(cols, first) ** 2, axis=1)
+    w = 1 / np.sqrt(var)
+    k_np = np.linalg.lstsq(a * w[:, None], -b * w, rcond=None)[0]
+    est = np.array([result.params[f"s{i}.k{j}"].value for i in range(1, 5) for j in range(9)])
+    np.testing.assert_allclose(est, k_np, rtol=0, atol=1e-11)
+    rss = float(np.sum(((a @ k_np + b) * w) ** 2))
+    cov = rss / (a.shape[0] - 33) * np.linalg.pinv((a * w[:, None]).T @ (a * w[:, None]),
+                                                   rcond=1e-10)
+    for i, name in enumerate(f"s{i}.k{j}" for i in range(1, 5) for j in range(9)):
+        if not name.endswith("k0"):
+            assert result.uncertainty.se[name] == pytest.approx(np.sqrt(cov[i, i]),
+                                                                rel=1e-6)
+    # χ²/dof of g_p is the weighted RSS over its degrees of freedom (the test's weights
+    # are those at the final estimate, the solve's at the one before: 5e-6 apart here)
+    assert result.stat("g_p").chi2_dof == pytest.approx(rss / (1000 - 33), rel=1e-4)
 
 
 def test_method_is_closed_form(solved) -> None:

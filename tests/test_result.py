@@ -141,3 +141,33 @@ def test_data_given_in_memory_are_not_silently_replaced(project, tmp_path) -> No
     loaded = symcal.Result.load(path)
     with pytest.raises(SymcalError, match="was given as data in memory, not as a file"):
         loaded.data  # noqa: B018 - the data are read on first use
+
+
+def test_a_reloaded_result_renders_byte_for_byte_the_same(tmp_path, monkeypatch) -> None:
+    """Reports are functions of the Result (issue 21 item 5): the floors and tests are
+    found at solve time and stored; rendering a loaded result reads no file and runs no
+    simulation (both are made to fail here), and gives the same text and JSON."""
+    import builtins
+
+    import symcal.simulation.courier
+    from symcal.report.text import json_report, text_report
+
+    result = symcal.solve(ROOT / "problems" / "dual_sensor_calibration.yaml")
+    text, doc = text_report(result), json_report(result)
+    loaded = symcal.Result.load(result.save(tmp_path / "result.json"))
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a report read a file or simulated")
+
+    monkeypatch.setattr(builtins, "open", refuse)
+    monkeypatch.setattr(Path, "read_text", refuse)
+    monkeypatch.setattr(Path, "read_bytes", refuse)
+    for name in ("simulate_run", "simulate", "noise_floor", "truth"):
+        monkeypatch.setattr(symcal.simulation.courier, name, refuse)
+    again_text = text_report(loaded)
+    again_doc = json_report(loaded)
+    monkeypatch.undo()
+    assert again_text == text
+    assert again_doc == doc
+    assert loaded.at_floor == result.at_floor
+    assert [t.to_dict() for t in loaded.floor_tests] == [t.to_dict() for t in result.floor_tests]

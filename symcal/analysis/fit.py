@@ -9,6 +9,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from symcal.analysis.floors import FloorTest
 from symcal.base.numeric import mapped
 from symcal.base.units import DISPLAY_UNITS
 from symcal.data.dataset import Dataset
@@ -36,7 +37,9 @@ class SeriesStats:
 
     ``kind`` is ``"constraint"`` (model against itself: the redundancy) or ``"comparison"``
     (model against an independent reference sensor; ``remove_mean`` says that its mean is
-    an arbitrary zero, e.g. the interferometer's, and carries no information).
+    an arbitrary zero, e.g. the interferometer's, and carries no information).  ``noise``
+    is its noise floor and the test against it (:class:`~symcal.analysis.floors.FloorTest`,
+    found at solve time; None before).
     """
 
     name: str
@@ -47,6 +50,17 @@ class SeriesStats:
     before: Spread
     after: Spread
     remove_mean: bool = False
+    noise: FloorTest | None = None
+
+    @property
+    def floor(self) -> float | None:
+        """The noise floor (internal units), None when unknown."""
+        return None if self.noise is None else self.noise.floor
+
+    @property
+    def chi2_dof(self) -> float | None:
+        """χ²/dof against the floor, None when unknown."""
+        return None if self.noise is None else self.noise.chi2_dof
 
     def shown(self, which: str) -> Spread:
         """``before`` or ``after`` in the display unit."""
@@ -55,11 +69,17 @@ class SeriesStats:
         return Spread(spread.rms / scale, spread.mean / scale, spread.std / scale)
 
     def to_dict(self) -> dict:
-        """Plain-data form, values in the display unit."""
+        """Plain-data form, values in the display unit: ``floor`` (null when unknown) and
+        ``chi2_dof`` (null when unknown) beside the spreads, the whole test in
+        ``noise``."""
+        scale = DISPLAY_UNITS[self.unit]
+        floor = self.floor
         return {
             "name": self.name, "kind": self.kind, "dataset": self.dataset,
             "unit": self.unit or "(internal)", "n": self.n, "remove_mean": self.remove_mean,
             "before": self.shown("before").__dict__, "after": self.shown("after").__dict__,
+            "floor": None if floor is None else floor / scale, "chi2_dof": self.chi2_dof,
+            "noise": None if self.noise is None else self.noise.to_dict(scale),
         }
 
     @classmethod
@@ -71,8 +91,10 @@ class SeriesStats:
         def spread(d: Mapping[str, float]) -> Spread:
             return Spread(d["rms"] * scale, d["mean"] * scale, d["std"] * scale)
 
+        noise = doc.get("noise")
         return cls(doc["name"], doc["kind"], doc["dataset"], unit, doc["n"],
-                   spread(doc["before"]), spread(doc["after"]), doc["remove_mean"])
+                   spread(doc["before"]), spread(doc["after"]), doc["remove_mean"],
+                   None if noise is None else FloorTest.from_dict(noise, scale))
 
 
 def series_statistics(

@@ -141,6 +141,9 @@ def _run_stage(problem: Problem, stage: Stage, data: Source, theta: np.ndarray,
     objective = Objective(problem, stage.constraints, free)
     method = options.method or stage.method
     out, notes = solve_stage(objective, data, theta, method, progress, stage.name, options)
+    if problem.weighting == "propagated":
+        notes.append("weighting: 'propagated' weights each observation, which a "
+                     "partitioned log does not support yet: solved with equal weights")
     if problem.weighting == "estimated" and len(stage.constraints) > 1 and out.success:
         rank = numerical_rank(out.r_factor, out.rows, objective.scales)
         cov = objective.residual_covariance(data, out.theta, rank)

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from symcal.analysis.fit import SeriesStats
+from symcal.analysis.floors import DatasetTest, at_floor
 from symcal.analysis.gauges import GaugeAnalysis
 from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
 from symcal.analysis.implicit import ImplicitCheck
@@ -306,6 +307,13 @@ class Result:
         The datasets by name (loaded again from their files for a loaded result).
     provenance
         What each dataset was: source, size, file and hash.
+    floor_tests
+        The global test of the model on every dataset: its constraints' χ²/dof against
+        the floor their readings' declared noise sets (:mod:`symcal.analysis.floors`);
+        each residual's own floor and test is in its ``statistics`` entry.
+    files
+        sha256 of every file the problem was built from, taken at solve time (None:
+        hashed when the document is written).
     """
 
     problem: Problem
@@ -319,6 +327,8 @@ class Result:
     provenance: tuple[DatasetInfo, ...]
     notes: tuple[str, ...]
     implicit: tuple[ImplicitCheck, ...] = ()
+    floor_tests: tuple[DatasetTest, ...] = ()
+    files: Mapping[str, str] | None = None
     _data: Mapping[str, Dataset] | None = field(default=None, repr=False)
 
     @property
@@ -394,6 +404,12 @@ class Result:
                                   "the result was computed; solve again")
 
     @property
+    def at_floor(self) -> bool | None:
+        """Whether every dataset is at its noise floor (:attr:`floor_tests`): False when
+        one is above or below it, None when one's floor is unknown and none is off it."""
+        return at_floor(self.floor_tests)
+
+    @property
     def outliers(self) -> Outliers | None:
         """The observations the last stage's fit treats as outliers."""
         return self.stages[-1].outliers
@@ -459,7 +475,8 @@ class Result:
             "symcal_result": FORMAT,
             "problem": self.problem.name, "problem_path": self.problem_path,
             "problem_file": str(Path(self.problem.path).resolve()),
-            "files": file_hashes(self.problem),
+            "files": dict(self.files) if self.files is not None
+            else file_hashes(self.problem),
             "solver": {"method": self.method, "success": self.success,
                        "seconds": sum(st.seconds for st in self.stages)},
             "stages": [st.to_dict() for st in self.stages],
@@ -471,6 +488,8 @@ class Result:
             "regressions": [r.to_dict() for r in self.regressions],
             "outliers": None if self.outliers is None else self.outliers.to_dict(),
             "implicit": [c.to_dict() for c in self.implicit],
+            "floor_tests": [t.to_dict() for t in self.floor_tests],
+            "at_floor": self.at_floor,
             "information_criteria": {"aic": self.aic, "bic": self.bic, "rows": self.rows,
                                      "rss": self.rss},
             "notes": list(self.notes),
@@ -550,7 +569,9 @@ class Result:
                          tuple(SeriesStats.from_dict(s) for s in doc["statistics"]),
                          tuple(DatasetInfo(**d) for d in doc["datasets"]),
                          tuple(doc["notes"]),
-                         tuple(ImplicitCheck.from_dict(c) for c in doc.get("implicit", [])))
+                         tuple(ImplicitCheck.from_dict(c) for c in doc.get("implicit", [])),
+                         tuple(DatasetTest.from_dict(t) for t in doc.get("floor_tests", [])),
+                         dict(doc["files"]) if isinstance(doc.get("files"), Mapping) else None)
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             what = f"no {exc.args[0]!r}" if isinstance(exc, KeyError) and exc.args \
                 else excerpt(exc, 120)

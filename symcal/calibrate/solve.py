@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from symcal.analysis.fit import series_statistics
+from symcal.analysis.floors import Fit, floor_tests, inverse_sqrt_rows, row_covariances
 from symcal.analysis.gauges import find_gauges
 from symcal.analysis.identifiability import Uncertainty, analyse, conditioning
 from symcal.analysis.implicit import implicit_checks
@@ -18,13 +19,14 @@ from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, SolveError, SymcalError
 from symcal.base.linalg import is_singular, numerical_rank, sqrt_psd, whitening
 from symcal.base.options import METHODS, SolveOptions
-from symcal.base.units import DISPLAY_UNITS
+from symcal.base.units import DISPLAY_UNITS, symbol
 from symcal.calibrate.result import (
     ConstraintCost,
     DatasetInfo,
     ParameterResult,
     Result,
     StageResult,
+    file_hashes,
     parameter_table,
 )
 from symcal.data.dataset import Dataset
@@ -129,6 +131,68 @@ def _reweighted(
     return whitened, merged, note
 
 
+def _propagated_weights(objective: Objective, data: Dataset, theta: np.ndarray
+                        ) -> tuple[np.ndarray | None, str]:
+    """Each observation's ``C_i^-½`` of the stage's weighted constraints at ``theta`` (the
+    covariance propagated from the readings' declared noise), or None and why not."""
+    problem = objective.problem
+    missing = sorted({c for n in objective.constraints
+                      for c in problem.undeclared(problem.constraint(n).sx)})
+    if missing:
+        raise SymcalError(f"weighting 'propagated' needs the noise of every reading the "
+                          f"constraints read; no noise is declared for the column(s) "
+                          f"{', '.join(repr(m) for m in missing)}: declare it ('noise: 0.5 um' "
+                          "on the column, on the model input bound to it, or in the "
+                          "problem's 'noise:' section), or choose another weighting")
+    cov = row_covariances(problem, objective.constraints, data, theta)
+    t, singular = inverse_sqrt_rows(cov)
+    if singular:
+        return None, (f"weighting: the propagated covariance of the constraints is singular "
+                      f"on {singular} of {data.n} observations (the readings they use are "
+                      "declared exact there); kept equal weights")
+    return t, ""
+
+
+def _propagated(
+    plain: Objective, data: Dataset, theta: np.ndarray, method: str, progress: Progress,
+    label: str, options: SolveOptions,
+) -> tuple[Objective, SolverOutput, list[str]]:
+    """Solve weighted by the covariance propagated from the readings' noise: at the start,
+    then again at that estimate (the covariance depends on the parameters through the
+    constraints' derivatives by the readings)."""
+    weights, why = _propagated_weights(plain, data, theta)
+    if weights is None:
+        out, notes = solve_stage(plain, data, theta, method, progress, label, options)
+        return plain, out, [*notes, why]
+    weighted = plain.with_row_weights(weights)
+    first, notes = solve_stage(weighted, data, theta, method, progress, label, options)
+    if not first.success:
+        return weighted, first, notes
+    weights, why = _propagated_weights(plain, data, first.theta)
+    if weights is None:
+        return weighted, first, [*notes, why]
+    weighted = plain.with_row_weights(weights)
+    second, _ = solve_stage(weighted, data, first.theta, method, progress, label, options)
+    merged = SolverOutput(
+        second.theta, second.free, second.method, second.success, second.status,
+        second.message + "; weighted by the covariance propagated from the readings' noise",
+        second.r_factor, second.rows, second.rss, first.iterations + second.iterations,
+        first.seconds + second.seconds)
+    problem = plain.problem
+    floor = np.sqrt(np.mean(np.diagonal(row_covariances(problem, plain.constraints, data,
+                                                        second.theta), axis1=1, axis2=2),
+                            axis=0))
+    sizes = []
+    for k, name in enumerate(plain.constraints):
+        q = problem.constraint(name)
+        sizes.append(f"{name} {floor[k] * q.sigma / DISPLAY_UNITS[q.unit]:.3g} "
+                     f"{symbol(q.unit)}")
+    note = ("weighting: each observation's constraints whitened by their covariance "
+            "propagated from the readings' declared noise, at the start and again at that "
+            f"estimate (noise floor {', '.join(sizes)})")
+    return weighted, merged, [*notes, note]
+
+
 def _check_finite(objective: Objective, data: Dataset, theta: np.ndarray) -> None:
     """Refuse constraints that are inf or NaN at the start, naming where."""
     g = objective.residuals(data, theta)
@@ -207,19 +271,23 @@ def run_stage(
     method = options.method or stage.method
     losses = row_losses(plain)
     weights = None
-    if losses is None:
-        out, notes = solve_stage(plain, data, theta, method, progress, stage.name, options)
-    elif problem.weighting == "estimated":
+    objective = plain
+    if losses is not None and problem.weighting in ("estimated", "propagated"):
         raise SymcalError(f"stage '{stage.name}': {losses.texts[0]} is a robust loss, which "
-                          "weighting 'estimated' does not support: remove one of them")
-    else:
+                          f"weighting '{problem.weighting}' does not support: remove one of "
+                          "them")
+    if losses is not None:
         out, notes, weights = _robust(plain, data, theta, losses, method, progress,
                                       stage.name, options)
+    elif problem.weighting == "propagated":
+        objective, out, notes = _propagated(plain, data, theta, method, progress, stage.name,
+                                            options)
+    else:
+        out, notes = solve_stage(plain, data, theta, method, progress, stage.name, options)
     out = _diverged(out, problem, theta, plain)
     collapse = gauges.collapse(theta, out.theta, plain) if out.success else None
     if collapse is not None:
         out = replace(out, success=False, status="Collapsed", message=collapse)
-    objective = plain
     if problem.weighting == "estimated" and len(stage.constraints) > 1 and out.success:
         objective, out, note = _reweighted(plain, out, data, method, progress, stage.name,
                                            options)
@@ -353,6 +421,8 @@ def _result(problem: Problem, datasets: dict[str, Dataset],
         for i, p in enumerate(problem.parameters)
     )
     stats, skipped = series_statistics(problem, datasets, theta0, theta)
+    found, tests = floor_tests(problem, datasets, theta, _fit(problem, datasets, theta, last))
+    stats = tuple(replace(s, noise=found.get((s.dataset, s.name))) for s in stats)
     checks = implicit_checks(problem, datasets, theta)
     notes = list(skipped) + [
         f"'{c.name}' is not a contraction on dataset '{c.dataset}': max |dF/dx| = "
@@ -362,7 +432,39 @@ def _result(problem: Problem, datasets: dict[str, Dataset],
     infos = tuple(_info(d, given.get(d.name), problem.datasets[d.name].path)
                   for d in datasets.values())
     return Result(problem, theta0, theta, stages, params, last.identifiability,
-                  last.uncertainty, stats, infos, tuple(notes), checks, datasets)
+                  last.uncertainty, stats, infos, tuple(notes), checks, tests,
+                  _hashes(problem), datasets)
+
+
+def _hashes(problem: Problem) -> dict[str, str] | None:
+    """The problem's files' hashes at solve time (None where a file cannot be read: the
+    document then hashes them when it is written, and says why it cannot)."""
+    try:
+        return file_hashes(problem)
+    except SymcalError:
+        return None
+
+
+def _fit(problem: Problem, datasets: Mapping[str, Dataset], theta: np.ndarray,
+         last: StageResult) -> Fit:
+    """How the last stage fitted the estimate, for the noise's share in it."""
+    stage = next(st for st in problem.stages if st.name == last.name)
+    free = np.array([p.name in last.free for p in problem.parameters])
+    weighting = problem.weighting
+    if last.outliers is not None and not last.outliers.squared:
+        weighting = "equal"          # a robust fit: its weights are the losses'
+    if any(n.startswith("weighting:") and "kept equal weights" in n for n in last.notes):
+        weighting = "equal"
+    whiten = None
+    if weighting == "estimated":
+        fit = problem.fit_dataset
+        if len(stage.constraints) > 1 and fit in datasets:
+            plain = Objective(problem, stage.constraints, free)
+            rank = last.identifiability.rank
+            whiten = whitening(plain.residual_covariance(datasets[fit], theta, rank))[0]
+        else:
+            weighting = "equal"
+    return Fit(problem.fit_dataset, stage.constraints, free, weighting, whiten)
 
 
 def correlations(unc: Uncertainty, name: str) -> dict[str, float]:

@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the loop; write the ladder; print the rounds; exit 0 when the model is quiet."""
     from symcal.base.files import OutputSet, atomic_write_text, check_outputs
     from symcal.report.ladder import ladder_report, save_ladder_plot
-    from symcal.report.text import plain_json
+    from symcal.report.text import floor_lines, outcome_text, plain_json
     from symcal.revise.improve import improve
     from symcal.revise.ladder import compare
 
@@ -64,10 +64,8 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write(plain_json(result.to_dict()))
     else:
         lines = [f"symcal improve: {len(result.rounds) - 1} round(s) kept; "
-                 + (("the diagnosis is quiet" + (
-                     " (what is left is aliased with the parameters already there)"
-                     if result.aliased else "")) if result.quiet
-                    else "the diagnosis is not quiet (nothing else pays)"), ""]
+                 + outcome_text(result), ""]
+        lines += [f"  {line}" for line in floor_lines(result.rounds[-1].result)]
         for r in result.rounds:
             what = r.added or "(the starting problem)"
             lines.append(f"  round {r.index}: {what}  [{r.problem_file}]")

@@ -25,9 +25,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     cmd.add_argument("--method", choices=["auto", "linear", "ipopt", "lm"],
                      help="solve every stage with this method (default: each stage's own, "
                           "auto = closed form when linear, else lm)")
-    cmd.add_argument("--weighting", choices=["equal", "estimated"],
+    cmd.add_argument("--weighting", choices=["equal", "estimated", "propagated"],
                      help="weights of the constraints in the cost (default: the problem's; "
-                          "estimated = by their residual covariance)")
+                          "estimated = by their residual covariance; propagated = by the "
+                          "covariance the readings' declared noise gives them)")
     cmd.add_argument("--max-iter", type=int, metavar="N",
                      help="iteration limit of lm and IPOPT stages (default: the problem's, else "
                           "200)")

@@ -295,7 +295,7 @@ class _Model:
         theta = operating_point(problem, scenario)
         cov = prediction.covariance
         ng = cov.shape[0]
-        estimated = problem.weighting == "estimated" and ng > 1
+        estimated = problem.weighting in ("estimated", "propagated") and ng > 1
         transform = whitening(cov)[0] if estimated else np.eye(ng)
         objective = Objective(problem, stage.constraints, free, transform)
         self.names = objective.names

@@ -12,6 +12,10 @@ stage would report on data simulated from it, with nothing recorded:
    solve estimates from the residuals of its *equal-weight* fit, so ``S`` is the mean
    noise covariance plus that of what an equal-weight refit of the noiseless data leaves
    (the model's misfit to the simulated courier); equal weights keep ``g/σ``;
+   ``weighting: propagated`` (each observation whitened by its own propagated noise
+   covariance) is predicted as that pooled whitening: the per-observation weights are
+   not modelled (on the courier's motions the constraints' noise covariance varies
+   little with the pose);
 4. the estimate lands at the weighted refit ``θ*`` of the noiseless data, and its spread
    over data sets is the sandwich ``(J̃ᵀJ̃)⁺ (Σ_i J̃_iᵀ S̃_i J̃_i) (J̃ᵀJ̃)⁺`` at ``θ*``
    (``J̃ = T J``, ``T`` the weights), each observation with its own noise and misfit,
@@ -239,7 +243,8 @@ def covariance_of(objective: Objective, data: Dataset, theta: np.ndarray, cov: n
     covariance is the sandwich
     ``(J̃ᵀJ̃)⁺ (Σ_i J̃_iᵀ S̃_i J̃_i) (J̃ᵀJ̃)⁺`` with the same rank rule as the solve's."""
     ng = cov.shape[0]
-    transform = whitening(cov)[0] if weighting == "estimated" and ng > 1 else None
+    pooled = weighting in ("estimated", "propagated") and ng > 1
+    transform = whitening(cov)[0] if pooled else None
     solved = objective if transform is None else Objective(
         objective.problem, objective.constraints, objective.free, transform)
     at = refit(objective, data, theta, transform) if misfit else theta

@@ -42,21 +42,22 @@ __all__ = ["CName", "InstancePlan", "Plan", "ResultLike", "c_identifier", "conte
 
 
 def _sample(problem: Problem, p: Plan) -> tuple[list[float], str]:
-    """The first observation of the calibration dataset (0 where a column is absent)."""
+    """The first observation of the fitted dataset (0 where a column is absent)."""
     from symcal.data.loading import load_datasets
 
     if not p.inputs:
         return [], "without inputs"
     try:
-        data = load_datasets(problem, names=["calibration"])["calibration"]
+        fit = problem.fit_dataset
+        data = load_datasets(problem, names=[fit])[fit]
     except SymcalError as exc:
-        return [0.0] * len(p.inputs), f"zeros (the calibration dataset cannot be read: {exc})"
+        return [0.0] * len(p.inputs), f"zeros (the fitted dataset cannot be read: {exc})"
     if data.n == 0:
-        return [0.0] * len(p.inputs), "zeros (the calibration dataset is empty)"
+        return [0.0] * len(p.inputs), "zeros (the fitted dataset is empty)"
     row = data.matrix([c.name for c in p.inputs])[:, 0]
     values = [float(v) if math.isfinite(v) else 0.0 for v in row]
     missing = [c.name for c, v in zip(p.inputs, row, strict=True) if not math.isfinite(v)]
-    note = f"the first row of dataset 'calibration' ({data.source})"
+    note = f"the first row of dataset '{fit}' ({data.source})"
     if missing:
         note += f", with 0 for {', '.join(missing)} (not in it)"
     return values, note

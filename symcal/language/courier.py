@@ -6,21 +6,25 @@ Nothing of the courier is a default: a problem for another system declares its o
 
 from __future__ import annotations
 
-#: The courier's columns (the data contract of the README): name → (unit, role, doc).  Role
-#: ``time`` marks the time of an observation (a drift is a term linear in it); ``axis``
-#: marks the raw position readings along which residuals are plotted.
-COURIER_COLUMNS: dict[str, tuple[str, str, str]] = {
-    "t": ("s", "time", "time of the observation"),
-    "p1": ("mm", "axis", "raw reading of platen segment 1 (x)"),
-    "p2": ("mm", "axis", "raw reading of platen segment 2 (y)"),
-    "p3": ("mm", "axis", "raw reading of platen segment 3 (x)"),
-    "p4": ("mm", "axis", "raw reading of platen segment 4 (y)"),
-    "psi_x": ("rad", "", "coordination sensor angle to the beacon, x"),
-    "psi_y": ("rad", "", "coordination sensor angle to the beacon, y"),
-    "x_ref": ("mm", "", "interferometer x (ground truth)"),
-    "y_ref": ("mm", "", "interferometer y (ground truth)"),
-    "theta_ref": ("rad", "", "interferometer angle (ground truth)"),
+#: The courier's columns (the data contract of the README): name → (unit, role, doc,
+#: noise).  Role ``time`` marks the time of an observation (a drift is a term linear in
+#: it); ``axis`` marks the raw position readings along which residuals are plotted.  The
+#: noise of the time and of the interferometer is declared here (a clock is exact; a
+#: laser interferometer resolves about 10 nm and 0.1 µrad, negligible beside the
+#: sensors'); the platen and coordination readings' noise is their models' (their inputs'
+#: ``noise``), overridden per instance or in a problem's ``noise:`` section.
+COURIER_COLUMNS: dict[str, tuple[str, str, str, str | None]] = {
+    "t": ("s", "time", "time of the observation", "0 s"),
+    "p1": ("mm", "axis", "raw reading of platen segment 1 (x)", None),
+    "p2": ("mm", "axis", "raw reading of platen segment 2 (y)", None),
+    "p3": ("mm", "axis", "raw reading of platen segment 3 (x)", None),
+    "p4": ("mm", "axis", "raw reading of platen segment 4 (y)", None),
+    "psi_x": ("rad", "", "coordination sensor angle to the beacon, x", None),
+    "psi_y": ("rad", "", "coordination sensor angle to the beacon, y", None),
+    "x_ref": ("mm", "", "interferometer x (ground truth)", "0.01 um"),
+    "y_ref": ("mm", "", "interferometer y (ground truth)", "0.01 um"),
+    "theta_ref": ("rad", "", "interferometer angle (ground truth)", "0.1 urad"),
 }
 
 #: Column presets by the name a problem gives under ``columns:``.
-PRESETS: dict[str, dict[str, tuple[str, str, str]]] = {"courier": COURIER_COLUMNS}
+PRESETS: dict[str, dict[str, tuple[str, str, str, str | None]]] = {"courier": COURIER_COLUMNS}

@@ -28,6 +28,7 @@ from symcal.language.fields import (
     expect_str,
     expect_symbol,
 )
+from symcal.language.noise import NoiseSpec, parse_noise
 from symcal.language.overlay import resolve_base
 from symcal.language.yamlio import load_yaml
 
@@ -39,13 +40,15 @@ BASE = "base."  # prefix under which an extending model sees the definitions it 
 
 @dataclass(frozen=True)
 class InputSpec:
-    """A per-observation input of a model; ``period`` (an expression) marks it periodic."""
+    """A per-observation input of a model; ``period`` (an expression) marks it periodic;
+    ``noise`` is the declared standard deviation of its reading (None: not declared)."""
 
     name: str
     unit: str
     doc: str
     period: ExprSpec | None
     where: Where
+    noise: NoiseSpec | None = None
 
 
 @dataclass(frozen=True)
@@ -119,14 +122,16 @@ class ModelSpec:
 
 def _parse_input(name: str, value: Any, where: Where) -> InputSpec:
     expect_symbol(name, where, "an input's name")
-    entry = check_keys(value, where, optional=["unit", "doc", "period"])
+    entry = check_keys(value, where, optional=["unit", "doc", "period", "noise"])
     unit = display_unit(entry.get("unit"), child_where(entry, where, "unit"))
     doc = expect_str(entry["doc"], child_where(entry, where, "doc")) if "doc" in entry else ""
     period = (
         parse_expr(entry["period"], child_where(entry, where, "period"))
         if "period" in entry else None
     )
-    return InputSpec(name, unit, doc, period, where)
+    noise = (parse_noise(entry["noise"], child_where(entry, where, "noise"), unit)
+             if "noise" in entry else None)
+    return InputSpec(name, unit, doc, period, where, noise)
 
 
 def _parse_output(name: str, value: Any, where: Where) -> OutputSpec:

@@ -33,9 +33,9 @@ EntryRule = Callable[[Any, Any, Any], Any]
 
 #: Problem sections merged entry by entry (``instances`` one level deeper).
 KEYED_SECTIONS = ("constants", "parameters", "columns", "instances", "expressions",
-                  "constraints", "comparisons", "datasets", "implicit")
+                  "constraints", "comparisons", "datasets", "implicit", "noise")
 #: Keys of an instance merged entry by entry.
-INSTANCE_SECTIONS = ("inputs", "parameters")
+INSTANCE_SECTIONS = ("inputs", "parameters", "noise")
 #: Problem keys holding paths relative to the file, per keyed section.
 PATH_KEYS = {"instances": ("model",), "datasets": ("path", "simulate")}
 

@@ -45,13 +45,16 @@ from symcal.language.model_file import (
     load_model,
     parse_implicit,
 )
+from symcal.language.noise import NoiseSpec, parse_noise
 from symcal.language.overlay import extends_chain, load_with_extends, merge_problem
 from symcal.language.solver import parse_solver
 from symcal.language.yamlio import MAX_BYTES, YMap, display_path
 
 PROBLEM_KEYS = ["doc", "extends", "constants", "parameters", "columns", "expressions",
-                "comparisons", "stages", "weighting", "implicit", "solver"]
-WEIGHTINGS = ("equal", "estimated")
+                "comparisons", "stages", "weighting", "implicit", "solver", "noise"]
+#: ``auto`` (not written): ``propagated`` where every reading of the constraints declares
+#: its noise and no constraint has a robust loss, else ``equal``.
+WEIGHTINGS = ("equal", "estimated", "propagated")
 #: What a column may be declared as (``role:``): the time of an observation, or a raw
 #: position reading along which residuals are plotted.
 ROLES = ("time", "axis")
@@ -67,18 +70,21 @@ DEFAULT_FIT = "calibration"
 
 @dataclass(frozen=True)
 class ColumnSpec:
-    """A data column the problem may refer to by name; ``role`` is "", "time" or "axis"."""
+    """A data column the problem may refer to by name; ``role`` is "", "time" or "axis";
+    ``noise`` is the declared standard deviation of its readings (None: not declared)."""
 
     name: str
     unit: str
     doc: str
     where: Where
     role: str = ""
+    noise: NoiseSpec | None = None
 
 
 @dataclass(frozen=True)
 class InstanceSpec:
-    """A sensor instance: a model with its inputs bound and parameter overrides."""
+    """A sensor instance: a model with its inputs bound, parameter overrides and the
+    noise of its inputs where it overrides the model's (``noise: {p: 1 um}``)."""
 
     name: str
     model: ModelSpec
@@ -86,6 +92,7 @@ class InstanceSpec:
     overrides: dict[str, tuple[YMap, Where]]
     doc: str
     where: Where
+    noise: dict[str, NoiseSpec] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -168,6 +175,9 @@ class SystemSpec:
     constraints: dict[str, QuantitySpec]
     comparisons: dict[str, ComparisonSpec]
     implicit: dict[str, ImplicitSpec] = field(default_factory=dict)
+    #: The problem's ``noise:`` section: a column or an instance input (``s1.p``) → its
+    #: noise, over every other declaration of it.
+    noise: dict[str, NoiseSpec] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -223,7 +233,7 @@ def _parse_instance(
 ) -> InstanceSpec:
     expect_symbol(name, where, "an instance's name")
     entry = check_keys(value, where, required=["model", "inputs"],
-                       optional=["parameters", "doc"])
+                       optional=["parameters", "noise", "doc"])
     model_at = child_where(entry, where, "model")
     model = cache.get(_relative(base, entry["model"], model_at), model_at)
     inputs_at = child_where(entry, where, "inputs")
@@ -247,7 +257,15 @@ def _parse_instance(
             raise SpecError(at, _not_in(key, "a parameter", model.name, list(model.parameters)))
         overrides[key] = (check_keys(val, at, optional=["value", "lower", "upper", "fixed",
                                                          "scale"]), at)
-    return InstanceSpec(name, model, bindings, overrides, _doc(entry, where), where)
+    noise_at = child_where(entry, where, "noise")
+    noises = expect_map(entry.get("noise"), noise_at)
+    noise: dict[str, NoiseSpec] = {}
+    for key, val in noises.items():
+        at = child_where(noises, noise_at, key)
+        if key not in model.inputs:
+            raise SpecError(at, _not_in(key, "an input", model.name, list(model.inputs)))
+        noise[key] = parse_noise(val, at, model.inputs[key].unit)
+    return InstanceSpec(name, model, bindings, overrides, _doc(entry, where), where, noise)
 
 
 def _not_in(key: str, what: str, model: str, names: list[str]) -> str:
@@ -387,11 +405,13 @@ def _parse_stages(doc: YMap, where: Where, constraints: dict) -> tuple[StageSpec
 
 def _parse_column(name: str, value: Any, where: Where) -> ColumnSpec:
     expect_symbol(name, where, "a column's name")
-    entry = check_keys(value, where, optional=["unit", "doc", "role"])
+    entry = check_keys(value, where, optional=["unit", "doc", "role", "noise"])
     role = (expect_choice(entry["role"], child_where(entry, where, "role"), ROLES, "role")
             if "role" in entry else "")
-    return ColumnSpec(name, display_unit(entry.get("unit"), child_where(entry, where, "unit")),
-                      _doc(entry, where), where, role)
+    unit = display_unit(entry.get("unit"), child_where(entry, where, "unit"))
+    noise = (parse_noise(entry["noise"], child_where(entry, where, "noise"), unit)
+             if "noise" in entry else None)
+    return ColumnSpec(name, unit, _doc(entry, where), where, role, noise)
 
 
 def _parse_columns(doc: YMap, where: Where) -> dict[str, ColumnSpec]:
@@ -403,8 +423,9 @@ def _parse_columns(doc: YMap, where: Where) -> dict[str, ColumnSpec]:
             raise SpecError(at, f"unknown column preset '{excerpt(value)}'"
                                 f"{did_you_mean(value, PRESETS)}; presets: "
                                 f"{', '.join(PRESETS)} (or a mapping of columns)")
-        return {k: ColumnSpec(k, unit, text, at, role)
-                for k, (unit, role, text) in PRESETS[value].items()}
+        return {k: ColumnSpec(k, unit, text, at, role,
+                              None if noise is None else parse_noise(noise, at, unit))
+                for k, (unit, role, text, noise) in PRESETS[value].items()}
     mapping = expect_map(value, at)
     return {k: _parse_column(k, v, child_where(mapping, at, k)) for k, v in mapping.items()}
 
@@ -412,6 +433,30 @@ def _parse_columns(doc: YMap, where: Where) -> dict[str, ColumnSpec]:
 #: Most expression nodes a problem may expand to: every expression of every instance's
 #: model, every binding and the problem's own expressions, each use of a YAML alias counted.
 MAX_EXPRESSION_NODES = 100_000
+
+
+def _parse_noise_section(doc: YMap, where: Where, columns: dict[str, ColumnSpec],
+                         instances: dict[str, InstanceSpec]) -> dict[str, NoiseSpec]:
+    """The problem's ``noise:`` section: a column or an instance input (``s1.p``) → its
+    noise, each name checked and each unit against its reading's."""
+    mapping, at = section(doc, where, "noise")
+    inputs = {f"{i}.{k}": inp.unit for i, inst in instances.items()
+              for k, inp in inst.model.inputs.items()}
+    out: dict[str, NoiseSpec] = {}
+    for key, value in mapping.items():
+        here = child_where(mapping, at, key)
+        name = str(key)
+        if name in columns:
+            out[name] = parse_noise(value, here, columns[name].unit)
+        elif name in inputs:
+            out[name] = parse_noise(value, here, inputs[name])
+        else:
+            known = [*columns, *inputs]
+            raise SpecError(here, f"'{excerpt(name)}' is neither a column nor an instance "
+                                  f"input{did_you_mean(name, known)}; 'noise:' names the "
+                                  "readings whose noise it declares (a column such as "
+                                  "'x_ref', or an input such as 's1.p')")
+    return out
 
 
 def _check_size(name: str, where: Where, instances: dict[str, InstanceSpec],
@@ -459,6 +504,7 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
     parameters = entries("parameters", parse_parameter)
     columns = _parse_columns(doc, where)
     instances = entries("instances", lambda k, v, at: _parse_instance(k, v, at, path, cache))
+    noise = _parse_noise_section(doc, where, columns, instances)
     expressions = entries("expressions", lambda k, v, at: _parse_quantity(k, v, at, False))
     constraints = entries("constraints", lambda k, v, at: _parse_quantity(k, v, at, True))
     datasets = entries("datasets", lambda k, v, at: _parse_dataset(k, v, at, path))
@@ -492,14 +538,15 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
         [c.estimate for c in comparisons.values()], [c.reference for c in comparisons.values()],
     ])
     stages = _parse_stages(doc, where, constraints)
-    weighting = "equal"
+    weighting = "auto"
     if "weighting" in doc:
         weighting = expect_choice(doc["weighting"], child_where(doc, where, "weighting"),
                                   WEIGHTINGS, "weighting")
     robust = next((q for q in constraints.values() if q.loss is not None), None)
-    if weighting == "estimated" and robust is not None and robust.loss is not None:
+    if weighting in ("estimated", "propagated") and robust is not None and robust.loss \
+            is not None:
         raise SpecError(robust.loss.where, f"constraint '{robust.name}' declares a robust "
-                                           "loss, which 'weighting: estimated' does not "
+                                           f"loss, which 'weighting: {weighting}' does not "
                                            "support: remove one of them")
     implicit = entries("implicit", parse_implicit)
     for key, item in implicit.items():
@@ -510,7 +557,7 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
     options = (parse_solver(doc["solver"], child_where(doc, where, "solver"))
                if "solver" in doc else SolveOptions())
     system = SystemSpec(constants, parameters, columns, instances, expressions, constraints,
-                        comparisons, implicit)
+                        comparisons, implicit, noise)
     return ProblemSpec(name, _doc(doc, where), path, system,
                        StudySpec(datasets, stages, weighting), options, where,
                        extends_chain(path, "problem"))

@@ -17,7 +17,12 @@ substitution, never by building again; the compiler returns them all as values:
   the output is ``reading + error`` (inside an implicit definition when there is one) and
   to the output otherwise; the problem in use sets the hooks to zero, the diagnostic view
   (:attr:`Problem.diagnostic`) keeps them, so that the derivative of any residual with
-  respect to a term added where it belongs is exact.
+  respect to a term added where it belongs is exact;
+- every reading with a declared noise (a column, or an input bound to an expression:
+  :mod:`symcal.problem.readings`) carries a *noise symbol* added to it; the problem in
+  use sets them to zero, the noisy view (:attr:`Problem.noisy`) keeps them, so that the
+  derivative of any residual with respect to a reading's error is exact (the propagation
+  of the declared noise, :mod:`symcal.analysis.floors`).
 """
 
 from __future__ import annotations
@@ -56,6 +61,7 @@ from symcal.problem.names import (
     scaled,
     unit_text,
 )
+from symcal.problem.readings import plan_noise
 from symcal.problem.symbolic import (
     Comparison,
     ImplicitOutput,
@@ -63,6 +69,7 @@ from symcal.problem.symbolic import (
     Parameter,
     Problem,
     Quantity,
+    Reading,
     Stage,
     Study,
     Views,
@@ -107,6 +114,8 @@ class _Compiler:
         self.scaled: dict[str, ca.SX] = {}         # parameter symbols in internal units
         self.param_units: dict[str, Unit | None] = {}
         self.column_symbols: dict[str, ca.SX] = {}
+        self.noise_plan = plan_noise(system)
+        self.noise_symbols: dict[str, ca.SX] = {}    # reading -> its noise symbol
         for inst in system.instances.values():
             for pname, pspec in inst.model.parameters.items():
                 if pname in inst.overrides:
@@ -188,8 +197,18 @@ class _Compiler:
         if name in system.columns:
             if name not in self.column_symbols:
                 self.column_symbols[name] = ca.SX.sym(name)
-            return scaled(self.column_symbols[name], system.columns[name].unit)
+            value = scaled(self.column_symbols[name], system.columns[name].unit)
+            noise = self.noise_plan.columns.get(name)
+            if noise is not None and noise.sigma > 0:           # 0: declared exact
+                value = value + self._noise_symbol(name)
+            return value
         return None
+
+    def _noise_symbol(self, reading: str) -> ca.SX:
+        """The noise symbol of a declared reading (internal units), made on first use."""
+        if reading not in self.noise_symbols:
+            self.noise_symbols[reading] = ca.SX.sym(f"noise:{reading}")
+        return self.noise_symbols[reading]
 
     def unit(self, name: str) -> Unit | None:
         """The unit of a name :meth:`_fallback` resolved: a parameter, a signal, a column."""
@@ -218,6 +237,9 @@ class _Compiler:
                                          f"{describe(want)}, but '{b.text}' bound to it is "
                                          f"in {describe(found)}")
             input_units[k] = want if want is not None else found
+            noise = self.noise_plan.inputs.get(f"{inst.name}.{k}")   # bound to an
+            if noise is not None and noise.sigma > 0:                  # expression
+                inputs[k] = inputs[k] + self._noise_symbol(f"{inst.name}.{k}")
         params = {k: self.scaled[f"{inst.name}.{k}"] for k in inst.model.parameters}
         # an output `reading + error` is hooked on its error, where a missing term goes
         # (inside an implicit definition when there is one); any other on itself
@@ -333,22 +355,27 @@ class _Compiler:
         if closed[0]:
             explicit = self._view(*close_at_starts(self.model_level, self.problem_level),
                                   hooks_open=False)
+        noisy = self._view(*closed, noise_open=True) if self.noise_symbols else None
         use = self._view(*closed, hooks_open=False)
         self._check_dependence(use.constraints)
-        return replace(use, views=Views(diagnostic, explicit))
+        return replace(use, views=Views(diagnostic, explicit, noisy))
 
     def _view(self, symbols: list[ca.SX], values: list[ca.SX], checks: list[ImplicitOutput],
-              *, hooks_open: bool) -> Problem:
-        """The problem with the placeholders at ``values``, and the hooks open or zero."""
+              *, hooks_open: bool = False, noise_open: bool = False) -> Problem:
+        """The problem with the placeholders at ``values``, and the hooks and the noise
+        symbols open or zero."""
         hooks = list(self.hooks.values())
-        if not hooks_open and hooks:
-            zeros = [ca.SX(0)] * len(hooks)
-            if values:   # the implicit values and checks hold hooks too: close them first
-                values = ca.substitute(values, hooks, zeros)
-                checks = [replace(c, derivative=ca.substitute([c.derivative], hooks, zeros)[0],
-                                  last_step=ca.substitute([c.last_step], hooks, zeros)[0])
+        closing = ([] if hooks_open else hooks) + \
+            ([] if noise_open else list(self.noise_symbols.values()))
+        if closing:
+            zeros = [ca.SX(0)] * len(closing)
+            if values:   # the implicit values and checks hold them too: close them first
+                values = ca.substitute(values, closing, zeros)
+                checks = [replace(c,
+                                  derivative=ca.substitute([c.derivative], closing, zeros)[0],
+                                  last_step=ca.substitute([c.last_step], closing, zeros)[0])
                           for c in checks]
-            symbols, values = symbols + hooks, values + zeros
+            symbols, values = symbols + closing, values + zeros
         groups: list[list[ca.SX]] = [
             [q.sx for q in self.constraints], [q.sx for q in self.expressions],
             [q.sx for q in self.signals.values()],
@@ -363,7 +390,7 @@ class _Compiler:
         comps_est = [next(it) for _ in self.comparisons]
         comps = [replace(c, estimate=e, reference=next(it))
                  for c, e in zip(self.comparisons, comps_est, strict=True)]
-        system, study = self.spec.system, self.spec.study
+        system = self.spec.system
         columns = tuple(c for c in system.columns if c in self.column_symbols)
         u = ca.vertcat(*(self.column_symbols[c] for c in columns)) if columns else ca.SX(0, 1)
         theta = ca.vertcat(*(self.symbols[p.name] for p in self.parameters))
@@ -372,9 +399,40 @@ class _Compiler:
         return Problem(
             self.spec.name, self.spec.doc, self.spec.path, tuple(self.parameters), theta,
             columns, u, tuple(cons), tuple(exprs), tuple(sig_closed[n] for n in order),
-            tuple(comps), Study(dict(study.datasets), self._stages(), study.weighting),
-            self.spec.options, instances, dict(system.columns), tuple(checks),
-            dict(self.hooks) if hooks_open else {}, self.spec)
+            tuple(comps), self._study(cons), self.spec.options, instances, dict(system.columns),
+            tuple(checks), dict(self.hooks) if hooks_open else {}, self.spec,
+            readings=self._readings())
+
+    def _readings(self) -> tuple[Reading, ...]:
+        """Every declared reading the problem reads, columns in ``u`` order, then inputs."""
+        plan, out = self.noise_plan, []
+        for name in self.spec.system.columns:
+            if name in plan.columns and name in self.column_symbols:
+                d = plan.columns[name]        # an exact reading's symbol is in no expression
+                out.append(Reading(name, "column", d.sigma, d.unit, d.spec.text, d.origin,
+                                   self.noise_symbols.get(name, ca.SX.sym(f"noise:{name}"))))
+        for name, d in plan.inputs.items():
+            if name.split(".", 1)[0] in self.built:
+                out.append(Reading(name, "input", d.sigma, d.unit, d.spec.text, d.origin,
+                                   self.noise_symbols.get(name, ca.SX.sym(f"noise:{name}"))))
+        return tuple(out)
+
+    def _study(self, constraints: list[Quantity]) -> Study:
+        """The study; an unwritten weighting is ``propagated`` where every column the
+        constraints read declares its noise, one at least is noisy and no constraint has
+        a robust loss, else ``equal``."""
+        study = self.spec.study
+        weighting, declared = study.weighting, study.weighting != "auto"
+        if not declared:
+            system = self.spec.system
+            read = {v.name() for q in constraints for v in ca.symvar(q.sx)}
+            used = [c for c in system.columns if c in self.column_symbols and c in read]
+            noisy = any(self.noise_plan.columns[c].sigma > 0 for c in used
+                        if c in self.noise_plan.columns)
+            complete = all(c in self.noise_plan.columns for c in used)
+            robust = any(q.loss is not None for q in system.constraints.values())
+            weighting = "propagated" if complete and noisy and not robust else "equal"
+        return Study(dict(study.datasets), self._stages(), weighting, declared)
 
     def _check_dependence(self, constraints: tuple[Quantity, ...]) -> None:
         for q in constraints:

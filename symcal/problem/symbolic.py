@@ -1,5 +1,6 @@
 """The symbolic problem: parameters θ, per-observation inputs u, named residuals, and the
-views of one build (:attr:`Problem.explicit`, :attr:`Problem.diagnostic`).
+views of one build (:attr:`Problem.explicit`, :attr:`Problem.diagnostic`,
+:attr:`Problem.noisy`).
 
 A :class:`Problem` is plain, frozen data: it holds its views as values, made by the
 compiler (:mod:`symcal.problem.build`) by substitution from one build, and keeps no
@@ -78,6 +79,26 @@ class ImplicitOutput:
     last_step: ca.SX
 
 
+@dataclass(frozen=True, eq=False)
+class Reading:
+    """A reading with a declared noise: a data column (``kind`` ``"column"``) or an
+    instance input bound to an expression (``"input"``, named ``s1.q``).
+
+    ``sigma`` is its standard deviation in internal units, ``unit`` the reading's unit,
+    ``text`` the noise as declared (``0.5 um``), ``origin`` who declared it, in words.
+    ``symbol`` is added to the reading in :attr:`Problem.noisy` (zero elsewhere).  The
+    noise of an input bound to an expression adds to that of the columns it reads.
+    """
+
+    name: str
+    kind: str
+    sigma: float
+    unit: str
+    text: str
+    origin: str
+    symbol: ca.SX
+
+
 @dataclass(frozen=True)
 class Stage:
     """One step of a calibration: constraints used and parameters freed (by name)."""
@@ -103,14 +124,20 @@ class Instance:
 class Study:
     """On what data and in which steps a problem is solved.
 
-    ``weighting``: ``"equal"`` (the cost is Σ (g/σ)² as written) or ``"estimated"`` (each
+    ``weighting``: ``"equal"`` (the cost is Σ (g/σ)² as written), ``"estimated"`` (each
     stage with several constraints is solved again, weighted by the inverse of their
-    covariance estimated from the residuals: feasible generalised least squares).
+    covariance estimated from the residuals: feasible generalised least squares) or
+    ``"propagated"`` (each observation's constraints weighted by the inverse of their
+    covariance propagated from the readings' declared noise, at the estimate: the
+    adjustment with condition equations).  A problem file that does not write one gets
+    ``propagated`` where every reading of its constraints declares its noise and no
+    constraint has a robust loss, else ``equal`` (``weighting_declared`` is False).
     """
 
     datasets: Mapping[str, DatasetSpec]
     stages: tuple[Stage, ...]
     weighting: str
+    weighting_declared: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -147,6 +174,9 @@ class Problem:
         Definitions solved by fixed-point steps, with their convergence checks.
     hooks
         Instance output → its hook symbol (see :attr:`diagnostic`).
+    readings
+        Every reading with a declared noise (:class:`Reading`); its symbol is open in
+        :attr:`noisy`.
     spec
         The validated spec the problem was built from (for derived problems).
     views
@@ -172,6 +202,7 @@ class Problem:
     hooks: Mapping[str, ca.SX]
     spec: ProblemSpec = field(repr=False)
     views: Views | None = field(default=None, repr=False)
+    readings: tuple[Reading, ...] = ()
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -206,7 +237,7 @@ class Problem:
 
     @property
     def weighting(self) -> str:
-        """``"equal"`` or ``"estimated"`` (``study.weighting``)."""
+        """``"equal"``, ``"estimated"`` or ``"propagated"`` (``study.weighting``)."""
         return self.study.weighting
 
     def constraint(self, name: str) -> Quantity:
@@ -270,6 +301,23 @@ class Problem:
         sensor output."""
         return self.views.diagnostic if self.views is not None else self
 
+    @property
+    def noisy(self) -> Problem:
+        """The problem with every declared reading's noise symbol left open (hooks at
+        zero): evaluate with the symbols as extra rows of u set to zero; the derivative of
+        a residual by a reading's symbol is its derivative by that reading's error."""
+        return self.views.noisy if self.views is not None and self.views.noisy is not None \
+            else self
+
+    def noise_columns(self) -> dict[str, Reading]:
+        """The declared readings that are data columns, by column."""
+        return {r.name: r for r in self.readings if r.kind == "column"}
+
+    def undeclared(self, sx: ca.SX) -> list[str]:
+        """The columns ``sx`` reads whose noise no one declared, in ``u`` order."""
+        declared = self.noise_columns()
+        return [c for c in self.columns_of(sx) if c not in declared]
+
     def with_weighting(self, weighting: str) -> Problem:
         """The problem with another weighting of its constraints (no rebuild)."""
         if weighting == self.weighting:
@@ -278,8 +326,11 @@ class Problem:
         if views is not None:
             views = Views(views.diagnostic.with_weighting(weighting),
                           views.explicit.with_weighting(weighting)
-                          if views.explicit is not None else None)
-        return replace(self, study=replace(self.study, weighting=weighting), views=views)
+                          if views.explicit is not None else None,
+                          views.noisy.with_weighting(weighting)
+                          if views.noisy is not None else None)
+        return replace(self, study=replace(self.study, weighting=weighting,
+                                           weighting_declared=True), views=views)
 
 
 @dataclass(frozen=True, eq=False)
@@ -293,7 +344,11 @@ class Views:
     explicit
         Every implicit definition at its start (:attr:`Problem.explicit`); None without
         implicit definitions.
+    noisy
+        The readings' noise symbols left open (:attr:`Problem.noisy`); None without a
+        declared noise.
     """
 
     diagnostic: Problem
     explicit: Problem | None
+    noisy: Problem | None = None

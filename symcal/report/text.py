@@ -15,7 +15,6 @@ import casadi as ca
 import numpy as np
 
 from symcal.analysis.outliers import THRESHOLD, Outliers, remedy_yaml
-from symcal.base.errors import SymcalError
 from symcal.base.files import json_text as plain_json
 from symcal.base.units import DISPLAY_UNITS, symbol
 from symcal.calibrate.result import REGRESSION_TOLERANCE, Regression, Result
@@ -48,13 +47,12 @@ def _table(rows: list[list[str]], align: str) -> list[str]:
 
 
 def noise_floors(result: Result) -> dict[tuple[str, str], float]:
-    """The known noise floor of each residual and comparison, where the data were
-    simulated.
+    """The noise floor of each residual and comparison, as the solve found it.
 
-    A dataset simulated from a scenario (a problem's ``simulate:`` dataset, not replaced
-    by other data) has the floors the simulator states
-    (:func:`symcal.simulation.noise_floor`); a residual or comparison ``NAME`` has one when
-    they include ``NAME_std``.  Elsewhere the floor is unknown and absent.
+    A floor is the standard deviation the readings' declared noise leaves in a residual,
+    propagated through it at the estimate, or estimated from time-ordered data where no
+    noise is declared (:mod:`symcal.analysis.floors`); it is stored in the result's
+    statistics (and in ``result.json``): nothing is read or simulated here.
 
     Parameters
     ----------
@@ -64,29 +62,93 @@ def noise_floors(result: Result) -> dict[tuple[str, str], float]:
     Returns
     -------
     dict
-        ``(dataset, name)`` → the standard deviation noise alone leaves, internal units.
+        ``(dataset, name)`` → the floor in internal units, where it is known and positive.
     """
-    from symcal.simulation import load_scenario, noise_floor
+    return {(s.dataset, s.name): float(s.floor) for s in result.statistics
+            if s.floor is not None and s.floor > 0}
 
-    names = {s.name for s in result.statistics}
-    by_scenario: dict[str, dict[str, float]] = {}
-    out: dict[tuple[str, str], float] = {}
-    for info in result.provenance:
-        spec = result.problem.datasets.get(info.name)
-        if (spec is None or spec.scenario is None or info.file is not None
-                or info.source != spec.source):
-            continue
-        key = str(spec.scenario)
-        if key not in by_scenario:
-            try:
-                by_scenario[key] = noise_floor(load_scenario(spec.scenario))
-            except (SymcalError, OSError):
-                by_scenario[key] = {}
-        for name in names:
-            floor = by_scenario[key].get(f"{name}_std")
-            if floor is not None and math.isfinite(floor) and floor > 0:
-                out[(info.name, name)] = float(floor)
-    return out
+
+def _band_text(band: tuple[float, float] | None) -> str:
+    return "" if band is None else f", band {band[0]:.2f}–{band[1]:.2f}"
+
+
+def _chi2_text(test: Any) -> str:
+    """``χ²/dof 1.02, band 0.91–1.09`` of a floor test."""
+    value = test.chi2_dof
+    shown = f"{value:.3g}" if value is not None and value < 10 else (
+        f"{value:.3g}" if value is not None else "—")
+    return f"χ²/dof {shown}{_band_text(test.band)}"
+
+
+def floor_verdict(test: Any) -> str:
+    """A dataset's global test in words: ``at the noise floor (χ²/dof 1.02, band
+    0.91–1.09)``, ``3.4× the noise floor (...)``, ``below the noise floor (...)``."""
+    verdict = test.verdict
+    if verdict == "at":
+        return f"at the noise floor ({_chi2_text(test)})"
+    if verdict == "above":
+        return f"{test.ratio:.3g}× the noise floor ({_chi2_text(test)})"
+    if verdict == "below":
+        return (f"below the noise floor ({_chi2_text(test)}): overfitting, or noise declared "
+                "larger than the sensors' — not a success")
+    return "noise floor unknown"
+
+
+def undeclared_readings(result: Result) -> list[str]:
+    """The columns the constraints read whose noise nobody declared."""
+    problem = result.problem
+    return sorted({c for q in problem.constraints for c in problem.undeclared(q.sx)},
+                  key=list(problem.columns).index)
+
+
+def how_to_declare(result: Result) -> str:
+    """How to make an unknown floor known, naming the readings without noise."""
+    missing = undeclared_readings(result)
+    names = ", ".join(missing[:6]) + (f" and {len(missing) - 6} more" if len(missing) > 6
+                                      else "")
+    return (f"no noise is declared for {names or 'the readings'} and the rows are not "
+            "time-ordered; declare each reading's noise ('noise: 0.5 um' on the column or the "
+            "model input, or in the problem's 'noise:' section) to test the model against "
+            "its floor")
+
+
+def outcome_text(improvement: Any) -> str:
+    """How ``symcal improve`` ended, in words (an
+    :class:`~symcal.revise.improve.Improvement`): quiet at the floor, quiet with the floor
+    unknown (only: no candidate is significant; how to declare the noise), structure that
+    no candidate explains above the floor, below the floor, or candidates that do not pay."""
+    aliased = (" (what is left is aliased with the parameters already there)"
+               if improvement.aliased else "")
+    result = improvement.rounds[-1].result
+    if improvement.quiet and improvement.at_floor:
+        return "the diagnosis is quiet: every dataset is at its noise floor" + aliased
+    if improvement.quiet:
+        return ("the diagnosis is quiet, which here only means that no candidate is "
+                f"significant: the noise floor is unknown ({how_to_declare(result)})"
+                + aliased)
+    if not improvement.candidates_left:
+        if any(t.verdict == "below" for t in result.floor_tests) and not any(
+                t.verdict == "above" for t in result.floor_tests):
+            return ("the diagnosis is not quiet: below the noise floor (overfitting, or noise "
+                    "declared larger than the sensors')")
+        return ("the diagnosis is not quiet: structure remains that no candidate explains "
+                "(above the noise floor, and no candidate of the library is significant)")
+    return "the diagnosis is not quiet (nothing else pays)"
+
+
+def floor_lines(result: Result) -> list[str]:
+    """One verdict line per dataset: its constraints' global test against the floor."""
+    lines = []
+    for t in result.floor_tests:
+        text = floor_verdict(t)
+        if t.verdict is None:
+            text += f": {how_to_declare(result)}"
+        elif t.method == "combined" and any(
+                s.noise is not None and s.noise.method == "successive differences"
+                for s in result.statistics if s.dataset == t.dataset):
+            text += " (some floors estimated from the data: successive differences)"
+        lines.append(f"{t.dataset}: {text}")
+    return lines
 
 
 def _what(s: Any) -> str:
@@ -104,11 +166,16 @@ def _regression_text(r: Regression) -> str:
             f"{r.after:.4g} {symbol(r.unit)}")
 
 
+#: How a residual against its floor is marked in the fit table.
+_MARKS = {"above": "ABOVE", "below": "BELOW", "at": "at", None: ""}
+
+
 def _fit_lines(result: Result, floors: Mapping[tuple[str, str], float]) -> list[str]:
     worse = {(r.dataset, r.name) for r in result.regressions}
     rows = [["dataset", "quantity", "std before", "std after", "mean before", "mean after",
-             "unit", "noise floor", "std/floor", ""]]
+             "unit", "noise floor", "χ²/dof", "95 % band", "floor", ""]]
     last = None
+    estimated = False
     for s in result.statistics:
         before, after = s.shown("before"), s.shown("after")
         tiny = 1e-9 * max(before.std, after.std, 1e-300)
@@ -116,31 +183,64 @@ def _fit_lines(result: Result, floors: Mapping[tuple[str, str], float]) -> list[
                  else [f"{m:.4g}" if abs(m) > tiny else "0" for m in (before.mean, after.mean)])
         floor = floors.get((s.dataset, s.name))
         shown = floor / DISPLAY_UNITS[s.unit] if floor is not None else None
+        test = s.noise
+        mark = "" if shown is None or test is None else (
+            "*" if test.method == "successive differences" else "")
+        estimated = estimated or bool(mark)
+        band = test.band if test is not None else None
         rows.append([s.dataset if s.dataset != last else "", _what(s), f"{before.std:.4g}",
                      f"{after.std:.4g}", *means, symbol(s.unit),
-                     "" if shown is None else f"{shown:.4g}",
-                     "" if shown is None else f"{after.std / shown:.3g}",
+                     "" if shown is None else f"{shown:.4g}{mark}",
+                     _num(test.chi2_dof if test is not None else None, ".3g")
+                     if shown is not None else "",
+                     "" if band is None or shown is None else f"{band[0]:.2f}–{band[1]:.2f}",
+                     _MARKS[test.verdict if test is not None and shown is not None else None],
                      "WORSE" if (s.dataset, s.name) in worse else ""])
         last = s.dataset
     if not floors:       # no floor known anywhere: no empty columns
-        rows = [r[:7] + r[9:] for r in rows]
+        rows = [r[:7] + r[11:] for r in rows]
         return _table(rows, "llrrrrll")
-    return _table(rows, "llrrrrlrrl")
+    lines = _table(rows, "llrrrrlrrrll")
+    if estimated:
+        lines.append("  * estimated from the data (successive differences of the time-ordered "
+                     "rows: what varies slowly is left out); no noise is declared for its "
+                     "readings")
+    return lines
 
 
 def _worst_against_floor(result: Result, floors: Mapping[tuple[str, str], float]
                          ) -> tuple[SeriesStats, float, float] | None:
-    """The residual or comparison farthest above its known floor: (stats, std after in
-    the display unit, ratio)."""
+    """The residual or comparison farthest above its known floor by its test: (stats, std
+    after in the display unit, √(χ²/dof))."""
     best: tuple[SeriesStats, float, float] | None = None
     for s in result.statistics:
-        floor = floors.get((s.dataset, s.name))
-        if floor is None:
+        if (s.dataset, s.name) not in floors or s.noise is None or s.noise.ratio is None:
             continue
-        ratio = s.after.std / floor
+        ratio = s.noise.ratio
         if best is None or ratio > best[2]:
             best = (s, s.shown("after").std, ratio)
     return best
+
+
+def _worst_text(result: Result, floors: Mapping[tuple[str, str], float]) -> str | None:
+    """``worst against its noise floor: flyby g_p std 2.1 µm, 2.05 × the floor 1.02 µm
+    (χ²/dof 4.2, band 0.87–1.14)``, or None when no floor is known."""
+    worst = _worst_against_floor(result, floors)
+    if worst is None:
+        return None
+    s, after, ratio = worst
+    floor = floors[(s.dataset, s.name)] / DISPLAY_UNITS[s.unit]
+    assert s.noise is not None
+    return (f"worst against its noise floor: {s.dataset} {_what(s)} std "
+            f"{_spread_text(after, s.unit)}, {ratio:.2f} × the floor "
+            f"{_spread_text(floor, s.unit)} ({_chi2_text(s.noise)})")
+
+
+def references_above(result: Result) -> list[SeriesStats]:
+    """The comparisons with a reference above their noise floor, on any dataset (judged
+    by their test, not by a threshold)."""
+    return [s for s in result.statistics if s.kind == "comparison" and s.noise is not None
+            and s.noise.verdict == "above"]
 
 
 def _failure_text(result: Result) -> str | None:
@@ -223,8 +323,10 @@ def verdict_lines(result: Result,
                   floors: Mapping[tuple[str, str], float] | None = None) -> list[str]:
     """The verdict at the top of :func:`text_report`, one finding per line.
 
-    Success or failure; the residual farthest above its noise floor, where floors are
-    known (:func:`noise_floors`); every residual or comparison calibration made worse
+    Success or failure; each dataset's global test against its noise floor (at, above
+    or below it, or unknown and how to declare it); the residual farthest above its
+    floor, where floors are known (:func:`noise_floors`); the comparisons with a
+    reference above their floor; every residual or comparison calibration made worse
     (:attr:`~symcal.calibrate.result.Result.regressions`); how many parameter directions the data
     cannot determine.
 
@@ -247,15 +349,17 @@ def verdict_lines(result: Result,
     sentence = None if result.outliers is None else outlier_text(result.outliers)
     if sentence is not None:
         lines.append(sentence)
-    worst = _worst_against_floor(result, floors)
+    lines += floor_lines(result)
+    worst = _worst_text(result, floors)
     if worst is not None:
-        s, after, ratio = worst
-        floor = floors[(s.dataset, s.name)] / DISPLAY_UNITS[s.unit]
-        lines.append(f"worst against its noise floor: {s.dataset} {_what(s)} std "
-                     f"{_spread_text(after, s.unit)} = {ratio:.2f} × the floor "
-                     f"{_spread_text(floor, s.unit)}")
-    else:
-        lines.append("noise floors unknown (the data were not simulated from a scenario)")
+        lines.append(worst)
+    above = references_above(result)
+    if above:
+        shown = ", ".join(f"{s.dataset} {s.name} ({s.noise.ratio:.2f} ×)"   # type: ignore[union-attr]
+                          for s in above[:VERDICT_REGRESSIONS])
+        more = (f" and {len(above) - VERDICT_REGRESSIONS} more"
+                if len(above) > VERDICT_REGRESSIONS else "")
+        lines.append(f"against the reference, above the noise floor: {shown}{more}")
     found = result.regressions
     if found:
         lines += _regression_lines(found, "")
@@ -405,7 +509,9 @@ def text_report(result: Result) -> str:
     lines += _identifiability_lines(result)
     lines += ["", "Fit: standard deviation and mean of each residual with the initial "
               "parameters (before) and the estimate (after)"
-              + ("; the noise floor where the data were simulated" if floors else "")]
+              + ("; its noise floor (the readings' declared noise propagated through it), "
+                 "χ²/dof against it and the 95 % band of χ²/dof at the floor" if floors
+                 else "")]
     lines += _fit_lines(result, floors)
     if result.outliers is not None:
         lines += ["", f"Outliers (last stage, '{result.stages[-1].name}': residual rows "
@@ -429,10 +535,6 @@ def text_report(result: Result) -> str:
 def json_report(result: Result) -> str:
     """The machine-readable document (``--json``)."""
     return plain_json(result.to_dict())
-
-
-#: A residual within this factor of its noise floor is at the floor.
-AT_FLOOR = 1.2
 
 
 def self_referential(result: Result) -> dict[str, frozenset[str]]:
@@ -472,11 +574,12 @@ def _findings(binned: Iterable[Any], skip: frozenset[str] | set[str]) -> list[An
     return [b for b in binned if not own(str(b.variable))]
 
 
-def _floor_note(value: float, floor: float | None, unit: str) -> str:
+def _floor_note(value: float, floor: float | None, unit: str, test: Any = None) -> str:
     if floor is None:
         return ""
     shown = floor / DISPLAY_UNITS[unit]
-    return f" (noise floor {_spread_text(shown, unit)}; {value / shown:.2f} ×)"
+    chi2 = "" if test is None or test.chi2_dof is None else f"; {_chi2_text(test)}"
+    return f" (noise floor {_spread_text(shown, unit)}; {value / shown:.2f} ×{chi2})"
 
 
 def outliers_dominate(diag: Diagnosis) -> bool:
@@ -511,19 +614,29 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     outliers = getattr(diag, "outliers", None)
     if outliers is not None and outliers_dominate(diag):
         where.append(outlier_text(outliers) or "")
+    tests = result.floor_tests
+    where += [f"{t.dataset}: {floor_verdict(t)}" for t in tests
+              if t.verdict in ("above", "below")]
     worst = _worst_against_floor(result, floors)
-    if worst is not None:
-        s, after, ratio = worst
-        state = "at" if ratio <= AT_FLOOR else f"{ratio:.2f} ×"
-        where.append(f"{s.dataset} {_what(s)} std {_spread_text(after, s.unit)} is {state} "
-                     "its noise floor" + (" (the worst)" if ratio <= AT_FLOOR else ""))
+    if worst is not None and worst[0].noise is not None and worst[0].noise.verdict == "above":
+        where.append(str(_worst_text(result, floors)))
+    above = references_above(result)
+    if above:
+        where.append("against the reference, above the noise floor: " + ", ".join(
+            f"{s.dataset} {s.name} ({s.noise.ratio:.2f} ×)"    # type: ignore[union-attr]
+            for s in above[:VERDICT_REGRESSIONS]))
     where += [_regression_text(r) for r in result.regressions[:VERDICT_REGRESSIONS]]
     if len(result.regressions) > VERDICT_REGRESSIONS:
         where.append(f"{len(result.regressions) - VERDICT_REGRESSIONS} more got worse (below)")
     if not where:
-        where.append("the residuals carry structure the model lacks (below)"
-                     if diag.significant else
-                     "nowhere these tests can see (noise floors unknown)")
+        if result.at_floor:
+            where.append("nowhere: every dataset is at its noise floor ("
+                         + "; ".join(f"{t.dataset} {_chi2_text(t)}" for t in tests) + ")")
+        elif diag.significant:
+            where.append("the residuals carry structure the model lacks (below)")
+        else:
+            where.append(f"nowhere these tests can see (noise floor unknown: "
+                         f"{how_to_declare(result)})")
     lines.append(f"where it fails: {where[0]}")
     lines += where[1:]
     significant = diag.significant
@@ -535,6 +648,10 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
         more = (f" (and {len(significant) - 1} more significant, below)"
                 if len(significant) > 1 else "")
         lines.append(f"what to add: {significant[0].label}{more}")
+    elif any(t.verdict == "above" for t in tests):
+        lines.append("what to add: no candidate effect passes the test, yet the residuals are "
+                     "above the noise floor: structure remains that no candidate explains "
+                     "(see what is left, below)")
     else:
         lines.append("what to add: nothing significant (no candidate effect passes the test)")
     cannot = []
@@ -598,7 +715,10 @@ def diagnosis_report(diag: Diagnosis) -> str:
               "dominant period)"]
     for v in diag.residuals:
         std = float(np.std(v.after)) / v.scale
-        floor = _floor_note(std, floors.get((v.dataset, v.name)), v.unit)
+        stats = next((s for s in result.statistics
+                      if (s.dataset, s.name) == (v.dataset, v.name)), None)
+        floor = _floor_note(std, floors.get((v.dataset, v.name)), v.unit,
+                            None if stats is None else stats.noise)
         lines.append(f"  {v.dataset} {_what(v)}: std {_spread_text(std, v.unit)}{floor}")
         for b in _findings(v.binned, skip.get(v.name, frozenset({v.name})))[:2]:
             lines.append(f"      varies with {b.variable}: η² = {b.eta2:.2f}")
@@ -622,7 +742,11 @@ def diagnosis_report(diag: Diagnosis) -> str:
         return "\n".join(lines) + "\n"
     lines += ["", f"Which effect is missing ({diag.tested} candidate terms tested; family-wise "
               f"level {diag.alpha:g}, Bonferroni; indistinguishable candidates grouped)"]
-    if not diag.significant:
+    if not diag.significant and any(t.verdict == "above" for t in result.floor_tests):
+        lines.append("  no candidate effect is significant, yet the residuals are above the "
+                     "noise floor: structure remains that no candidate of this library "
+                     "explains")
+    elif not diag.significant:
         lines.append("  no candidate effect is significant: the residuals look like noise to "
                      "this library of effects")
     rows = [["rank", "candidate", "removes", "F", "p", "significant"]]
@@ -676,8 +800,10 @@ def diagnosis_document(diag: Diagnosis, series: bool = False) -> dict[str, Any]:
 
     :meth:`Diagnosis.to_dict <symcal.revise.diagnose.Diagnosis.to_dict>` with, where it lacks
     them: ``regressions`` (:attr:`Result.regressions <symcal.calibrate.result.Result.regressions>`),
-    ``verdict`` (:func:`diagnosis_verdict`), and per residual its ``noise_floor`` (display
-    unit, None where unknown), the variables it ``contains`` whole
+    ``verdict`` (:func:`diagnosis_verdict`), the result's ``statistics`` (each with its
+    ``floor`` and ``chi2_dof``), ``floor_tests`` and ``at_floor``, and per residual its
+    ``noise_floor`` (display unit, None where unknown) and ``chi2_dof``, the variables it
+    ``contains`` whole
     (:func:`self_referential`, left out of its findings and figures) and the ``unit`` of
     each variable its structure and series are drawn along.
 
@@ -700,6 +826,10 @@ def diagnosis_document(diag: Diagnosis, series: bool = False) -> dict[str, Any]:
     units = variable_units(result)
     doc.setdefault("regressions", [r.to_dict() for r in result.regressions])
     doc.setdefault("verdict", diagnosis_verdict(diag))
+    doc.setdefault("statistics", [s.to_dict() for s in result.statistics])
+    doc.setdefault("floor_tests", [t.to_dict() for t in result.floor_tests])
+    doc.setdefault("at_floor", result.at_floor)
+    tests = {(s.dataset, s.name): s.chi2_dof for s in result.statistics}
     for row in doc.get("residuals") or []:
         name = str(row.get("name"))
         unit = "" if row.get("unit") in (None, "(internal)") else str(row.get("unit"))
@@ -707,6 +837,7 @@ def diagnosis_document(diag: Diagnosis, series: bool = False) -> dict[str, Any]:
         row.setdefault("noise_floor",
                        None if floor is None or unit not in DISPLAY_UNITS
                        else floor / DISPLAY_UNITS[unit])
+        row.setdefault("chi2_dof", tests.get((str(row.get("dataset")), name)))
         row.setdefault("contains", sorted(skip.get(name, frozenset({name}))))
         for b in row.get("binned") or []:
             b.setdefault("unit", _unit_of(units, b.get("variable")))

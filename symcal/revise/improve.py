@@ -53,6 +53,8 @@ class Round:
         """The round as ``symcal improve --json`` prints it."""
         return {"added": self.added, "problem": str(self.problem_file),
                 "statistics": [s.to_dict() for s in self.result.statistics],
+                "floor_tests": [t.to_dict() for t in self.result.floor_tests],
+                "at_floor": self.result.at_floor,
                 "significant": self.significant, "bic": self.result.bic,
                 "aic": self.result.aic, "success": self.result.success}
 
@@ -64,11 +66,15 @@ class Improvement:
     rejected (label → reason), and the significant candidates of the last diagnosis that
     are aliased with the parameters already there (label → reason).
 
-    Quiet means no *calibratable* candidate is left: a candidate the last round tried, with
-    every member of its group, and found nearly aliased with existing parameters (their
-    standard errors grow more than :data:`INFLATION` times) cannot be determined by these
-    constraints; it is reported apart, as the diagnosis reports candidates only a
-    reference reveals."""
+    Quiet means the model is at the noise floor its readings' declared noise sets on every
+    dataset (:attr:`at_floor`) and no *calibratable* candidate is left: a candidate the
+    last round tried, with every member of its group, and found nearly aliased with
+    existing parameters (their standard errors grow more than :data:`INFLATION` times)
+    cannot be determined by these constraints; it is reported apart, as the diagnosis
+    reports candidates only a reference reveals.  When no candidate is left above the
+    floor, structure remains that no candidate explains: not quiet.  Where the floor is
+    unknown (no noise declared, none estimable), quiet only means that no candidate is
+    significant."""
 
     rounds: tuple[Round, ...]
     quiet: bool
@@ -77,11 +83,23 @@ class Improvement:
     last: Diagnosis
     aliased: tuple[tuple[str, str], ...] = ()
 
+    @property
+    def at_floor(self) -> bool | None:
+        """Whether the last kept round is at the noise floor on every dataset (None: the
+        floor is unknown somewhere)."""
+        return self.rounds[-1].result.at_floor
+
+    @property
+    def candidates_left(self) -> bool:
+        """Whether a significant calibratable candidate is left (not aliased)."""
+        aliased = dict(self.aliased)
+        return any(c.label not in aliased for c in self.last.significant)
+
     def to_dict(self) -> dict:
-        """``{"rounds": [...], "quiet": ..., "final_problem": ...}`` (plus what was
-        rejected and why)."""
+        """``{"rounds": [...], "quiet": ..., "final_problem": ..., "at_floor": ...}`` (plus
+        what was rejected and why)."""
         return {"rounds": [r.to_dict() for r in self.rounds], "quiet": self.quiet,
-                "final_problem": str(self.final_problem),
+                "final_problem": str(self.final_problem), "at_floor": self.at_floor,
                 "rejected": [{"label": label, "reason": why} for label, why in self.rejected],
                 "aliased": [{"label": label, "reason": why} for label, why in self.aliased]}
 
@@ -345,7 +363,8 @@ def improve(
                              "round(s))\n")
     aliased = _aliased(diag, rejected[last_try:])
     left = [c for c in diag.significant if c.label not in dict(aliased)]
-    return Improvement(tuple(rounds), not left, final, tuple(rejected), diag, aliased)
+    quiet = not left and result.at_floor is not False
+    return Improvement(tuple(rounds), quiet, final, tuple(rejected), diag, aliased)
 
 
 def _aliased(diag: Diagnosis, tried: list[tuple[str, str]]) -> tuple[tuple[str, str], ...]:

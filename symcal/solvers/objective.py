@@ -65,7 +65,9 @@ class Objective:
     row_weights
         Optional ``N × n_g`` factors multiplying each residual row and its Jacobian row
         (the cost becomes Σ (w g)²): the square roots of the weights of an iteratively
-        reweighted solve (:mod:`symcal.solvers.robust`); see :meth:`with_row_weights`.
+        reweighted solve (:mod:`symcal.solvers.robust`); or ``N × n_g × n_g`` matrices
+        T_i applied to each observation's g and J (the cost becomes Σ ‖T_i g_i‖²): the
+        propagated weighting's ``C_i^-½``; see :meth:`with_row_weights`.
     executor
         Who runs the passes (:mod:`symcal.solvers.executor`).  None: the executor of
         an enclosing ``executor.using`` block; else in-memory data by

@@ -87,7 +87,8 @@ class Pass:
 
     def __call__(self, piece: np.ndarray | tuple[np.ndarray, np.ndarray] | Piece) -> Any:
         """The piece's reduction: a block ``u``, a block with per-row factors
-        ``(u, w)`` (``w`` is ``m × n_g``), or a shard to read."""
+        ``(u, w)`` (``w`` is ``m × n_g``, or ``m × n_g × n_g``: a matrix applied to each
+        row's g and J), or a shard to read."""
         w: np.ndarray | None = None
         if isinstance(piece, tuple):
             u, w = piece
@@ -104,7 +105,12 @@ class Pass:
 
     def _chunk(self, u: np.ndarray, w: np.ndarray | None) -> Any:
         outs = self.fn.evaluate(self.theta, u)
-        g = outs[0] if w is None else outs[0] * w
+        if w is None:
+            g = outs[0]
+        elif w.ndim == 3:
+            g = np.einsum("mab,mb->ma", w, outs[0])
+        else:
+            g = outs[0] * w
         m = g.shape[0]
         if self.kind == "cost":
             return float(np.sum(g * g))
@@ -117,7 +123,7 @@ class Pass:
         ng, n = self.shape
         jac = outs[1].reshape(m, ng, n)
         if w is not None:
-            jac = jac * w[:, :, None]
+            jac = jac * w[:, :, None] if w.ndim == 2 else np.einsum("mab,mbn->man", w, jac)
         if self.kind == "normal":
             jac2, res = jac.reshape(m * ng, n), g.reshape(m * ng)
             return float(res @ res), jac2.T @ res, jac2.T @ jac2

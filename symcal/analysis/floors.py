@@ -1,0 +1,628 @@
+"""The noise floor of every residual and the global test of the model on every dataset.
+
+The testing theory of least-squares adjustment with condition equations, first order:
+
+- **propagation.** At the estimate, each observation's residuals r_i (constraints and
+  comparisons) have the covariance ``C_i = L_i L_iᵀ`` that the readings' declared noise
+  gives them, ``L_i = (∂r/∂ε) diag(σ)`` the derivative by the readings' errors (exact, from
+  the noise symbols of :attr:`~symcal.problem.symbolic.Problem.noisy`).  A residual's
+  *floor* is the standard deviation noise alone leaves, ``sqrt(mean_i C_i,kk)``.
+- **the estimate's share.** The estimate θ̂ carries the calibration data's noise: with
+  the fit's weights W_i, ``A = Σ J_iᵀW_iJ_i``, the covariance of θ̂ from the noise is
+  ``Cov = A⁺ (Σ J_iᵀW_iC_iW_iJ_i) A⁺``, and the expected residual covariance is
+  ``E_i = C_i + J_i Cov J_iᵀ`` on held-out data and
+  ``E_i = C_i − X_i A⁺ J_iᵀ − J_i A⁺ X_iᵀ + J_i Cov J_iᵀ`` on the fitted rows
+  (``X_i = C_i,·f W_i J_i,f``, f the fitted constraints), so that a fitted residual is
+  expected below its floor by the parameters it fitted (``Σ tr(C⁺E) = N·n_g − rank``
+  with the propagated weights).
+- **global test.** Per dataset, ``χ² = Σ_i r_iᵀ C_i⁺ r_i`` over the constraints against
+  its expectation ``ν = Σ_i tr(C_i⁺ E_i)``: χ²/ν in its 95 % band (the central
+  interval of χ²_ν / ν) is *at the floor*, above it the model misses something, below it
+  the model fits noise (overfitting) or the noise is over-declared.  Each residual and
+  comparison has the same test alone (``Σ r_k²/C_kk`` against ``Σ E_kk/C_kk``; the mean
+  removed where a comparison's zero is arbitrary).
+- **no declared noise.** A residual reading a column whose noise nobody declared has its
+  floor estimated from the data where the rows are time-ordered (a ``role: time`` column
+  that never decreases): half the mean square of successive differences, which removes
+  what varies slowly (von Neumann; its test is the ratio of the variance to that floor,
+  band from the ratio's normal approximation); elsewhere the floor is unknown.
+
+Rows are evaluated chunk by chunk; nothing of size N × (residuals × readings) is kept.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from statistics import NormalDist
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from symcal.base.numeric import chunks, mapped
+from symcal.data.dataset import Dataset
+from symcal.problem.symbolic import Problem
+
+#: The level of every band: a χ²/dof inside its central 95 % interval is at the floor.
+LEVEL = 0.95
+#: How a floor was found.
+PROPAGATED = "propagated"
+DIFFERENCES = "successive differences"
+UNKNOWN = "unknown"
+#: A row's propagated variance below this share of the largest is an exact reading.
+EXACT = 1e-12
+
+
+def normal_quantile(p: float) -> float:
+    """The standard normal quantile of ``p``."""
+    return NormalDist().inv_cdf(p)
+
+
+def _lower_gamma(a: float, x: float) -> float:
+    """The regularised lower incomplete gamma function P(a, x) (its power series below
+    a + 1, else one minus the continued fraction of Q, evaluated by Lentz's method)."""
+    if x <= 0:
+        return 0.0
+    log_front = a * math.log(x) - x - math.lgamma(a)
+    if x < a + 1.0:
+        term = total = 1.0 / a
+        k = a
+        while abs(term) > 1e-16 * abs(total):
+            k += 1.0
+            term *= x / k
+            total += term
+        return min(1.0, total * math.exp(log_front))
+    tiny = 1e-300
+    b = x + 1.0 - a
+    c, d = 1.0 / tiny, 1.0 / b
+    h = d
+    for i in range(1, 10_000):
+        an = -i * (i - a)
+        b += 2.0
+        d = an * d + b
+        d = tiny if abs(d) < tiny else d
+        c = b + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        h *= d * c
+        if abs(d * c - 1.0) < 1e-16:
+            break
+    return max(0.0, 1.0 - math.exp(log_front) * h)
+
+
+def chi2_quantile(p: float, nu: float) -> float:
+    """The ``p`` quantile of χ²_ν (bisection on its distribution function, to 1e-12
+    relative; SciPy is not needed for a solve)."""
+    if nu <= 0:
+        return 0.0
+    lo, hi = 0.0, max(nu, 1.0)
+    while _lower_gamma(nu / 2.0, hi / 2.0) < p:
+        hi *= 2.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if _lower_gamma(nu / 2.0, mid / 2.0) < p:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-12 * hi:
+            break
+    return 0.5 * (lo + hi)
+
+
+def chi2_band(nu: float, level: float = LEVEL) -> tuple[float, float]:
+    """The central ``level`` interval of χ²_ν / ν."""
+    tail = (1.0 - level) / 2.0
+    return chi2_quantile(tail, nu) / nu, chi2_quantile(1.0 - tail, nu) / nu
+
+
+def normal_band(sd: float, level: float = LEVEL) -> tuple[float, float]:
+    """``1 ± z·sd`` (the central ``level`` interval of a ratio with that spread)."""
+    z = normal_quantile(0.5 + level / 2.0)
+    return max(1.0 - z * sd, 0.0), 1.0 + z * sd
+
+
+@dataclass(frozen=True)
+class FloorTest:
+    """The noise floor of one residual or comparison on one dataset, and its test.
+
+    Attributes
+    ----------
+    floor
+        The standard deviation noise alone leaves (internal units), None when unknown.
+    method
+        :data:`PROPAGATED`, :data:`DIFFERENCES` or :data:`UNKNOWN`.
+    chi2, dof
+        The test statistic and its expectation (effective degrees of freedom); None
+        when unknown.
+    band
+        The central 95 % interval of ``chi2 / dof`` when at the floor.
+    sd
+        The relative standard deviation of ``chi2 / dof`` (to combine tests).
+    """
+
+    floor: float | None
+    method: str
+    chi2: float | None = None
+    dof: float | None = None
+    band: tuple[float, float] | None = None
+    sd: float | None = None
+
+    @property
+    def chi2_dof(self) -> float | None:
+        """χ²/ν, or None when unknown."""
+        if self.chi2 is None or not self.dof:
+            return None
+        return self.chi2 / self.dof
+
+    @property
+    def ratio(self) -> float | None:
+        """√(χ²/ν): how many times the floor the residual's spread is."""
+        value = self.chi2_dof
+        return None if value is None else math.sqrt(max(value, 0.0))
+
+    @property
+    def verdict(self) -> str | None:
+        """``"at"``, ``"above"`` or ``"below"`` the floor; None when unknown."""
+        return verdict_of(self.chi2_dof, self.band)
+
+    def to_dict(self, scale: float = 1.0) -> dict[str, Any]:
+        """Plain data, the floor in a unit of size ``scale``."""
+        return {"floor": None if self.floor is None else self.floor / scale,
+                "method": self.method, "chi2": self.chi2, "dof": self.dof,
+                "band": None if self.band is None else list(self.band), "sd": self.sd}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any], scale: float = 1.0) -> FloorTest:
+        """Inverse of :meth:`to_dict`."""
+        floor = doc.get("floor")
+        band = doc.get("band")
+        return cls(None if floor is None else float(floor) * scale, str(doc["method"]),
+                   doc.get("chi2"), doc.get("dof"),
+                   None if band is None else (float(band[0]), float(band[1])), doc.get("sd"))
+
+
+def verdict_of(value: float | None, band: tuple[float, float] | None) -> str | None:
+    """Where ``value`` lies against ``band``: ``"below"``, ``"at"``, ``"above"``, None."""
+    if value is None or band is None or math.isnan(value):
+        return None
+    if math.isinf(value):
+        return "above"
+    if value > band[1]:
+        return "above"
+    if value < band[0]:
+        return "below"
+    return "at"
+
+
+@dataclass(frozen=True)
+class DatasetTest:
+    """The global test of the model on one dataset: its constraints' χ² against the
+    floor their readings' noise sets (:class:`FloorTest` without a floor of its own).
+
+    ``method`` is :data:`PROPAGATED` (the joint test, correlations between constraints
+    included), ``combined`` (each constraint's own test, summed: some floors were
+    estimated from the data) or :data:`UNKNOWN`.
+    """
+
+    dataset: str
+    constraints: tuple[str, ...]
+    method: str
+    chi2: float | None = None
+    dof: float | None = None
+    band: tuple[float, float] | None = None
+
+    @property
+    def chi2_dof(self) -> float | None:
+        """χ²/ν, or None when unknown."""
+        if self.chi2 is None or not self.dof:
+            return None
+        return self.chi2 / self.dof
+
+    @property
+    def ratio(self) -> float | None:
+        """√(χ²/ν): how many times the floor the constraints' spread is."""
+        value = self.chi2_dof
+        return None if value is None else math.sqrt(max(value, 0.0))
+
+    @property
+    def verdict(self) -> str | None:
+        """``"at"``, ``"above"`` or ``"below"`` the floor; None when unknown."""
+        return verdict_of(self.chi2_dof, self.band)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data (``floor_tests`` of ``result.json``)."""
+        return {"dataset": self.dataset, "constraints": list(self.constraints),
+                "method": self.method, "chi2": self.chi2, "dof": self.dof,
+                "chi2_dof": self.chi2_dof,
+                "band": None if self.band is None else list(self.band),
+                "verdict": self.verdict}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> DatasetTest:
+        """Inverse of :meth:`to_dict`."""
+        band = doc.get("band")
+        return cls(str(doc["dataset"]), tuple(doc["constraints"]), str(doc["method"]),
+                   doc.get("chi2"), doc.get("dof"),
+                   None if band is None else (float(band[0]), float(band[1])))
+
+
+def at_floor(tests: tuple[DatasetTest, ...]) -> bool | None:
+    """Whether every dataset is at its floor: False when one is above or below it, None
+    when one is unknown and none is off it."""
+    verdicts = [t.verdict for t in tests]
+    if any(v in ("above", "below") for v in verdicts):
+        return False
+    if not verdicts or any(v is None for v in verdicts):
+        return None
+    return True
+
+
+# --------------------------------------------------------------------------- the fit
+
+
+@dataclass(frozen=True)
+class Fit:
+    """How the estimate was fitted: on ``dataset``, the constraints ``constraints``, the
+    parameters ``free``, weighted by ``weighting`` (``equal``: by each constraint's σ;
+    ``estimated``: by ``whiten`` applied to g/σ; ``propagated``: by the propagated
+    covariance at the estimate)."""
+
+    dataset: str
+    constraints: tuple[str, ...]
+    free: np.ndarray
+    weighting: str
+    whiten: np.ndarray | None = None
+
+
+@dataclass
+class _Entries:
+    """The residuals and comparisons examined on one dataset, as in
+    :func:`symcal.analysis.fit.series_statistics`."""
+
+    names: list[str] = field(default_factory=list)
+    kinds: list[str] = field(default_factory=list)
+    exprs: list[ca.SX] = field(default_factory=list)     # in the noisy view
+    centred: list[bool] = field(default_factory=list)
+    declared: list[bool] = field(default_factory=list)
+
+
+def _entries(problem: Problem, ds: Dataset) -> _Entries:
+    noisy = problem.noisy
+    out = _Entries()
+    comparisons = {c.name: c for c in noisy.comparisons}
+    for c, plain in zip(noisy.constraints, problem.constraints, strict=True):
+        out.names.append(c.name)
+        out.kinds.append("constraint")
+        out.exprs.append(c.sx)
+        out.centred.append(False)
+        out.declared.append(not problem.undeclared(plain.sx))
+    for comp in problem.comparisons:
+        if comp.datasets is not None and ds.name not in comp.datasets:
+            continue
+        if any(c not in ds.columns for c in problem.columns_of(comp.reference)):
+            continue
+        twin = comparisons[comp.name]
+        out.names.append(comp.name)
+        out.kinds.append("comparison")
+        out.exprs.append(twin.estimate - twin.reference)
+        out.centred.append(comp.remove_mean)
+        out.declared.append(not problem.undeclared(comp.estimate - comp.reference))
+    return out
+
+
+class _Propagation:
+    """Per observation: the residuals, ``L = ∂r/∂ε·diag(σ)`` and ``J = ∂r/∂θ_free``."""
+
+    def __init__(self, problem: Problem, exprs: list[ca.SX], free: np.ndarray) -> None:
+        noisy = problem.noisy
+        readings = [r for r in noisy.readings if r.sigma > 0]
+        eps = ca.vertcat(*(r.symbol for r in readings)) if readings else ca.SX(0, 1)
+        sigma = np.array([r.sigma for r in readings])
+        e = ca.vertcat(*exprs)
+        self.n_e, self.n_eps = len(exprs), len(readings)
+        self.n_p = int(np.sum(free))
+        theta_free = noisy.theta[np.flatnonzero(free).tolist()]
+        jac_eps = ca.mtimes(ca.jacobian(e, eps), ca.diag(ca.DM(sigma))) if readings \
+            else ca.SX(self.n_e, 0)
+        outs = [e, jac_eps.T, ca.jacobian(e, theta_free).T]
+        self.fn = mapped(noisy.theta, ca.vertcat(noisy.u, eps), outs, "noise")
+        self.columns = noisy.columns
+
+    def rows(self, ds: Dataset, theta: np.ndarray
+             ) -> Iterator[tuple[slice, np.ndarray, np.ndarray, np.ndarray]]:
+        """``(rows, r, L, J)`` chunk by chunk: ``r`` m × n_e, ``L`` m × n_e × n_ε, ``J``
+        m × n_e × n_p."""
+        u = ds.matrix(self.columns)
+        for part in chunks(ds.n):
+            block = u[:, part]
+            m = block.shape[1]
+            ext = np.vstack([block, np.zeros((self.n_eps, m))])
+            r, lt, jt = self.fn.chunk(theta, ext)
+            yield (part, r, lt.reshape(m, self.n_e, self.n_eps),
+                   jt.reshape(m, self.n_e, self.n_p))
+
+
+def _pinv_rows(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row, the pseudo-inverse of a covariance (m × n × n) and its rank."""
+    w, v = np.linalg.eigh(c)
+    top = np.max(w, axis=1, keepdims=True)
+    keep = w > EXACT * np.maximum(top, 1e-300)
+    inv = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
+    return np.einsum("mab,mb,mcb->mac", v, inv, v), keep.sum(axis=1)
+
+
+def inverse_sqrt_rows(c: np.ndarray) -> tuple[np.ndarray, int]:
+    """Per row, the symmetric ``C^-½`` of a covariance (m × n × n), and how many rows are
+    singular (a reading the residuals use is exact)."""
+    w, v = np.linalg.eigh(c)
+    top = np.max(w, axis=1, keepdims=True)
+    keep = w > EXACT * np.maximum(top, 1e-300)
+    inv = np.where(keep, 1.0 / np.sqrt(np.where(keep, w, 1.0)), 0.0)
+    singular = int(np.sum(~np.all(keep, axis=1)))
+    return np.einsum("mab,mb,mcb->mac", v, inv, v), singular
+
+
+def row_covariances(problem: Problem, constraints: tuple[str, ...], ds: Dataset,
+                    theta: np.ndarray) -> np.ndarray:
+    """The propagated covariance of each observation's weighted constraints g/σ
+    (N × n_g × n_g), at ``theta``: the weights of ``weighting: propagated``."""
+    noisy = problem.noisy
+    quantities = [noisy.constraint(n) for n in constraints]
+    sigma = np.array([q.sigma for q in quantities])
+    prop = _Propagation(problem, [q.sx for q in quantities],
+                        np.zeros(len(problem.parameters), dtype=bool))
+    out = np.empty((ds.n, len(constraints), len(constraints)))
+    for part, _, lmat, _ in prop.rows(ds, theta):
+        lmat = lmat / sigma[None, :, None]
+        out[part] = np.einsum("mae,mbe->mab", lmat, lmat)
+    return out
+
+
+def _weights(fit: Fit, c: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """The fit's weights W_i of the fitted constraints, internal units (m × n_f × n_f)."""
+    m, n = c.shape[0], c.shape[1]
+    if fit.weighting == "propagated":
+        return _pinv_rows(c)[0]
+    scale = np.diag(1.0 / sigma)
+    if fit.weighting == "estimated" and fit.whiten is not None:
+        t = fit.whiten @ scale
+        return np.broadcast_to(t.T @ t, (m, n, n))
+    return np.broadcast_to(scale @ scale, (m, n, n))
+
+
+@dataclass(frozen=True)
+class _Estimate:
+    """The noise's share in the estimate: ``A⁺`` and ``Cov`` (free parameters)."""
+
+    a_pinv: np.ndarray
+    cov: np.ndarray
+
+
+def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray
+                    ) -> _Estimate | None:
+    """A⁺ and the covariance of the estimate from the calibration data's noise, or None
+    where a fitted constraint reads a column of undeclared noise."""
+    quantities = [problem.constraint(n) for n in fit.constraints]
+    if any(problem.undeclared(q.sx) for q in quantities):
+        return None
+    noisy = problem.noisy
+    sigma = np.array([q.sigma for q in quantities])
+    prop = _Propagation(problem, [noisy.constraint(n).sx for n in fit.constraints], fit.free)
+    n_p = prop.n_p
+    a, b = np.zeros((n_p, n_p)), np.zeros((n_p, n_p))
+    for _, _, lmat, jac in prop.rows(ds, theta):
+        c = np.einsum("mae,mbe->mab", lmat, lmat)
+        w = _weights(fit, c, sigma)
+        wj = np.einsum("mab,mbp->map", w, jac)
+        a += np.einsum("map,maq->pq", jac, wj)
+        b += np.einsum("map,mab,mbq->pq", wj, c, wj)
+    if n_p == 0:
+        return _Estimate(a, b)
+    vals, vecs = np.linalg.eigh(a)
+    keep = vals > 1e-10 * max(float(vals.max(initial=0.0)), 1e-300)
+    a_pinv = (vecs[:, keep] / vals[keep]) @ vecs[:, keep].T
+    return _Estimate(a_pinv, a_pinv @ b @ a_pinv)
+
+
+@dataclass
+class _Sums:
+    """One entry's accumulators over the rows of a dataset (see :func:`_entry_test`)."""
+
+    n: int = 0
+    w: float = 0.0
+    wr2: float = 0.0
+    wr: float = 0.0
+    r: float = 0.0
+    d: float = 0.0
+    wd: float = 0.0       # Σ w E_kk (the estimate's share and the fitted rows' term in)
+    wj: np.ndarray | None = None
+    wxv: np.ndarray | None = None
+    j: np.ndarray | None = None
+    x: np.ndarray | None = None
+    exact: int = 0
+    # successive differences (time-ordered rows)
+    diff2: float = 0.0
+    last: float | None = None
+    r2: float = 0.0
+
+    def add_vectors(self, name: str, value: np.ndarray) -> None:
+        old = getattr(self, name)
+        setattr(self, name, value if old is None else old + value)
+
+
+def floor_tests(problem: Problem, datasets: Mapping[str, Dataset], theta: np.ndarray,
+                fit: Fit) -> tuple[dict[tuple[str, str], FloorTest], tuple[DatasetTest, ...]]:
+    """The floor and test of every residual and comparison on every dataset, and the
+    global test of each dataset (the module's theory).
+
+    Parameters
+    ----------
+    problem
+        The problem solved (its :attr:`~symcal.problem.symbolic.Problem.noisy` view
+        carries the declared noise).
+    datasets
+        The datasets by name.
+    theta
+        The estimate.
+    fit
+        How the estimate was fitted (:class:`Fit`).
+
+    Returns
+    -------
+    (tests, global)
+        ``(dataset, name) → FloorTest`` and one :class:`DatasetTest` per dataset.
+    """
+    share = None
+    if fit.dataset in datasets and np.any(fit.free):
+        share = _estimate_share(problem, fit, datasets[fit.dataset], theta)
+    out: dict[tuple[str, str], FloorTest] = {}
+    tests = []
+    for ds in datasets.values():
+        found, joint = _dataset_tests(problem, ds, theta, fit, share)
+        out.update({(ds.name, k): v for k, v in found.items()})
+        tests.append(joint)
+    return out, tuple(tests)
+
+
+def _time_ordered(problem: Problem, ds: Dataset) -> bool:
+    """Whether the rows of ``ds`` are in time order (a time column that never decreases)."""
+    time = next((c for c, spec in problem.column_specs.items()
+                 if spec.role == "time" and c in ds.columns), None)
+    if time is None or ds.n < 3:
+        return False
+    t = np.asarray(ds.columns[time], dtype=float)
+    return bool(np.all(np.diff(t) >= 0) and t[-1] > t[0])
+
+
+def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
+                   share: _Estimate | None) -> tuple[dict[str, FloorTest], DatasetTest]:
+    entries = _entries(problem, ds)
+    prop = _Propagation(problem, entries.exprs, fit.free)
+    fitted = [entries.names.index(n) for n in fit.constraints] \
+        if ds.name == fit.dataset else []
+    cons = [k for k, kind in enumerate(entries.kinds) if kind == "constraint"]
+    joint_ok = all(entries.declared[k] for k in cons) and bool(cons)
+    sums = [_Sums() for _ in entries.names]
+    chi2, dof = 0.0, 0.0
+    sigma_f = np.array([problem.constraint(entries.names[k]).sigma for k in fitted])
+    use_share = share is not None and prop.n_p > 0
+    for _, r, lmat, jac in prop.rows(ds, theta):
+        c = np.einsum("mae,mbe->mab", lmat, lmat)
+        expect = c.copy()
+        x = None
+        if use_share:
+            assert share is not None
+            expect += np.einsum("map,pq,mbq->mab", jac, share.cov, jac)
+            if fitted:
+                w = _weights(fit, c[:, fitted][:, :, fitted], sigma_f)
+                x = np.einsum("maf,mfg,mgp->map", c[:, :, fitted], w, jac[:, fitted, :])
+                xa = np.einsum("map,pq,mbq->mab", x, share.a_pinv, jac)
+                expect -= xa + np.transpose(xa, (0, 2, 1))
+        if joint_ok:
+            sub = np.ix_(range(c.shape[0]), cons, cons)
+            pinv, _ = _pinv_rows(c[sub])
+            rc = r[:, cons]
+            chi2 += float(np.einsum("ma,mab,mb->", rc, pinv, rc))
+            dof += float(np.einsum("mab,mba->", pinv, expect[sub]))
+        for k, s in enumerate(sums):
+            _accumulate(s, k, r, c, expect, jac, x, share if use_share else None)
+    time_ordered = _time_ordered(problem, ds)
+    found = {}
+    for k, name in enumerate(entries.names):
+        found[name] = _entry_test(sums[k], entries.declared[k], entries.centred[k],
+                                  time_ordered, share if use_share else None)
+    if joint_ok and dof > 0:
+        joint = DatasetTest(ds.name, tuple(entries.names[k] for k in cons), PROPAGATED,
+                            chi2, dof, chi2_band(dof))
+    else:
+        joint = _combined(ds.name, [entries.names[k] for k in cons],
+                          [found[entries.names[k]] for k in cons])
+    return found, joint
+
+
+def _accumulate(s: _Sums, k: int, r: np.ndarray, c: np.ndarray, expect: np.ndarray,
+                jac: np.ndarray, x: np.ndarray | None, share: _Estimate | None) -> None:
+    rk, d = r[:, k], c[:, k, k]
+    top = float(d.max(initial=0.0))
+    live = d > EXACT * max(top, s.d / max(s.n, 1), 1e-300)
+    s.exact += int(np.sum(~live))
+    w = np.where(live, 1.0 / np.where(live, d, 1.0), 0.0)
+    s.n += len(rk)
+    s.w += float(w.sum())
+    s.wr2 += float(np.sum(w * rk * rk))
+    s.wr += float(np.sum(w * rk))
+    s.r += float(rk.sum())
+    s.r2 += float(np.sum(rk * rk))
+    s.d += float(d.sum())
+    s.wd += float(np.sum(w * expect[:, k, k]))
+    if share is not None:
+        jk = jac[:, k, :]
+        s.add_vectors("wj", w @ jk)
+        s.add_vectors("j", jk.sum(axis=0))
+        if x is not None:
+            xk = x[:, k, :]
+            s.add_vectors("wxv", w @ xk)
+            s.add_vectors("x", xk.sum(axis=0))
+    if len(rk):
+        first = float(rk[0])
+        if s.last is not None:
+            s.diff2 += (first - s.last) ** 2
+        s.diff2 += float(np.sum(np.diff(rk) ** 2))
+        s.last = float(rk[-1])
+
+
+def _entry_test(s: _Sums, declared: bool, centred: bool, time_ordered: bool,
+                share: _Estimate | None) -> FloorTest:
+    """One entry's floor and test from its accumulators."""
+    n = s.n
+    if declared and n and s.d > 0 and s.w > 0:
+        floor = math.sqrt(s.d / n)
+        chi2 = s.wr2
+        expected = s.wd       # Σ w E_kk: C, the estimate's share and the fitted rows' term
+        if centred and n > 1:
+            mean = s.r / n
+            chi2 = s.wr2 - 2.0 * mean * s.wr + mean * mean * s.w
+            expected -= (2.0 / n) * _wd_plain(s) - s.w * s.d / n**2
+            if share is not None and s.wj is not None and s.j is not None:
+                jbar = s.j / n
+                expected -= 2.0 * float(jbar @ share.cov @ s.wj) - s.w * float(
+                    jbar @ share.cov @ jbar)
+                if s.wxv is not None and s.x is not None:
+                    xbar = s.x / n
+                    expected += 2.0 * (float(xbar @ share.a_pinv @ s.wj)
+                                       + float(s.wxv @ share.a_pinv @ jbar)
+                                       - s.w * float(xbar @ share.a_pinv @ jbar))
+        expected = max(expected, 1.0)
+        return FloorTest(floor, PROPAGATED, chi2, expected, chi2_band(expected),
+                         math.sqrt(2.0 / expected))
+    if declared and n and s.d == 0:
+        return FloorTest(0.0, PROPAGATED)      # every reading it uses is declared exact
+    if time_ordered and n > 2 and s.diff2 > 0:
+        floor = math.sqrt(s.diff2 / (2.0 * (n - 1)))
+        mean = s.r / n if centred else 0.0
+        spread = (s.r2 - 2.0 * mean * s.r + n * mean * mean)
+        expected = float(n - 1 if centred else n)
+        chi2 = spread / floor**2
+        sd = math.sqrt((n - 2) / (n * n - 1.0))
+        return FloorTest(floor, DIFFERENCES, chi2, expected, normal_band(sd), sd)
+    return FloorTest(None, UNKNOWN)
+
+
+def _wd_plain(s: _Sums) -> float:
+    """Σ w_i d_i: the number of rows whose variance is not exact."""
+    return float(s.n - s.exact)
+
+
+def _combined(dataset: str, names: list[str], found: list[FloorTest]) -> DatasetTest:
+    """The dataset's test from its constraints' own tests (some floors estimated)."""
+    parts = [(f.chi2, f.dof, f.sd) for f in found]
+    known = [(c, d, s) for c, d, s in parts if c is not None and d and s is not None]
+    if not found or len(known) < len(parts):
+        return DatasetTest(dataset, tuple(names), UNKNOWN)
+    chi2 = sum(c for c, _, _ in known)
+    dof = sum(d for _, d, _ in known)
+    sd = math.sqrt(sum((d * s) ** 2 for _, d, s in known)) / dof
+    band = chi2_band(dof) if all(f.method == PROPAGATED for f in found) else normal_band(sd)
+    return DatasetTest(dataset, tuple(names), "combined", chi2, dof, band)

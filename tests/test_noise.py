@@ -1,0 +1,264 @@
+"""Declared sensor noise (issue 22 item 1) and its propagation to every residual (item 2):
+the key ``noise`` on a model input, a column, an instance and a problem's ``noise:``
+section, units checked (exact error text); floors against an independent computation
+(numpy finite differences, and a Monte Carlo of the declared noise through the model)."""
+
+from __future__ import annotations
+
+import dataclasses
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+import symcal
+from symcal.analysis.floors import Fit, chi2_band, floor_tests, row_covariances
+from symcal.base.errors import SpecError
+from symcal.base.numeric import mapped
+from symcal.data.dataset import make_dataset
+from symcal.simulation import load_scenario, simulate_run
+
+PROBLEMS = ROOT / "problems"
+SCENARIOS = PROBLEMS / "scenarios"
+UM = 1e-3
+
+MODEL = """\
+model: seg
+constants:
+  rho: {value: 1.016, unit: mm}
+inputs:
+  p: {unit: mm, period: rho, noise: 0.5 um}
+parameters:
+  k0: {value: 0, unit: mm}
+  k1: {value: 0.01, unit: mm, scale: 0.01}
+expressions:
+  f: 2*pi/rho
+  e: k0 + k1*sin(f*p)
+outputs:
+  p_hat: {expr: p + e, unit: mm}
+"""
+
+PROBLEM = """\
+problem: demo
+instances:
+  s1: {model: seg.yaml, inputs: {p: p1}}
+  s2: {model: seg.yaml, inputs: {p: p2}}
+constraints:
+  g: s1.p_hat - s2.p_hat
+comparisons:
+  pos: {estimate: s1.p_hat, reference: x_ref, unit: um}
+datasets:
+  calibration: {path: data.csv}
+columns:
+  t: {unit: s, role: time}
+  p1: {unit: mm}
+  p2: {unit: mm}
+  x_ref: {unit: mm, noise: 0.1 um}
+"""
+
+
+def _load(tmp_path: Path, monkeypatch, model: str = MODEL, problem: str = PROBLEM
+          ) -> symcal.Problem:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "seg.yaml").write_text(textwrap.dedent(model))
+    (tmp_path / "prob.yaml").write_text(textwrap.dedent(problem))
+    return symcal.load_problem("prob.yaml")
+
+
+def _sigmas(problem: symcal.Problem) -> dict[str, float]:
+    return {r.name: r.sigma for r in problem.readings}
+
+
+def test_noise_declared_on_inputs_and_columns(tmp_path, monkeypatch) -> None:
+    problem = _load(tmp_path, monkeypatch)
+    assert _sigmas(problem) == pytest.approx({"p1": 0.5e-3, "p2": 0.5e-3, "x_ref": 1e-4})
+    origins = {r.name: r.origin for r in problem.readings}
+    assert origins == {"p1": "model 'seg' input 'p'", "p2": "model 'seg' input 'p'",
+                       "x_ref": "column 'x_ref'"}
+    assert problem.weighting == "propagated" and not problem.study.weighting_declared
+
+
+@pytest.mark.parametrize(("problem", "expected"), [
+    # an instance overrides its model; the problem's noise: section overrides everything
+    (PROBLEM.replace("inputs: {p: p2}}", "inputs: {p: p2}, noise: {p: 2 um}}"),
+     {"p1": 0.5e-3, "p2": 2e-3, "x_ref": 1e-4}),
+    (PROBLEM + "noise: {s1.p: 0.001, x_ref: 0 um}\n", {"p1": 1e-3, "p2": 0.5e-3, "x_ref": 0.0}),
+    # a column's own noise is over its instances' and model's
+    (PROBLEM.replace("  p2: {unit: mm}", "  p2: {unit: mm, noise: 3 um}"),
+     {"p1": 0.5e-3, "p2": 3e-3, "x_ref": 1e-4}),
+    # a plain number is in the reading's own unit
+    (PROBLEM.replace("  p2: {unit: mm}", "  p2: {unit: um, noise: 4}"),
+     {"p1": 0.5e-3, "p2": 4e-3, "x_ref": 1e-4}),
+])
+def test_noise_overrides(tmp_path, monkeypatch, problem, expected) -> None:
+    assert _sigmas(_load(tmp_path, monkeypatch, problem=problem)) == pytest.approx(expected)
+
+
+def test_an_input_bound_to_an_expression_carries_its_own_noise(tmp_path, monkeypatch) -> None:
+    problem = _load(tmp_path, monkeypatch, problem=PROBLEM.replace(
+        "inputs: {p: p2}}", "inputs: {p: (p2 + p1)/2}}"))
+    readings = {r.name: (r.kind, r.sigma) for r in problem.readings}
+    assert readings == {"p1": ("column", 0.5e-3), "x_ref": ("column", 1e-4),
+                        "s2.p": ("input", 0.5e-3)}
+    # p2 is read only through s2.p's expression, and its own noise is not declared
+    assert problem.undeclared(problem.constraint("g").sx) == ["p2"]
+    assert problem.weighting == "equal"
+
+
+def test_an_extending_problem_overrides_noise(tmp_path, monkeypatch) -> None:
+    _load(tmp_path, monkeypatch)
+    (tmp_path / "more.yaml").write_text("problem: more\nextends: prob.yaml\n"
+                                        "instances:\n  s1: {noise: {p: 1 um}}\n"
+                                        "noise: {x_ref: 0.2 um}\n")
+    assert _sigmas(symcal.load_problem("more.yaml")) == pytest.approx(
+        {"p1": 1e-3, "p2": 0.5e-3, "x_ref": 2e-4})
+
+
+@pytest.mark.parametrize(("model", "problem", "message"), [
+    (MODEL.replace("noise: 0.5 um", "noise: 0.5 rad"), PROBLEM,
+     "seg.yaml:5: inputs.p.noise: the noise '0.5 rad' is in rad, an angle, but the reading "
+     "is in mm, a length"),
+    (MODEL.replace("noise: 0.5 um", "noise: -1 um"), PROBLEM,
+     "seg.yaml:5: inputs.p.noise: a noise must be a finite standard deviation >= 0, found "
+     "'-1 um'"),
+    (MODEL.replace("noise: 0.5 um", "noise: half a micron"), PROBLEM,
+     "seg.yaml:5: inputs.p.noise: 'half a micron' is not a noise: write a standard "
+     "deviation with its unit, e.g. 'noise: 0.5 um'"),
+    (MODEL.replace("noise: 0.5 um", "noise: 0.5 umm"), PROBLEM,
+     "seg.yaml:5: inputs.p.noise: unknown unit 'umm' (did you mean 'mm'?); units are "
+     "pint's (mm, um, m, rad, mrad, deg, s, mm/s, ...)"),
+    (MODEL, PROBLEM.replace("x_ref: {unit: mm, noise: 0.1 um}", "x_ref: {unit: mm, noise: 1 s}"),
+     "prob.yaml:15: columns.x_ref.noise: the noise '1 s' is in s, a time, but the reading is "
+     "in mm, a length"),
+    (MODEL, PROBLEM + "noise: {s3.p: 1 um}\n",
+     "prob.yaml:16: noise.s3.p: 's3.p' is neither a column nor an instance input (did you "
+     "mean 's1.p'?); 'noise:' names the readings whose noise it declares (a column such as "
+     "'x_ref', or an input such as 's1.p')"),
+    (MODEL, PROBLEM.replace("inputs: {p: p2}}", "inputs: {p: p2}, noise: {q: 1 um}}"),
+     "prob.yaml:4: instances.s2.noise.q: 'q' is not an input of model 'seg'; it has: p"),
+    (MODEL, PROBLEM.replace("inputs: {p: p1}}", "inputs: {p: p1}, noise: {p: 1 um}}")
+     .replace("inputs: {p: p2}}", "inputs: {p: p1}, noise: {p: 2 um}}"),
+     "prob.yaml:4: instances.s2.noise.p: column 'p1' has two noises: '2 um' (instance 's2' "
+     "noise 'p') and '1 um' (instance 's1' noise 'p', prob.yaml:3: instances.s1.noise.p); "
+     "declare its noise once, e.g. 'noise: {p1: ...}' in the problem"),
+])
+def test_noise_errors_name_file_line_key(tmp_path, monkeypatch, model, problem,
+                                         message) -> None:
+    with pytest.raises(SpecError) as err:
+        _load(tmp_path, monkeypatch, model, problem)
+    assert str(err.value) == message
+
+
+def test_the_bundled_models_declare_the_scenarios_noise() -> None:
+    """0.5 µm noise and a 0.2 µm step on the §3.1 platen, 1 µm and 0.2 µm on the §3.2 one,
+    20 µrad on the coordination sensor: √(σ² + q²/12) as the simulator states it."""
+    from symcal.simulation import input_noise
+
+    for name, scenario in (("platen_self_calibration", "courier_platen"),
+                           ("platen_self_calibration_implicit", "courier_platen"),
+                           ("dual_sensor_calibration", "courier_dual"),
+                           ("dual_sensor_calibration_implicit", "courier_dual")):
+        problem = symcal.load_problem(PROBLEMS / f"{name}.yaml")
+        truth = input_noise(load_scenario(SCENARIOS / f"{scenario}.yaml"))
+        for r in problem.readings:
+            if r.name.startswith(("p", "psi")):
+                assert r.sigma == pytest.approx(truth[r.name], rel=2e-3), (name, r.name)
+            else:       # the interferometer: negligible beside the sensors
+                assert r.sigma < 0.02 * truth["p1"] or r.name == "theta_ref"
+        assert problem.weighting == "propagated"
+
+
+# ------------------------------------------------------------------ propagation
+
+
+def _courier(problem: symcal.Problem, scenario: str, seed: int = 3) -> dict:
+    sc = load_scenario(SCENARIOS / f"{scenario}.yaml")
+    return {n: make_dataset(n, "simulated", simulate_run(sc, n, seed), [])
+            for n in ("calibration", "flyby")}
+
+
+def _fit(problem: symcal.Problem) -> Fit:
+    return Fit("calibration", problem.stages[-1].constraints,
+               np.zeros(len(problem.parameters), dtype=bool), "equal")
+
+
+def test_floor_agrees_with_finite_differences() -> None:
+    """The dual problem (nonlinear in its readings: tan(psi), rotations): the propagated
+    covariance of (g_x, g_y, g_p) on every observation equals numpy's central differences
+    of the residuals by each reading, times the declared variances."""
+    problem = symcal.load_problem(PROBLEMS / "dual_sensor_calibration.yaml")
+    data = _courier(problem, "courier_dual")["calibration"]
+    theta = np.array([p.value for p in problem.parameters])
+    names = tuple(c.name for c in problem.constraints)
+    cov = row_covariances(problem, names, data, theta)
+    fn = mapped(problem.theta, problem.u, [c.sx for c in problem.constraints])
+    u = data.matrix(problem.columns)
+    sigma = {r.name: r.sigma for r in problem.readings}
+    expected = np.zeros_like(cov)
+    for i, col in enumerate(problem.columns):
+        if col not in sigma:
+            continue
+        h = 1e-6 if col.startswith("p") else 1e-9
+        up, down = u.copy(), u.copy()
+        up[i] += h
+        down[i] -= h
+        d = (np.column_stack(fn(theta, up)) - np.column_stack(fn(theta, down))) / (2 * h)
+        expected += sigma[col] ** 2 * np.einsum("ma,mb->mab", d, d)
+    assert np.allclose(cov, expected, rtol=1e-5, atol=1e-12)
+    # g_y's floor is the platen's angle noise through the 94.5 mm lever (l_x)
+    floor = np.sqrt(cov[:, 1, 1].mean())
+    assert 9.0 * UM < floor < 10.5 * UM
+
+
+def test_floor_agrees_with_a_monte_carlo_of_the_declared_noise() -> None:
+    """Declared noise added to noiseless readings 400 times: the residuals' standard
+    deviation on every observation equals the propagated floor within its sampling error
+    (first order is exact here to 1e-3)."""
+    problem = symcal.load_problem(PROBLEMS / "dual_sensor_calibration.yaml")
+    sc = load_scenario(SCENARIOS / "courier_dual_clean.yaml")
+    quiet = dataclasses.replace(sc, platen=dataclasses.replace(sc.platen, noise=0.0,
+                                                               quantization=0.0),
+                                coordination=dataclasses.replace(sc.coordination, noise=0.0))
+    data = make_dataset("calibration", "noiseless", simulate_run(quiet, "calibration", 0, 50),
+                        [])
+    theta = np.array([p.value for p in problem.parameters])
+    names = tuple(c.name for c in problem.constraints)
+    floor = np.sqrt(np.diagonal(row_covariances(problem, names, data, theta), axis1=1,
+                                axis2=2))
+    fn = mapped(problem.theta, problem.u, [c.sx for c in problem.constraints])
+    u0 = data.matrix(problem.columns)
+    sigma = np.array([next((r.sigma for r in problem.readings if r.name == c), 0.0)
+                      for c in problem.columns])
+    rng = np.random.default_rng(11)
+    draws = np.stack([np.column_stack(fn(theta, u0 + sigma[:, None]
+                                         * rng.standard_normal(u0.shape)))
+                      for _ in range(400)])
+    spread = draws.std(axis=0)
+    # the standard deviation of 400 normal draws scatters by 1/sqrt(800) = 3.5 %
+    assert np.all(np.abs(spread / floor - 1) < 5 * 0.035)
+    assert abs(np.mean(spread / floor) - 1) < 0.01
+
+
+def test_floor_of_g_p_is_twice_the_reading_noise_at_the_start() -> None:
+    """At the design values (k = 0, ∂g_p/∂p = ±1) g_p's floor is 2 σ, and a comparison's
+    includes its reference's declared noise."""
+    problem = symcal.load_problem(PROBLEMS / "platen_self_calibration.yaml")
+    data = _courier(problem, "courier_platen")
+    theta = np.array([p.value for p in problem.parameters])
+    found, tests = floor_tests(problem, data, theta, _fit(problem))
+    s = 0.503 * UM
+    assert found[("calibration", "g_p")].floor == pytest.approx(2 * s, rel=1e-9)
+    assert found[("flyby", "position_y")].floor == pytest.approx(
+        np.sqrt(s**2 / 2 + (0.01 * UM) ** 2), rel=1e-9)
+    assert [t.dataset for t in tests] == ["calibration", "flyby"]
+
+
+def test_chi2_band_against_scipy() -> None:
+    from scipy.stats import chi2
+
+    for nu in (1, 2.5, 10, 50, 400, 967, 3000, 1e6):
+        lo, hi = chi2_band(nu)
+        assert lo == pytest.approx(chi2.ppf(0.025, nu) / nu, rel=1e-9)
+        assert hi == pytest.approx(chi2.ppf(0.975, nu) / nu, rel=1e-9)
