@@ -3,6 +3,8 @@ passes to 1e-10 (issue 16, item 2)."""
 
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -92,30 +94,68 @@ def test_passes_over_shards_equal_the_passes_in_memory(dual, tmp_path, kind) -> 
 
 
 def test_a_partitioned_solve_equals_the_in_memory_solve(tmp_path) -> None:
+    """solve_partitioned returns a Result like solve's (issue 21 item 3): the same
+    estimate, standard errors, gauges and statistics (moments of the shards combined)."""
     problem = symcal.load_problem(ROOT / "problems/platen_self_calibration.yaml")
+    problem = problem.with_weighting("equal")      # per-row weights need every row at once
     cols = _columns("", "problems/scenarios/courier_platen.yaml", 6000, seed=2)
     folder = write_shards(tmp_path / "log", cols, "npz", (2000, 2500, 1500))
     memory = make_dataset("calibration", "memory", cols, needed_columns(problem))
     sharded = solve_partitioned(problem, folder, executor=SerialExecutor())
     local = solve_partitioned(problem, memory)
+    full = symcal.solve(problem, {"calibration": memory})
+    assert isinstance(sharded, symcal.Result) and sharded.success
+    assert sharded.provenance[0].n == 6000
     scales = np.array([p.scale for p in problem.parameters])
-    np.testing.assert_allclose(sharded.theta / scales, local.theta / scales, rtol=0,
-                               atol=1e-10)
-    assert sharded.observations == 6000 and sharded.success
-    # the same estimate as symcal.solve on the data in memory, with the weights a
-    # partitioned log has (equal: 'propagated' weights are not available there)
-    assert "partitioned log does not support" in sharded.stages[0].notes[-1]
-    full = symcal.solve(problem.with_weighting("equal"), {"calibration": memory})
-    np.testing.assert_allclose(sharded.theta / scales, full.theta / scales, rtol=0,
-                               atol=1e-10)
-    stage = sharded.stages[0]
-    assert set(stage.standard_errors) == set(problem.stages[0].free)
-    other = local.stages[0].standard_errors
-    assert [k for k, v in stage.standard_errors.items() if v is None] == \
-        [k for k, v in other.items() if v is None]
-    for name, se in stage.standard_errors.items():
-        if se is not None:
-            assert se == pytest.approx(other[name], rel=1e-8)
+    for other in (local, full):
+        np.testing.assert_allclose(sharded.theta / scales, other.theta / scales, rtol=0,
+                                   atol=1e-10)
+        for name, p in full.params.items():
+            q = sharded.params[name]
+            assert (q.se is None) == (p.se is None), name
+            if p.se is not None:
+                assert q.se == pytest.approx(p.se, rel=1e-8), name
+    assert [g.text for g in sharded.stages[0].gauges.gauges] == \
+        [g.text for g in full.stages[0].gauges.gauges]
+    for s in full.statistics:
+        got = sharded.stat(s.name, s.dataset)
+        assert got.n == s.n
+        for which in ("before", "after"):
+            a, b = getattr(got, which), getattr(s, which)
+            assert (a.rms, a.mean) == pytest.approx((b.rms, b.mean), rel=1e-9, abs=1e-15)
+            assert a.std == pytest.approx(b.std, rel=1e-7)
+    np.testing.assert_allclose(sharded.value("g_p"), full.value("g_p"), rtol=0,
+                               atol=1e-12)
+    assert any("outliers are not looked for" in n for n in sharded.stages[0].notes)
+    # saved and loaded: the log is found again by its manifest, and refused once it changed
+    sharded.save(tmp_path / "r.json")
+    loaded = symcal.Result.load(tmp_path / "r.json")
+    np.testing.assert_allclose(loaded.value("g_p"), full.value("g_p"), rtol=0, atol=1e-12)
+    first = sorted(folder.iterdir())[0]
+    first.write_bytes(first.read_bytes())            # the same bytes, a new modification
+    os.utime(first, ns=(0, 0))
+    with pytest.raises(symcal.SymcalError, match="changed since the result was computed"):
+        symcal.Result.load(tmp_path / "r.json").check_data()
+
+
+def test_a_folder_of_shards_from_the_command_line(tmp_path, capsys) -> None:
+    """symcal solve PROBLEM --data calibration=FOLDER solves the log kept as shards and
+    prints the same report as for the data in one file (issue 26 item 7)."""
+    from symcal.cli import main
+
+    prob = ROOT / "problems/platen_self_calibration.yaml"
+    cols = _columns("", "problems/scenarios/courier_platen.yaml", 3000, seed=4)
+    folder = write_shards(tmp_path / "log", cols, "npz", (1000, 1000, 1000))
+    write_table(tmp_path / "whole.npz", cols)
+    args = ["solve", str(prob), "--weighting", "equal", "--json"]
+    assert main([*args, "--data", f"calibration={folder}"]) == 0
+    sharded = json.loads(capsys.readouterr().out)
+    assert main([*args, "--data", f"calibration={tmp_path / 'whole.npz'}"]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    for a, b in zip(sharded["parameters"], whole["parameters"], strict=True):
+        assert a["value"] == pytest.approx(b["value"], rel=1e-9, abs=1e-12)
+    assert [s["after"]["rms"] for s in sharded["statistics"]] == pytest.approx(
+        [s["after"]["rms"] for s in whole["statistics"]], rel=1e-9)
 
 
 def test_shards_are_checked_and_named(dual, tmp_path) -> None:
@@ -198,8 +238,7 @@ def test_a_partitioned_solve_on_dask_equals_the_in_memory_solve(cluster, tmp_pat
     scales = np.array([p.scale for p in problem.parameters])
     np.testing.assert_allclose(on_dask.theta / scales, local.theta / scales, rtol=0,
                                atol=1e-10)
-    assert on_dask.stages[0].output.rss == pytest.approx(local.stages[0].output.rss,
-                                                         rel=1e-10)
+    assert on_dask.rss == pytest.approx(local.rss, rel=1e-10)
 
 
 @pytest.mark.slow
@@ -209,13 +248,14 @@ def test_a_nonlinear_partitioned_solve_equals_the_in_memory_solve(tmp_path) -> N
     parameter's scale, although the passes reduce in another order (lm's last
     Gauss-Newton step settles what the cost's rounding cannot)."""
     problem = symcal.load_problem(ROOT / "problems/dual_sensor_calibration.yaml")
+    problem = problem.with_weighting("estimated")   # 'propagated' weights every row
     cols = _columns("", "problems/scenarios/courier_dual.yaml", 6000, seed=2)
     folder = write_shards(tmp_path / "log", cols, "npz", (2000, 2500, 1500))
     memory = make_dataset("calibration", "memory", cols, needed_columns(problem))
     sharded = solve_partitioned(problem, folder, executor=SerialExecutor())
     full = symcal.solve(problem, {"calibration": memory})
     assert sharded.success and full.success
-    assert [s.output.method for s in sharded.stages] == ["linear", "linear", "lm"]
+    assert [s.method for s in sharded.stages] == ["linear", "linear", "lm"]
     scales = np.array([p.scale for p in problem.parameters])
     np.testing.assert_allclose(sharded.theta / scales, full.theta / scales, rtol=0,
                                atol=1e-10)

@@ -394,6 +394,18 @@ class Result:
             if info.file is None or info.sha256 is None:
                 continue
             path = Path(str(info.file))
+            if info.sha256.startswith("shards:"):     # a partitioned log: its manifest
+                from symcal.data.shards import open_shards
+
+                try:
+                    now = open_shards(info.name, path, ()).manifest()
+                except (SymcalError, OSError) as exc:
+                    raise SymcalError(f"dataset '{info.name}' ({display_path(path)}) cannot "
+                                      f"be opened now ({exc}); solve again") from None
+                if now != info.sha256:
+                    raise SymcalError(f"dataset '{info.name}' ({display_path(path)}) changed "
+                                      "since the result was computed; solve again")
+                continue
             try:
                 digest = hashlib.sha256(path.read_bytes()).hexdigest()
             except OSError as exc:
@@ -465,8 +477,12 @@ class Result:
         dataset = dataset or self.problem.fit_dataset
         if dataset not in self.data:
             raise KeyError(f"no dataset '{dataset}'; datasets: {', '.join(self.data)}")
-        ds = self.data[dataset]
+        ds: Any = self.data[dataset]
         fn = mapped(self.problem.theta, self.problem.u, [sx], "value")
+        if hasattr(ds, "shards"):          # a partitioned log: shard by shard, in order
+            parts = [fn(self.theta, shard.dataset(ds.name).matrix(self.problem.columns))[0]
+                     for shard in ds.shards]
+            return np.concatenate(parts)[:, 0]
         return fn(self.theta, ds.matrix(self.problem.columns))[0][:, 0]
 
     def to_dict(self) -> dict[str, Any]:

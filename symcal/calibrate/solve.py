@@ -35,7 +35,7 @@ from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem, Stage
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.linear import solve_linear
-from symcal.solvers.objective import Objective
+from symcal.solvers.objective import Objective, Source
 from symcal.solvers.robust import RowLosses, row_losses, sandwich_meat, solve_robust
 from symcal.solvers.stage import ipopt, lm, out_of_bounds, solve_stage
 
@@ -88,7 +88,7 @@ def _outliers(objective: Objective, data: Dataset, theta: np.ndarray,
         None if time_col is None else np.asarray(data.columns[time_col], dtype=float))
 
 
-def _constraint_costs(objective: Objective, data: Dataset, before: np.ndarray,
+def _constraint_costs(objective: Objective, data: Source, before: np.ndarray,
                       after: np.ndarray) -> tuple[ConstraintCost, ...]:
     start, end = objective.cost_terms(data, before), objective.cost_terms(data, after)
     out = []
@@ -373,6 +373,12 @@ def solve(
                          f"{did_you_mean(options.method, METHODS)}; "
                          f"methods: {', '.join(METHODS)}")
     datasets = load_datasets(problem, data, drop_invalid)
+    for name, ds in datasets.items():
+        if not isinstance(ds, Dataset):
+            raise DataError(f"dataset '{name}' ({ds.source}) is a folder of shards: solve a log "
+                            "kept as shards with symcal.solve_partitioned (symcal solve "
+                            "--data NAME=FOLDER does so by itself), and give held-out "
+                            "datasets as files")
     theta0 = _initial(problem, initial or {})
     theta = theta0
     stages: list[StageResult] = []

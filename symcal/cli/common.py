@@ -65,7 +65,9 @@ def data_options(parser: argparse.ArgumentParser) -> None:
     """The options every command that reads a problem's data shares."""
     parser.add_argument("--data", action="append", type=_data_option, default=[],
                         metavar="NAME=PATH",
-                        help="replace dataset NAME with a CSV, NPZ or Parquet file")
+                        help="replace dataset NAME with a CSV, NPZ or Parquet file (for "
+                             "'solve', the fitted dataset may be a folder of shards: a log "
+                             "too large for memory)")
     parser.add_argument("--drop-invalid", action="store_true",
                         help="drop rows with NaN/inf instead of refusing the data")
     debug_option(parser)

@@ -85,9 +85,20 @@ def run(args: argparse.Namespace) -> int:
     if args.weighting:
         problem = problem.with_weighting(args.weighting)
     options = problem.options.over(method=args.method, max_iter=args.max_iter)
+    fit = problem.fit_dataset
     with solve_progress(args) as shown:
-        result = solve(problem, data, options, drop_invalid=args.drop_invalid,
-                       progress=shown)
+        if fit in data and Path(data[fit]).is_dir():      # a log kept as shards
+            from symcal.calibrate.partitioned import solve_partitioned
+
+            if args.drop_invalid:
+                raise SymcalError(f"--drop-invalid does not apply to the folder of shards "
+                                  f"{data[fit]}: every shard's needed columns must be finite")
+            result = solve_partitioned(problem, data[fit], options,
+                                       data={k: v for k, v in data.items() if k != fit},
+                                       progress=shown)
+        else:
+            result = solve(problem, data, options, drop_invalid=args.drop_invalid,
+                           progress=shown)
     text = text_report(result)
     show = not args.quiet or not result.success
     if args.json:

@@ -31,7 +31,12 @@ def load_dataset(
     spec: DatasetSpec, needed: Iterable[str], path: str | Path | None = None,
     drop_invalid: bool = False,
 ) -> Dataset:
-    """Load the dataset ``spec`` describes, or the file ``path`` that replaces it."""
+    """Load the dataset ``spec`` describes, or the file ``path`` that replaces it; a
+    folder is a partitioned log (:func:`~symcal.data.shards.open_shards`: opened, not read)."""
+    if path is not None and Path(path).is_dir():
+        from symcal.data.shards import open_shards
+
+        return open_shards(spec.name, path, tuple(needed))  # type: ignore[return-value]
     if path is not None:
         return make_dataset(spec.name, display_path(Path(path)), read_table(path), needed,
                             drop_invalid, copy=False)

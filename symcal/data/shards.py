@@ -20,7 +20,7 @@ import numpy as np
 
 from symcal.base.errors import DataError
 from symcal.base.files import display_path
-from symcal.data.dataset import make_dataset, read_table
+from symcal.data.dataset import Dataset, make_dataset, read_table
 
 #: Shard kinds by file suffix.
 KINDS = {".parquet": "parquet", ".npz": "npz", ".csv": "csv"}
@@ -46,12 +46,16 @@ class Shard:
 
     def read(self, columns: tuple[str, ...]) -> np.ndarray:
         """``columns`` of the shard stacked as rows (``len(columns) × rows``), checked."""
+        return self.dataset("shard").matrix(columns)
+
+    def dataset(self, name: str) -> Dataset:
+        """The whole shard as an in-memory dataset called ``name``, checked."""
         shown = display_path(self.path)
-        data = make_dataset("shard", shown, read_table(self.path), self.needed, copy=False)
+        data = make_dataset(name, shown, read_table(self.path), self.needed, copy=False)
         if data.n != self.rows:
             raise DataError(f"{shown}: {data.n} rows, but it had {self.rows} when the "
                             "partitioned dataset was opened (changed meanwhile?)")
-        return data.matrix(columns)
+        return data
 
 
 @dataclass(frozen=True)
@@ -76,6 +80,34 @@ class ShardedDataset:
     def n(self) -> int:
         """Observations in all shards."""
         return sum(s.rows for s in self.shards)
+
+    def sample(self, count: int) -> Dataset:
+        """At most ``count`` observations, evenly spaced over the first shards that hold
+        them, as an in-memory dataset (a bounded sample: for the gauge analysis)."""
+        parts: list[Dataset] = []
+        rows = 0
+        for shard in self.shards:
+            parts.append(shard.dataset(self.name))
+            rows += parts[-1].n
+            if rows >= count:
+                break
+        names = [c for c in parts[0].columns if all(c in p.columns for p in parts)]
+        merged = {c: np.concatenate([np.asarray(p.columns[c]) for p in parts]) for c in names}
+        take = np.unique(np.linspace(0, rows - 1, min(rows, count)).round().astype(int))
+        return make_dataset(self.name, f"{self.source} (a sample of {take.size} rows)",
+                            {c: v[take] for c, v in merged.items()}, shard.needed)
+
+    def manifest(self) -> str:
+        """A digest of the shards' paths, sizes and modification times: what a result
+        checks to know that the log did not change (its bytes are not hashed: a day's
+        log is read once per pass, not once more to hash it)."""
+        import hashlib
+
+        h = hashlib.sha256()
+        for shard in self.shards:
+            st = shard.path.stat()
+            h.update(f"{shard.path.resolve()}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+        return "shards:" + h.hexdigest()
 
 
 def _rows_npz(path: Path, shown: str) -> int:
