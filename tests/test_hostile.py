@@ -459,3 +459,81 @@ def test_a_signal_mid_solve_stops_at_once_and_keeps_earlier_results(
     assert json.loads(out) == {"error": {"message": message, "exit_code": code}}
     assert latency < 1.0, f"stopped {latency:.2f} s after the signal"
     assert _tree(dual_run / "res") == before
+
+
+# ================================================================= third round (issue 25)
+
+# ----------------------------------------------------------------- a singular weighting
+
+FERRARIS = """problem: ferraris
+instances:
+  s1: {model: seg.yaml, inputs: {p: p1}}
+  s2: {model: seg.yaml, inputs: {p: p2}}
+  s3: {model: seg.yaml, inputs: {p: p3}}
+constraints:
+  g12: s1.p_hat - s2.p_hat
+  g23: s2.p_hat - s3.p_hat
+  g13: s1.p_hat - s3.p_hat
+datasets:
+  calibration: {path: means.csv}
+columns: courier
+"""
+
+
+def _ferraris(folder: Path, n: int = 6, seed: int = 1) -> None:
+    """Three constraints whose residuals are linearly dependent (g13 = g12 + g23) on
+    ``n`` window means: their covariance is singular, its square root has 2 rows."""
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(0, 5, n)
+    cols = {"t": np.arange(n) * 0.1}
+    for i, (k0, k1) in enumerate([(0, 0.01), (0.02, -0.005), (0.01, 0.003)]):
+        cols[f"p{i + 1}"] = (p - (k0 + k1 * np.sin(2 * np.pi / 1.016 * p))
+                             + rng.normal(0, 1e-4, n))
+    lines = ["t,p1,p2,p3"] + [",".join(f"{cols[k][r]:.12f}" for k in cols) for r in range(n)]
+    (folder / "means.csv").write_text("\n".join(lines) + "\n")
+    (folder / "ferraris.yaml").write_text(FERRARIS)
+
+
+def test_a_fit_with_fewer_residual_rows_than_constraints_is_solved(toy: Path, capsys) -> None:
+    _ferraris(toy)
+    code, out, err = _run(["solve", "ferraris.yaml", "--json", "--quiet"], capsys)
+    assert code == 0, err
+    doc = json.loads(out)
+    assert doc["solver"]["success"] is True
+    assert all(p["se"] is not None for p in doc["parameters"] if p["name"].endswith("k1"))
+
+
+def test_a_transform_with_fewer_rows_than_constraints_reduces_like_numpy(toy: Path) -> None:
+    from symcal.data.loading import load_datasets
+    from symcal.problem.compiler import load_problem
+    from symcal.solvers.objective import Objective
+
+    _ferraris(toy, n=40)
+    problem = load_problem("ferraris.yaml")
+    data = load_datasets(problem)["calibration"]
+    free = np.ones(len(problem.parameters), dtype=bool)
+    objective = Objective(problem, ("g12", "g23", "g13"), free)
+    theta = np.array([p.value for p in problem.parameters]) + 1e-3
+    t = np.array([[1.0, -2.0, 0.5], [0.0, 3.0, 1.0]])          # 2 rows for 3 constraints
+    r, c, tail, rows = objective.accumulate_r(data, theta, t)
+    # independent: the Jacobian by central differences of the residuals, reduced by numpy
+    h = 1e-6
+    jac = np.stack([(objective.residuals(data, theta + h * e)
+                     - objective.residuals(data, theta - h * e)) / (2 * h)
+                    for e in np.eye(len(theta))], axis=2)            # N × 3 × n
+    a = np.einsum("ab,nbm->nam", t, jac).reshape(-1, len(theta))
+    g = (objective.residuals(data, theta) @ t.T).reshape(-1)
+    assert rows == 2 * data.n
+    np.testing.assert_allclose(r.T @ r, a.T @ a, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(r.T @ c, a.T @ g, rtol=1e-6, atol=1e-9)
+    assert tail + c @ c == pytest.approx(g @ g, rel=1e-9)
+
+
+# ----------------------------------------------------------------- --json and --quiet
+
+def test_json_prints_its_document_whatever_quiet_says(toy: Path, capsys) -> None:
+    code, out, err = _run(["solve", "prob.yaml", "--json", "--quiet"], capsys)
+    assert code == 0 and err == ""
+    assert json.loads(out)["solver"]["success"] is True
+    code, out, _ = _run(["solve", "prob.yaml", "--quiet"], capsys)
+    assert code == 0 and out == ""

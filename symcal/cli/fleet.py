@@ -110,10 +110,11 @@ def run_fleet(args: argparse.Namespace) -> int:
             atomic_write_text(stage / "fleet.json", document)
             atomic_write_text(stage / "fleet.txt", text)
             atomic_write_bytes(stage / "fleet.png", fleet_png(result.summary))
-    show = not args.quiet or not result.success
-    if show:
-        write_stdout(document if args.json else text)
-        if out is not None and not args.json:
+    if args.json:  # the document always, whatever --quiet says
+        write_stdout(document)
+    elif not args.quiet or not result.success:
+        write_stdout(text)
+        if out is not None:
             write_stdout(f"\nwrote {len(result.units)} unit folder(s) and fleet.json, "
                          f"fleet.txt, fleet.png to {out}\n")
     if not args.quiet:

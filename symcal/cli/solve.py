@@ -32,7 +32,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                      help="iteration limit of lm and IPOPT stages (default: the problem's, else "
                           "200)")
     cmd.add_argument("--quiet", action="store_true",
-                     help="no progress on stderr and no report on success")
+                     help="no progress on stderr and no text report on success (--json "
+                          "still prints its document)")
     fleet = cmd.add_argument_group(
         "fleet", "calibrate every unit of a fleet folder in parallel on Dask: one "
                  "subfolder per unit holding NAME.csv, NAME.npz or NAME.parquet for the "
@@ -89,12 +90,11 @@ def run(args: argparse.Namespace) -> int:
                        progress=shown)
     text = text_report(result)
     show = not args.quiet or not result.success
-    if args.json:
+    if args.json:  # the document always, whatever --quiet says
         doc = json_report(result)
         if args.out:
             _write(args.out, result, text, inputs, option)
-        if show:
-            write_stdout(doc)
+        write_stdout(doc)
         return 0 if result.success else 1
     if show:
         write_stdout(text)
