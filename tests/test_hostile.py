@@ -9,6 +9,7 @@ names, and the slow ones: a 1e7-row CSV in bounded memory, and SIGINT/SIGTERM mi
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import resource
@@ -27,7 +28,7 @@ from conftest import ROOT
 from symcal.base import files
 from symcal.base.errors import SymcalError
 from symcal.cli import main
-from symcal.data.dataset import read_table
+from symcal.data.dataset import Table, read_table
 from symcal.language.yamlio import MAX_BYTES, load_yaml
 
 BASE = ROOT / "tests" / "bad_inputs" / "bad_max_iter"
@@ -537,3 +538,148 @@ def test_json_prints_its_document_whatever_quiet_says(toy: Path, capsys) -> None
     assert json.loads(out)["solver"]["success"] is True
     code, out, _ = _run(["solve", "prob.yaml", "--quiet"], capsys)
     assert code == 0 and out == ""
+
+
+# ----------------------------------------------------------------- odd data files
+
+def test_a_csv_with_cr_only_line_ends_reads_like_lf(toy: Path, monkeypatch) -> None:
+    text = (toy / "data.csv").read_text()
+    (toy / "mac.csv").write_bytes(text.replace("\n", "\r").encode())
+    monkeypatch.setattr("symcal.data.dataset.BLOCK_BYTES", 64)       # lines across blocks
+    got, want = read_table(toy / "mac.csv"), read_table(toy / "data.csv")
+    assert list(got) == list(want)
+    for name in want:
+        np.testing.assert_array_equal(got[name], want[name])
+
+
+@pytest.mark.parametrize("block", [37, 100, 1 << 22])
+def test_rows_are_named_by_their_line_after_blank_lines(toy: Path, monkeypatch,
+                                                         block: int) -> None:
+    lines = (toy / "data.csv").read_text().splitlines()
+    rng = np.random.default_rng(7)
+    out, truth = [lines[0]], []           # truth: the line of every data row, counted here
+    for line in lines[1:]:
+        out += [""] * int(rng.integers(0, 3)) + ["  "] * int(rng.integers(0, 2))
+        out.append(line)
+        truth.append(len(out))
+    (toy / "gaps.csv").write_text("\n".join(out) + "\n")
+    monkeypatch.setattr("symcal.data.dataset.BLOCK_BYTES", block)
+    table = read_table(toy / "gaps.csv")
+    assert table.lines is not None
+    np.testing.assert_array_equal(table.lines, truth)
+    from symcal.data.dataset import make_dataset
+    bad = {k: np.array(v) for k, v in table.items()}
+    bad["p1"][[3, 40]] = np.nan
+    with pytest.raises(SymcalError, match=rf"\(lines {truth[3]}, {truth[40]}\)"):
+        make_dataset("calibration", "gaps.csv", Table(bad, "line", table.lines), ["p1"])
+
+
+def _npy(values: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.lib.format.write_array(buffer, values)
+    return buffer.getvalue()
+
+
+def test_npz_arrays_of_any_real_type_and_byte_order_read_as_numpy_does(toy: Path) -> None:
+    rng = np.random.default_rng(3)
+    arrays = {"a": rng.normal(size=1000).astype(">f8"), "b": rng.normal(size=1000).astype("<f4"),
+              "c": rng.integers(-9, 9, 1000).astype(">i2"),
+              "d": rng.integers(0, 2**64 - 1, 1000, dtype=np.uint64)}
+    np.savez_compressed(toy / "x.npz", **arrays)
+    got = read_table(toy / "x.npz")
+    for name, values in arrays.items():
+        np.testing.assert_array_equal(got[name], values.astype(float))
+
+
+def _bomb(path: Path, rows: int) -> None:
+    """An NPZ file whose array 'p1' is ``rows`` zeros deflated at level 9 (about 1000:1),
+    beside a 't' of 60 values."""
+    import zipfile
+
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as zf:
+        zf.writestr("t.npy", _npy(np.arange(60.0)))
+        buffer = io.BytesIO()
+        np.lib.format.write_array_header_1_0(buffer, {"descr": "<f8", "fortran_order": False,
+                                                      "shape": (rows,)})
+        head = buffer.getvalue()
+        with zf.open("p1.npy", "w", force_zip64=True) as fh:
+            fh.write(head)
+            zeros = bytes(1 << 22)
+            for start in range(0, rows * 8, len(zeros)):
+                fh.write(zeros[:min(len(zeros), rows * 8 - start)])
+
+
+@pytest.mark.parametrize("rows", [
+    1 << 23, pytest.param(409_600_000, marks=pytest.mark.slow)])  # 64 MiB; 3.2 GB in 3 MB
+def test_a_deflate_bomb_is_refused_before_it_is_inflated(toy: Path, rows: int) -> None:
+    import tracemalloc
+
+    _bomb(toy / "bomb.npz", rows)
+    assert (toy / "bomb.npz").stat().st_size < rows * 8 / 500
+    assert np.load(toy / "bomb.npz")["t"].size == 60         # a valid file numpy reads
+    tracemalloc.start()
+    try:
+        with pytest.raises(SymcalError) as info:
+            read_table(toy / "bomb.npz")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert str(info.value) == f"bomb.npz: arrays have different lengths [60, {rows}]"
+    assert peak < 1_000_000                          # nothing of the 'p1' array was inflated
+
+
+def test_parquet_integers_beyond_2_to_the_53_round_like_numpy(toy: Path, capsys) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    counts = np.array([2**53 + 1, 2**64 - 1, 2**63 + 12345, 7], dtype=np.uint64)
+    pq.write_table(pa.table({"count": pa.array(counts), "t": pa.array([1, 2, 3, None])}),
+                   toy / "c.parquet")
+    got = read_table(toy / "c.parquet")
+    np.testing.assert_array_equal(got["count"], counts.astype(float))
+    np.testing.assert_array_equal(got["t"], [1.0, 2.0, 3.0, np.nan])
+    columns = read_table(toy / "data.csv")
+    table = {k: pa.array(np.asarray(v)) for k, v in columns.items()}
+    table["stamp"] = pa.array(np.arange(60, dtype=np.uint64) + np.uint64(2**63))
+    pq.write_table(pa.table(table), toy / "d.parquet")
+    assert _run(["solve", "prob.yaml", "--data", "calibration=d.parquet", "--quiet"],
+                capsys)[0] == 0
+
+
+# ----------------------------------------------------------------- links and private files
+
+@pytest.mark.parametrize("role", ["problem", "data", "result", "scenario", "out", "extends"])
+def test_a_loop_of_symbolic_links_is_named(toy: Path, capsys, role: str) -> None:
+    (toy / "a.yaml").symlink_to("b.yaml")
+    (toy / "b.yaml").symlink_to("a.yaml")
+    (toy / "over.yaml").write_text("extends: a.yaml\n")
+    args = {"problem": ["solve", "a.yaml"],
+            "data": ["solve", "prob.yaml", "--data", "calibration=a.yaml"],
+            "result": ["codegen", "prob.yaml", "--result", "a.yaml", "-o", "c"],
+            "scenario": ["simulate", "a.yaml", "-o", "x.csv"],
+            "out": ["solve", "prob.yaml", "--out", "a.yaml/res"],
+            "extends": ["solve", "over.yaml"]}[role]
+    before = _tree(toy)
+    code, _, err = _run(args, capsys)
+    assert code == 2
+    assert "a.yaml" in err and ("loop of symbolic links" in err
+                                or "Too many levels of symbolic links" in err)
+    assert "internal error" not in err
+    assert _tree(toy) == before
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to own a root-only file")
+@pytest.mark.parametrize("role", ["problem", "data"])
+def test_a_root_only_file_is_never_quoted(toy: Path, capsys, role: str) -> None:
+    secret = "root:$6$s3cr3tHash:19000:0:99999:7:::"
+    (toy / "shadow").write_text(secret + "\ndaemon:*:19000:0:99999:7:::\n")
+    os.chmod(toy / "shadow", 0o640)
+    args = (["solve", "shadow", "--json"] if role == "problem"
+            else ["solve", "prob.yaml", "--data", "calibration=shadow", "--json"])
+    code, out, err = _run(args, capsys)
+    assert code == 2
+    assert "s3cr3t" not in err + out and "daemon" not in err + out
+    assert "the file's content is not quoted: it is root's and others may not read it" in err
+    os.chmod(toy / "shadow", 0o644)                       # readable by all: quoted as before
+    code, out, err = _run(args, capsys)
+    assert code == 2 and "s3cr3t" in err

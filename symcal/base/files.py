@@ -21,6 +21,7 @@ Inputs are read only from regular files (no FIFO, device or directory) of bounde
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import math
@@ -101,6 +102,24 @@ def display_path(path: str | Path) -> str:
         return str(path.resolve().relative_to(Path.cwd().resolve()))
     except (ValueError, OSError):
         return str(path)
+    except RuntimeError:  # a loop of symbolic links (Python before 3.13)
+        try:
+            return os.path.relpath(os.path.abspath(path))
+        except ValueError:
+            return str(path)
+
+
+#: What a loop of symbolic links is called in messages.
+LINK_LOOP = "a loop of symbolic links (following them leads back to a link already followed)"
+
+
+def resolve(path: str | Path) -> Path:
+    """``Path(path).resolve()``, a loop of symbolic links raised as :class:`OSError`
+    (``ELOOP``) on every Python (before 3.13 pathlib raises ``RuntimeError``)."""
+    try:
+        return Path(path).resolve()
+    except RuntimeError:
+        raise OSError(errno.ELOOP, LINK_LOOP, str(path)) from None
 
 
 def _kind(mode: int) -> str:

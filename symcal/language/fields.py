@@ -93,7 +93,10 @@ def expect_list(value: Any, where: Where) -> YList:
 
 def expect_str(value: Any, where: Where) -> str:
     """Return ``value`` if it is non-empty text, else raise."""
-    if not isinstance(value, str) or not value.strip():
+    if isinstance(value, str) and not value.strip():
+        raise SpecError(where, "expected text, found an empty string" if not value
+                        else "expected text, found only spaces")
+    if not isinstance(value, str):
         raise SpecError(where, f"expected text, found {_type_name(value)}")
     return value
 
