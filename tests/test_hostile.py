@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import ROOT
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from symcal.base import files
 from symcal.base.errors import SymcalError
@@ -683,3 +685,131 @@ def test_a_root_only_file_is_never_quoted(toy: Path, capsys, role: str) -> None:
     os.chmod(toy / "shadow", 0o644)                       # readable by all: quoted as before
     code, out, err = _run(args, capsys)
     assert code == 2 and "s3cr3t" in err
+
+
+# ----------------------------------------------------------------- files symcal writes
+
+@settings(max_examples=300, deadline=None)
+@given(st.text(st.characters(blacklist_categories=("Cs",)), max_size=40),
+       st.sampled_from(["block", "flow"]))
+def test_the_emitter_writes_any_text_so_that_it_reads_back(text: str, where: str) -> None:
+    from symcal.language.yamlio import dump_yaml, parse_yaml, yaml_scalar
+
+    doc = {"extends": text, "instances": {"s": {"model": text, "inputs": {"p": text}}}}
+    assert parse_yaml(dump_yaml(doc)) == doc
+    line = (f"k: {yaml_scalar(text)}\n" if where == "block"
+            else f"k: {{a: {yaml_scalar(text)}, b: [{yaml_scalar(text)}, 1]}}\n")
+    assert "\n" not in line[:-1]
+    assert parse_yaml(line) == ({"k": text} if where == "block"
+                                else {"k": {"a": text, "b": [text, 1]}})
+
+
+@pytest.mark.parametrize(("text", "name"), [
+    ("prob-v2", "prob_v2"), ("2nd try", "p_2nd_try"), ("a.b", "a_b"), ("café", "cafe"),
+    ("runs #2: 'x'", "runs_2_x"), ("日本", "p"), ("_x_", "x"), ("prob", "prob")])
+def test_names_made_from_file_names_are_plain(text: str, name: str) -> None:
+    from symcal.language.fields import is_name, plain_name
+
+    assert plain_name(text) == name and is_name(name)
+
+
+ODD_PROBLEMS = "runs #2: 'q' \"x\" [y] {z} é ü"
+ODD_MODELS = "models [v1] #a: b"
+ODD_OUT = "out #3: [o] 'q' é"
+
+
+def _improvable(root: Path, name: str, seed: int = 5) -> Path:
+    """A two-segment problem named ``name`` in a folder with every character YAML cares
+    about, its model in another such folder; the data hide a second harmonic in s2 (held
+    out: a fly-by), so `improve` keeps rounds."""
+    problems, models = root / ODD_PROBLEMS, root / ODD_MODELS
+    problems.mkdir()
+    models.mkdir()
+    shutil.copy(BASE / "seg.yaml", models / "seg.yaml")
+    rng = np.random.default_rng(seed)
+    f = 2 * np.pi / 1.016
+    for dataset, (n, lo, hi) in {"calibration": (300, 0, 10), "flyby": (150, 2, 8)}.items():
+        x = rng.uniform(lo, hi, n)
+        e1 = 0.004 + 0.010 * np.sin(f * x)
+        e2 = (-0.003 + 0.006 * np.sin(f * x) + 0.003 * np.sin(2 * f * x)
+              + 0.002 * np.cos(2 * f * x))
+        rows = np.column_stack([np.arange(n) * 0.1, x - e1 + rng.normal(0, 2e-4, n),
+                                x - e2 + rng.normal(0, 2e-4, n)])
+        np.savetxt(problems / f"{dataset}.csv", rows, delimiter=",", fmt="%.9f",
+                   header="t,p1,p2", comments="")
+    model = json.dumps(f"../{ODD_MODELS}/seg.yaml")
+    (problems / name).write_text(f"""problem: toy
+instances:
+  s1: {{model: {model}, inputs: {{p: p1}}}}
+  s2: {{model: {model}, inputs: {{p: p2}}}}
+constraints:
+  g: s1.p_hat - s2.p_hat
+datasets:
+  calibration: {{path: calibration.csv}}
+  flyby: {{path: flyby.csv}}
+columns: courier
+""")
+    return problems / name
+
+
+@pytest.mark.parametrize("name", ["prob-v2.yaml",
+                                  pytest.param("2nd try.yaml", marks=pytest.mark.slow),
+                                  pytest.param("a.b.yaml", marks=pytest.mark.slow)])
+def test_improve_runs_to_the_end_whatever_the_names(tmp_path: Path, monkeypatch, capsys,
+                                                     name: str) -> None:
+    from symcal.language.fields import is_name
+    from symcal.problem.compiler import load_problem
+
+    problem = _improvable(tmp_path, name)
+    monkeypatch.chdir(problem.parent)
+    out = Path("..") / ODD_OUT
+    code, stdout, err = _run(["improve", name, "--out", str(out), "--json", "--quiet"], capsys)
+    assert code == 0, err
+    doc = json.loads(stdout)
+    assert doc["quiet"] is True and len(doc["rounds"]) >= 2
+    assert doc["rounds"][1]["added"] == "s2.p_hat += harmonic 2 of s2.p (period 1.016 mm)"
+    written = sorted(p for p in out.rglob("*.yaml"))
+    assert len(written) >= 4
+    for path in written:                      # every file it wrote loads, by its own rules
+        doc_ = load_yaml(path)[0]
+        assert is_name(doc_.get("problem", doc_.get("model")))
+        if path.name != "final.yaml":
+            assert path.stem == doc_.get("problem", path.stem)
+    final = load_problem(out / "final.yaml")
+    assert {"s2.h2_sin_p", "s2.h2_cos_p"} <= set(final.parameter_names)
+
+
+def test_printed_suggestions_load_whatever_the_names(tmp_path: Path, monkeypatch) -> None:
+    from symcal.calibrate.solve import solve
+    from symcal.problem.compiler import load_problem
+    from symcal.revise.diagnose import diagnose
+
+    problem = _improvable(tmp_path, "2nd try.yaml")
+    monkeypatch.chdir(problem.parent)
+    diag = diagnose(solve(load_problem(problem.name)))
+    text = diag.yaml[diag.significant[0].label]
+    model_part, overlay_part = text.split("\n\n# ")
+    model_file = model_part.splitlines()[0].split()[1]           # "# models/X.yaml (...)"
+    overlay_file = overlay_part.splitlines()[0].split(" (beside")[0]
+    (problem.parent / "models").mkdir()
+    (problem.parent / model_file).write_text("\n".join(model_part.splitlines()[1:]) + "\n")
+    (problem.parent / overlay_file).write_text("\n".join(overlay_part.splitlines()[1:]) + "\n")
+    revised = load_problem(problem.parent / overlay_file)
+    assert {"s2.h2_sin_p", "s2.h2_cos_p"} <= set(revised.parameter_names)
+
+
+def test_diagnose_out_writes_the_result_the_diagnosis_and_the_report(toy: Path,
+                                                                      capsys) -> None:
+    from symcal.calibrate.result import Result
+
+    code, out, err = _run(["diagnose", "prob.yaml", "--out", "d", "--json", "--quiet"], capsys)
+    assert code == 0, err
+    assert json.loads((toy / "d" / "diagnosis.json").read_text()) == json.loads(out)
+    assert Result.load(toy / "d" / "result.json").success
+    report = (toy / "d" / "report.txt").read_text()
+    assert report.startswith("symcal: toy") and "Verdict" in report
+    assert err == "wrote d/result.json, diagnosis.json and report.txt\n"
+    (toy / "d2").mkdir()
+    (toy / "d2" / "report.txt").write_text("mine\n")
+    code, _, err = _run(["diagnose", "prob.yaml", "--out", "d2", "--quiet"], capsys)
+    assert code == 2 and "d2/report.txt exists and was not written by symcal" in err

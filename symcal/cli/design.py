@@ -65,6 +65,11 @@ def run(args: argparse.Namespace) -> int:
     problem = load_problem(args.problem)
     scenario = load_scenario(args.scenario)
     targets = tuple(parse_target(text, problem) for text in args.target)
+    for target in targets:
+        first = next(t for t in targets if t.name == target.name)
+        if first is not target:
+            raise SymcalError(f"--target {target.text}: a second target for '{target.name}' "
+                              f"(the first is --target {first.text}); give one per parameter")
     inputs = inputs_of(args, [problem])
     option = f"--out {args.out}"
     if args.out:
