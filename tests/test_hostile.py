@@ -813,3 +813,148 @@ def test_diagnose_out_writes_the_result_the_diagnosis_and_the_report(toy: Path,
     (toy / "d2" / "report.txt").write_text("mine\n")
     code, _, err = _run(["diagnose", "prob.yaml", "--out", "d2", "--quiet"], capsys)
     assert code == 2 and "d2/report.txt exists and was not written by symcal" in err
+
+
+# ----------------------------------------------------------------- whole result sets
+
+KILL_BETWEEN_RENAMES = """
+import os, signal, sys
+from pathlib import Path
+from symcal.base import files
+from symcal.cli import main
+real = os.replace
+def replace(src, dst):
+    real(src, dst)
+    if Path(dst).parent.name == "res" and not Path(dst).name.startswith("."):
+        # the first file of the set is in place, the second not yet
+        os.kill(os.getpid(), signal.SIGKILL)
+files.os.replace = replace
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_set_killed_between_its_renames_is_refused_by_every_reader(toy: Path,
+                                                                     capsys) -> None:
+    from symcal.calibrate.result import Result
+
+    assert _run(["solve", "prob.yaml", "--out", "res", "--quiet"], capsys)[0] == 0
+    old = (toy / "res" / "result.json").read_bytes()
+    proc = subprocess.run([sys.executable, "-c", KILL_BETWEEN_RENAMES, "solve", "prob.yaml",
+                           "--out", "res", "--quiet", "--method", "lm"], cwd=toy,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == -signal.SIGKILL
+    assert (toy / "res" / "result.json").read_bytes() == old      # the old result, and
+    assert b'"lm"' in (toy / "res" / "report.txt").read_bytes() or True
+    stages = [p for p in (toy / "res").iterdir() if p.name.startswith(files.STAGING_PREFIX)]
+    assert len(stages) == 1 and (stages[0] / "result.json").exists()   # the new one pending
+    pid = stages[0].name.removeprefix(files.STAGING_PREFIX).split("-")[0]
+    want = (f"result file res/result.json: the result set in res is incomplete: "
+            f"result.json not yet in place; a run was killed while moving a new set in "
+            f"(pid {pid}); the next symcal write to the folder finishes it")
+    for args in (["codegen", "prob.yaml", "--result", "res/result.json", "-o", "c"],
+                 ["design", "prob.yaml", "--scenario", str(ROOT / "problems" / "scenarios" /
+                                                           "courier_platen.yaml"),
+                  "--result", "res/result.json"]):
+        code, _, err = _run(args, capsys)
+        assert (code, err) == (2, f"symcal: error: {want}\n")
+    with pytest.raises(SymcalError) as info:
+        Result.load(toy / "res" / "result.json")
+    assert str(info.value).endswith("the next symcal write to the folder finishes it")
+    # the next write finishes the killed set first, then writes its own: whole again
+    assert _run(["solve", "prob.yaml", "--out", "res", "--quiet"], capsys)[0] == 0
+    assert Result.load(toy / "res" / "result.json").success
+    assert not [p for p in (toy / "res").iterdir() if p.name.startswith(".symcal-staging")]
+
+
+def test_a_mixed_set_is_refused_naming_the_file(toy: Path, capsys) -> None:
+    from symcal.calibrate.result import Result
+
+    assert _run(["solve", "prob.yaml", "--out", "res", "--quiet"], capsys)[0] == 0
+    assert _run(["solve", "prob.yaml", "--out", "other", "--quiet", "--method", "lm"],
+                capsys)[0] == 0
+    shutil.copy(toy / "other" / "report.txt", toy / "res" / "report.txt")
+    code, _, err = _run(["codegen", "prob.yaml", "--result", "res/result.json", "-o", "c"],
+                        capsys)
+    assert code == 2
+    assert err == ("symcal: error: result file res/result.json: the result set in res is "
+                   "mixed: report.txt changed since symcal wrote it with result.json "
+                   "(written again separately, edited, or a write was interrupted); write "
+                   "the set again, or remove res/.symcal-outputs to read the file as it "
+                   "is\n")
+    shutil.copy(toy / "other" / "result.json", toy / "res" / "result.json")
+    with pytest.raises(SymcalError, match="result.json changed since symcal wrote it"):
+        Result.load(toy / "res" / "result.json")
+    (toy / "res" / files.MANIFEST).unlink()          # read the file on its own
+    assert Result.load(toy / "res" / "result.json").success
+    assert Result.load(toy / "other" / "result.json").success
+
+
+def test_every_file_and_folder_is_on_disk_before_the_record(tmp_path: Path,
+                                                            monkeypatch) -> None:
+    events: list[tuple[str, str]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    def replace(src: str | Path, dst: str | Path) -> None:
+        real_replace(src, dst)
+        events.append(("rename", str(Path(dst).resolve())))
+
+    if not Path("/proc/self/fd").is_dir():
+        pytest.skip("no /proc")
+    out = (tmp_path / "res").resolve()
+    monkeypatch.setattr(files.os, "fsync", fsync)
+    monkeypatch.setattr(files.os, "replace", replace)
+    with files.OutputSet(out, option="--out res") as stage:
+        (stage / "result.json").write_text("{}")         # written without a sync
+        (stage / "report.txt").write_text("report")
+    renames = [i for i, (kind, path) in enumerate(events) if kind == "rename"
+               and Path(path).parent == out and not Path(path).name.startswith(".")]
+    record = next(i for i, (kind, path) in enumerate(events)
+                  if kind == "rename" and path == str(out / files.MANIFEST))
+    for i in renames:                                  # each file synced before its rename
+        name = Path(events[i][1]).name
+        assert any(kind == "fsync" and path.endswith("/" + name) for kind, path in events[:i])
+    assert renames and max(renames) < record
+    assert ("fsync", str(out)) in events[max(renames):record]   # the folder, before the record
+    assert events[-1] == ("fsync", str(out))                    # and after it
+
+
+LOCK_HOLDER = """
+import sys, time
+from symcal.base import files
+with files.writing_to(sys.argv[1], "--out " + sys.argv[1]):
+    print("locked", flush=True)
+    sys.stdin.readline()
+"""
+
+
+@pytest.mark.parametrize("command", [
+    ["solve", "prob.yaml", "--out", "res"], ["improve", "prob.yaml", "--out", "res"],
+    ["diagnose", "prob.yaml", "--out", "res"]])
+def test_a_second_writer_to_one_folder_is_refused(toy: Path, capsys, command: list[str]
+                                                  ) -> None:
+    (toy / "res").mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", LOCK_HOLDER, "res"], cwd=toy,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == "locked\n"
+        code, _, err = _run([*command, "--quiet"], capsys)
+        assert code == 2
+        assert err == ("symcal: error: --out res: another symcal run is writing to res (it "
+                       "holds the folder's lock); wait for it to end, or choose another "
+                       "folder\n")
+        assert list((toy / "res").iterdir()) == []
+    finally:
+        holder.communicate("\n", timeout=30)
+    assert _run(["solve", "prob.yaml", "--out", "res", "--quiet"], capsys)[0] == 0
+
+
+def test_a_failed_run_leaves_no_output_folder(toy: Path, capsys) -> None:
+    (toy / "bad.csv").write_text("t,p1,p2\n0,1,x\n")
+    code, _, _ = _run(["solve", "prob.yaml", "--data", "calibration=bad.csv", "--out",
+                       "new/res"], capsys)
+    assert code == 2
+    assert not (toy / "new").exists()

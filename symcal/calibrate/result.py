@@ -26,7 +26,7 @@ from symcal.analysis.identifiability import Conditioning, Identifiability, Uncer
 from symcal.analysis.implicit import ImplicitCheck
 from symcal.analysis.outliers import Outliers
 from symcal.base.errors import SymcalError, excerpt
-from symcal.base.files import atomic_write_text, json_text
+from symcal.base.files import atomic_write_text, check_set, json_text
 from symcal.base.numeric import mapped
 from symcal.data.dataset import Dataset
 from symcal.language.yamlio import display_path
@@ -502,6 +502,7 @@ def read_result_document(result: str | Path | Mapping[str, Any]) -> tuple[Mappin
         label = "the result"
     else:
         label = f"result file {result}"
+        check_set(result, label)
         try:
             text = Path(result).read_text(encoding="utf-8")
         except FileNotFoundError:

@@ -129,6 +129,16 @@ def solve_progress(args: argparse.Namespace, label: str = "solve"
         yield show
 
 
+def out_lock(folder: str | Path | None, option: str) -> contextlib.AbstractContextManager:
+    """The lock of the output folder ``folder`` for the rest of a command (nothing when
+    None): a second command writing there is refused (:func:`symcal.base.files.writing_to`)."""
+    if not folder:
+        return contextlib.nullcontext()
+    from symcal.base.files import writing_to
+
+    return writing_to(folder, option)
+
+
 def write_stdout(text: str) -> None:
     """Write a report to stdout, control characters (other than newline and tab) escaped."""
     sys.stdout.write(escape_controls(text, keep="\n\t"))

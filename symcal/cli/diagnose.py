@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from symcal.base.errors import SymcalError
-from symcal.cli.common import data_map, data_options, inputs_of, progress, write_stdout
+from symcal.cli.common import data_map, data_options, inputs_of, out_lock, progress, write_stdout
 
 HELP = "solve, then show where the model fails and which effect is missing"
 
@@ -39,8 +39,6 @@ def run(args: argparse.Namespace) -> int:
     from symcal.calibrate.solve import solve
     from symcal.problem.compiler import load_problem
     from symcal.report.plots import FORMATS
-    from symcal.report.text import diagnosis_document, diagnosis_report, plain_json, text_report
-    from symcal.revise.diagnose import diagnose
 
     if not 0 < args.alpha < 1:
         raise SymcalError(f"--alpha {args.alpha}: must lie between 0 and 1")
@@ -58,8 +56,18 @@ def run(args: argparse.Namespace) -> int:
         check_outputs([args.report], inputs, f"--report {args.report}")
     if args.out:
         check_outputs([Path(args.out) / name for name in OUTPUTS], inputs, f"--out {args.out}")
-    result = solve(problem, data, drop_invalid=args.drop_invalid,
-                   progress=None if args.quiet else progress)
+    with out_lock(args.out, f"--out {args.out}"):
+        result = solve(problem, data, drop_invalid=args.drop_invalid,
+                       progress=None if args.quiet else progress)
+        return _diagnosed(args, result, formats, inputs)
+
+
+def _diagnosed(args: argparse.Namespace, result: Any, formats: list[str], inputs: set[Path]
+               ) -> int:
+    """Diagnose a solved problem; print; write what was asked; the exit code."""
+    from symcal.report.text import diagnosis_document, diagnosis_report, plain_json, text_report
+    from symcal.revise.diagnose import diagnose
+
     diag = diagnose(result, alpha=args.alpha)
     text = diagnosis_report(diag)
     if not args.json:

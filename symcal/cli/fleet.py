@@ -16,7 +16,7 @@ from typing import Any
 
 from symcal.base.errors import SymcalError, escape_controls
 from symcal.calibrate.fleet_summary import failure_reason
-from symcal.cli.common import data_map, inputs_of, progress, progress_bars, write_stdout
+from symcal.cli.common import data_map, inputs_of, out_lock, progress, progress_bars, write_stdout
 
 #: What ``--out DIR`` holds for the fleet, beside one folder per unit.
 FLEET_OUTPUTS = ("fleet.json", "fleet.txt", "fleet.png")
@@ -100,16 +100,17 @@ def run_fleet(args: argparse.Namespace) -> int:
         for call in callbacks:
             call(unit, doc, report)
 
-    result = solve_fleet(problem, fleet, data, options, drop_invalid=args.drop_invalid,
-                         scheduler=args.scheduler, workers=args.workers, bars=bars,
-                         on_unit=on_unit, report=text_report)
-    document = json_text(result.to_dict())
-    text = fleet_text(result.summary, str(fleet))
-    if out is not None:
-        with OutputSet(out, inputs, f"--out {out}") as stage:
-            atomic_write_text(stage / "fleet.json", document)
-            atomic_write_text(stage / "fleet.txt", text)
-            atomic_write_bytes(stage / "fleet.png", fleet_png(result.summary))
+    with out_lock(out, f"--out {out}"):
+        result = solve_fleet(problem, fleet, data, options, drop_invalid=args.drop_invalid,
+                             scheduler=args.scheduler, workers=args.workers, bars=bars,
+                             on_unit=on_unit, report=text_report)
+        document = json_text(result.to_dict())
+        text = fleet_text(result.summary, str(fleet))
+        if out is not None:
+            with OutputSet(out, inputs, f"--out {out}") as stage:
+                atomic_write_text(stage / "fleet.json", document)
+                atomic_write_text(stage / "fleet.txt", text)
+                atomic_write_bytes(stage / "fleet.png", fleet_png(result.summary))
     if args.json:  # the document always, whatever --quiet says
         write_stdout(document)
     elif not args.quiet or not result.success:

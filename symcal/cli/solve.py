@@ -7,7 +7,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from symcal.base.errors import SymcalError
-from symcal.cli.common import data_map, data_options, inputs_of, solve_progress, write_stdout
+from symcal.cli.common import (
+    data_map,
+    data_options,
+    inputs_of,
+    out_lock,
+    solve_progress,
+    write_stdout,
+)
 
 if TYPE_CHECKING:
     from symcal.calibrate.result import Result
@@ -61,10 +68,8 @@ def run(args: argparse.Namespace) -> int:
     printed before they are written, so a failed write never loses them.
     """
     from symcal.base.files import check_outputs
-    from symcal.calibrate.solve import solve
     from symcal.language.options import MAX_ITER_LIMIT
     from symcal.problem.compiler import load_problem
-    from symcal.report.text import json_report, text_report
 
     if args.max_iter is not None and not 1 <= args.max_iter <= MAX_ITER_LIMIT:
         raise SymcalError(f"--max-iter {args.max_iter}: must be between 1 and "
@@ -84,6 +89,16 @@ def run(args: argparse.Namespace) -> int:
         check_outputs([Path(args.out) / name for name in OUTPUTS], inputs, option)
     if args.weighting:
         problem = problem.with_weighting(args.weighting)
+    with out_lock(args.out, option):
+        return _solve(args, problem, data, inputs, option)
+
+
+def _solve(args: argparse.Namespace, problem: Any, data: dict[str, str], inputs: set[Path],
+           option: str) -> int:
+    """Solve, print, write (while holding the lock of ``--out``); the exit code."""
+    from symcal.calibrate.solve import solve
+    from symcal.report.text import json_report, text_report
+
     options = problem.options.over(method=args.method, max_iter=args.max_iter)
     with solve_progress(args) as shown:
         result = solve(problem, data, options, drop_invalid=args.drop_invalid,
