@@ -958,3 +958,108 @@ def test_a_failed_run_leaves_no_output_folder(toy: Path, capsys) -> None:
                        "new/res"], capsys)
     assert code == 2
     assert not (toy / "new").exists()
+
+
+# ----------------------------------------------------------------- fleets and Dask
+
+SCHEDULER_CHECK = """
+import sys
+import symcal.solvers.dask_executor as dask_executor
+dask_executor.HANDSHAKE_SECONDS = 2.0
+from symcal.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def _fleet(folder: Path, units: int = 2) -> None:
+    for i in range(units):
+        (folder / "units" / f"u{i}").mkdir(parents=True)
+        shutil.copy(folder / "data.csv", folder / "units" / f"u{i}" / "calibration.csv")
+
+
+@pytest.mark.parametrize("server", ["silent", "http"])
+def test_a_scheduler_address_that_does_not_speak_dask_is_refused(toy: Path,
+                                                                 server: str) -> None:
+    """Something listens on 127.0.0.1 but never answers Dask's handshake: refused after
+    the handshake deadline (2 s here), not hung."""
+    import http.server
+    import socket
+    import threading
+
+    _fleet(toy)
+    if server == "silent":
+        listener = socket.socket()
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(8)
+        port, stop = listener.getsockname()[1], listener.close
+    else:
+        httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0),
+                                                http.server.SimpleHTTPRequestHandler)
+        threading.Thread(target=httpd.serve_forever, daemon=True).start()
+        port = httpd.server_address[1]
+
+        def stop() -> None:
+            httpd.shutdown()
+            httpd.server_close()
+    try:
+        address = f"tcp://127.0.0.1:{port}"
+        proc = subprocess.run([sys.executable, "-c", SCHEDULER_CHECK, "solve", "prob.yaml",
+                               "--fleet", "units", "--scheduler", address, "--json"],
+                              cwd=toy, capture_output=True, text=True, timeout=90)
+    finally:
+        stop()
+    message = (f"--scheduler {address}: something listens at {address} but does not answer "
+               "as a Dask scheduler within 2 s (is it another service, such as a web "
+               "server?)")
+    assert proc.returncode == 2
+    assert proc.stderr == f"symcal: error: {message}\n"
+    assert json.loads(proc.stdout) == {"error": {"message": message, "exit_code": 2}}
+
+
+def test_workers_are_bounded_by_the_cores(toy: Path, capsys, monkeypatch) -> None:
+    _fleet(toy)
+    monkeypatch.setattr("symcal.solvers.executor.usable_cores", lambda: 2)
+    code, _, err = _run(["solve", "prob.yaml", "--fleet", "units", "--workers", "30"], capsys)
+    assert code == 2
+    assert err == ("symcal: error: --workers 30: at most 2 on this machine (one worker "
+                   "process per usable core; more would only compete for them, each with "
+                   "its own memory)\n")
+    from symcal.calibrate.fleet import solve_fleet
+    with pytest.raises(SymcalError, match="workers: at most 2 on this machine"):
+        solve_fleet(toy / "prob.yaml", toy / "units", workers=3)
+
+
+DASK_LOGS = """
+import logging, sys
+from symcal.solvers.dask_executor import _check_scheduler, dask_client
+
+def noisy():
+    log = logging.getLogger("distributed.worker")
+    try:
+        raise RuntimeError("a heartbeat failed")
+    except RuntimeError:
+        log.exception("Failed to communicate with scheduler during heartbeat.")
+    logging.getLogger("distributed.nanny").error("Restarting worker")
+    return 1
+
+if __name__ == "__main__":
+    with dask_client(workers=1) as client:
+        assert client.submit(noisy, pure=False).result() == 1
+        logging.getLogger("distributed.scheduler").error("Task lost", exc_info=True)
+        _check_scheduler(client.scheduler.address, "")          # a scheduler: accepted
+        worker = next(iter(client.scheduler_info()["workers"]))
+        try:
+            _check_scheduler(worker, "")
+        except Exception as exc:
+            print(exc)
+"""
+
+
+@pytest.mark.slow
+def test_dask_logging_never_reaches_the_terminal(tmp_path: Path) -> None:
+    (tmp_path / "script.py").write_text(DASK_LOGS)
+    proc = subprocess.run([sys.executable, "script.py"], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == ""
+    assert "answers, but not as a Dask scheduler (it says it is Worker)" in proc.stdout

@@ -27,12 +27,17 @@ UNIT_OUTPUTS = ("result.json", "report.txt")
 def _check_out(out: Path, fleet: Path, units: list[str], inputs: set[Path]) -> None:
     """Refuse outputs before any work: an input or a foreign file replaced, or a result
     folder that the next run would take for a unit."""
-    from symcal.base.files import check_outputs
+    from symcal.base.files import check_outputs, display_path
 
     option = f"--out {out}"
     if out.resolve().parent == fleet.resolve():
         raise SymcalError(f"{option}: a folder inside the fleet folder would be taken for a "
                           "unit by the next run; write the results elsewhere")
+    for unit in units:
+        if unit in FLEET_OUTPUTS:
+            raise SymcalError(f"{option}: the unit folder {display_path(fleet / unit)} has the "
+                              f"name of the fleet's own output {display_path(out / unit)}; "
+                              "rename the unit folder")
     paths = [out / name for name in FLEET_OUTPUTS]
     paths += [out / unit / name for unit in units for name in UNIT_OUTPUTS]
     check_outputs(paths, inputs, option)
@@ -78,6 +83,13 @@ def run_fleet(args: argparse.Namespace) -> int:
         raise SymcalError(f"--workers {args.workers}: must be at least 1")
     if args.scheduler is not None and args.workers is not None:
         raise SymcalError("--workers applies to the local cluster, not with --scheduler")
+    from symcal.solvers.executor import usable_cores
+
+    cores = usable_cores()
+    if args.workers is not None and args.workers > cores:
+        raise SymcalError(f"--workers {args.workers}: at most {cores} on this machine (one "
+                          "worker process per usable core; more would only compete for "
+                          "them, each with its own memory)")
     problem = load_problem(args.problem)
     if args.weighting:
         problem = problem.with_weighting(args.weighting)
