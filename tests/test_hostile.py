@@ -18,7 +18,6 @@ import signal
 import stat
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -97,18 +96,28 @@ def test_an_oversized_yaml_file_is_refused(toy: Path, capsys) -> None:
                    f"({(toy / 'big.yaml').stat().st_size} bytes; the limit is {MAX_BYTES})\n")
 
 
-def test_a_long_extends_chain_of_models_stops_at_32_levels(toy: Path, capsys) -> None:
+def test_a_long_extends_chain_of_models_stops_at_32_levels(toy: Path, capsys,
+                                                         monkeypatch) -> None:
+    from symcal.language import yamlio
+
     (toy / "m0.yaml").write_text((toy / "seg.yaml").read_text())
     for i in range(1, 1500):
         (toy / f"m{i}.yaml").write_text(f"model: m{i}\nextends: m{i - 1}.yaml\n")
     prob = (toy / "prob.yaml").read_text().replace("{model: seg.yaml", "{model: m1499.yaml")
     (toy / "prob.yaml").write_text(prob)
-    start = time.perf_counter()
+    read: list[str] = []
+    real = yamlio.read_input_bytes
+
+    def counted(path: str | Path, limit: int) -> bytes:
+        read.append(Path(path).name)
+        return real(path, limit)
+
+    monkeypatch.setattr(yamlio, "read_input_bytes", counted)
     code, _, err = _run(["solve", "prob.yaml"], capsys)
     assert code == 2
     assert err == ("symcal: error: m1467.yaml:2: extends: more than 32 levels of 'extends' "
                    "below m1499.yaml\n")
-    assert time.perf_counter() - start < 10
+    assert len(read) <= 34          # the problem and the 33 models it reached, no more
 
 
 def test_a_deeply_nested_result_is_refused(toy: Path, capsys) -> None:
@@ -451,16 +460,16 @@ def test_a_signal_mid_solve_stops_at_once_and_keeps_earlier_results(
     for line in proc.stderr:  # wait until IPOPT iterates on the full stage
         if "full: iteration   1" in line:
             break
-    sent = time.perf_counter()
     proc.send_signal(sig)
     out, err = proc.communicate(timeout=60)
-    latency = time.perf_counter() - sent
+    # at once: at most the iteration under way when the signal came is finished (counted
+    # in iterations, not seconds: no test asserts a wall time)
+    assert sum(" iteration " in line for line in err.splitlines()) <= 1
     assert proc.returncode == code
     message = f"{words}; no output was written or changed"
     assert err.splitlines()[-1] == f"symcal: error: {message}"
     assert "Traceback" not in err and "WARNING" not in err
     assert json.loads(out) == {"error": {"message": message, "exit_code": code}}
-    assert latency < 1.0, f"stopped {latency:.2f} s after the signal"
     assert _tree(dual_run / "res") == before
 
 
