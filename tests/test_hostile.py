@@ -974,7 +974,7 @@ def test_a_failed_run_leaves_no_output_folder(toy: Path, capsys) -> None:
 SCHEDULER_CHECK = """
 import sys
 import symcal.solvers.dask_executor as dask_executor
-dask_executor.HANDSHAKE_SECONDS = 2.0
+dask_executor.HANDSHAKE_SECONDS = 1.0
 from symcal.cli import main
 sys.exit(main(sys.argv[1:]))
 """
@@ -990,7 +990,7 @@ def _fleet(folder: Path, units: int = 2) -> None:
 def test_a_scheduler_address_that_does_not_speak_dask_is_refused(toy: Path,
                                                                  server: str) -> None:
     """Something listens on 127.0.0.1 but never answers Dask's handshake: refused after
-    the handshake deadline (2 s here), not hung."""
+    the handshake deadline (1 s here), not hung."""
     import http.server
     import socket
     import threading
@@ -1018,7 +1018,7 @@ def test_a_scheduler_address_that_does_not_speak_dask_is_refused(toy: Path,
     finally:
         stop()
     message = (f"--scheduler {address}: something listens at {address} but does not answer "
-               "as a Dask scheduler within 2 s (is it another service, such as a web "
+               "as a Dask scheduler within 1 s (is it another service, such as a web "
                "server?)")
     assert proc.returncode == 2
     assert proc.stderr == f"symcal: error: {message}\n"
