@@ -1,5 +1,6 @@
 # symcal: `make demo` runs the bundled default calibration, `make test` runs the suite,
-# `make test-fast` the suite without the tests marked slow (about 50 s on 2 cores),
+# `make test-fast` the suite without the tests marked slow (about 1 min of CPU on 2 cores;
+# 2 min 49 s measured at load average 5-6 on 2 cores),
 # `make docs` builds the documentation site into build/site (strict: a broken link, a
 # page missing from the nav or a stale API name fails it).
 # Each target creates .venv and installs what it needs.

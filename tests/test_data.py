@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from symcal.base.errors import DataError
-from symcal.data.dataset import make_dataset, read_table, write_table
+from symcal.data.dataset import Table, make_dataset, read_table, write_table
 
 
 def _csv(tmp_path: Path, text: str) -> Path:
@@ -56,8 +56,11 @@ def test_non_finite_rows_refused_or_dropped() -> None:
     cols = {"p1": np.array([1.0, np.nan, 3.0, np.inf]), "x_ref": np.array([np.nan] * 4)}
     with pytest.raises(DataError) as err:
         make_dataset("calibration", "d.csv", cols, ["p1"])
-    assert str(err.value) == ("d.csv: 2 row(s) with NaN or inf in a needed column (lines 3, 5); "
+    assert str(err.value) == ("d.csv: 2 row(s) with NaN or inf in a needed column (rows 2, 4); "
                               "fix them or pass --drop-invalid to drop them")
+    with pytest.raises(DataError) as err:   # read from a CSV file: its lines
+        make_dataset("calibration", "d.csv", Table(cols, "line"), ["p1"])
+    assert "(lines 3, 5)" in str(err.value)
     ds = make_dataset("calibration", "d.csv", cols, ["p1"], drop_invalid=True)
     assert ds.dropped == 2 and ds.n == 2
     np.testing.assert_array_equal(ds.columns["p1"], [1.0, 3.0])

@@ -6,8 +6,9 @@
   repeated draws;
 - on simulated count slips (1 % of the observations), a robust loss recovers every
   identifiable parameter within 3 standard errors and names the slipped rows; with squared
-  residuals the report and the diagnosis say that outliers dominate, and the YAML they
-  suggest works;
+  residuals the report and the diagnosis say that outliers dominate, and the loss they
+  print, applied as printed on slips of 1 % and 5 %, lands within one standard error of a
+  squared fit without the slipped rows (issue 25);
 - the simulator's count slips are exactly where its truth says;
 - bad ``loss:`` input is refused with an exact message.
 """
@@ -254,30 +255,84 @@ def test_with_squared_residuals_the_report_says_outliers_dominate(slips) -> None
         _within(squared, scenario, 3.0)
 
 
-def test_diagnose_flags_outliers_before_missing_effects_and_its_yaml_works(slips) -> None:
-    scenario, data, squared, _, folder = slips
+def _printed_loss(squared: symcal.Result) -> tuple[str, float, str]:
+    """The remedy diagnose prints for a squared fit: its type, scale, and the YAML."""
     diag = diagnose(squared)
     assert diag.outliers_dominate and diag.candidates == () and diag.tested == 0
     report = diagnosis_report(diag)
+    remedy = diagnosis_document(diag)["outliers"]["remedy"]
+    assert all(ln.strip() in report for ln in remedy.splitlines())
+    match = re.fullmatch(r"constraints:\n  g_p:\n    loss: \{type: (\w+), scale: "
+                         r"([0-9.e+-]+)\}    # beside its expr; scale in um\n", remedy)
+    assert match is not None, remedy
+    return match.group(1), float(match.group(2)), report
+
+
+def _worst_gap(result: symcal.Result, reference: symcal.Result) -> float:
+    """The largest difference of ``result`` from ``reference``, in the reference's standard
+    errors, over every parameter and identifiable combination that has one."""
+    gaps = [abs(p.value - q.value) / q.se
+            for p, q in zip(result.params.values(), reference.params.values(), strict=True)
+            if q.se]
+    gaps += [abs(c.value - d.value) / d.se for c, d in zip(
+        result.identifiability.identifiable_combinations,
+        reference.identifiability.identifiable_combinations, strict=True)]
+    return max(gaps)
+
+
+def _without_slips(scenario, data, seed: int) -> symcal.Result:
+    """The squared fit on the same data without the slipped rows: the answer."""
+    rows = slipped_rows(scenario, "calibration", seed)["s1"]
+    columns = data["calibration"].columns
+    keep = np.ones(data["calibration"].n, dtype=bool)
+    keep[rows] = False
+    clean = make_dataset("calibration", "without the slips",
+                         {k: np.asarray(v)[keep] for k, v in columns.items()}, [])
+    return symcal.solve(symcal.load_problem(PROBLEM), {"calibration": clean})
+
+
+def _applied(folder: Path, kind: str, scale: float, data) -> symcal.Result:
+    (folder / "suggested.yaml").write_text(ROBUST.replace("huber", kind).format(
+        base=PROBLEM, scale=scale))
+    fixed = symcal.solve(symcal.load_problem(folder / "suggested.yaml"), data)
+    assert fixed.success, fixed.stages[-1].message
+    return fixed
+
+
+def test_diagnose_flags_outliers_before_missing_effects_and_its_yaml_works(slips) -> None:
+    """The printed loss, applied as printed, lands within one standard error of the squared
+    fit without the slipped rows (measured 0.34-0.77 on seeds 11 and 14-20 at 1 % and 5 %;
+    the former suggestion, Huber at twice the squared fit's spread, 3.8-9.8 at 1 %)."""
+    scenario, data, squared, _, folder = slips
+    kind, scale, report = _printed_loss(squared)
     verdict = report.split("\n\n")[1]
     assert "where it fails: outliers dominate:" in verdict
     assert "what to add: a robust loss" in verdict
     assert report.index("Outliers (checked before missing effects") < report.index(
         "Which effect is missing: not examined, since outliers dominate")
-    remedy = diagnosis_document(diag)["outliers"]["remedy"]
-    assert all(ln.strip() in report for ln in remedy.splitlines())
-    scale = float(re.fullmatch(r"constraints:\n  g_p:\n    loss: \{type: huber, scale: "
-                               r"([0-9.e+-]+)\}    # beside its expr; scale in um\n",
-                               remedy).group(1))
-    (folder / "suggested.yaml").write_text(ROBUST.format(base=PROBLEM, scale=scale))
-    fixed = symcal.solve(symcal.load_problem(folder / "suggested.yaml"), data)
-    assert fixed.success
-    # the suggested scale (twice the squared fit's robust spread, which the outliers
-    # inflate: 10 µm against 2 µm above) is less efficient; measured worst 3.03 se
-    _within(fixed, scenario, 3.5)
+    assert kind == "cauchy"                     # the slips are gross: a redescending loss
+    assert 1.8 < scale < 3.0                    # 2.4 × the noise of g_p (about 1 µm)
+    fixed = _applied(folder, kind, scale, data)
+    assert _worst_gap(fixed, _without_slips(scenario, data, SEED)) < 1.0
     assert not fixed.outliers.dominate      # what diagnose checks first
     assert sorted(o.row for o in fixed.outliers.listed) == slipped_rows(
         scenario, "calibration", SEED)["s1"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("fraction", "seed"), [(0.05, 11), (0.05, 14), (0.01, 14)])
+def test_the_printed_loss_works_on_slips_of_one_and_five_percent(tmp_path: Path,
+                                                                 fraction: float,
+                                                                 seed: int) -> None:
+    scenario = _slipping(fraction)
+    data = {name: make_dataset(name, "simulated", simulate_run(scenario, name, seed=seed), [])
+            for name in ("calibration",)}
+    squared = symcal.solve(symcal.load_problem(PROBLEM), data)
+    kind, scale, _ = _printed_loss(squared)
+    assert kind == "cauchy"
+    fixed = _applied(tmp_path, kind, scale, data)
+    assert _worst_gap(fixed, _without_slips(scenario, data, seed)) < 1.0
+    assert _worst_gap(squared, _without_slips(scenario, data, seed)) > 10
 
 
 def test_outliers_survive_save_and_load(slips) -> None:
@@ -375,3 +430,40 @@ def test_a_loss_with_estimated_weighting_is_refused(tmp_path: Path, monkeypatch)
     assert str(err.value) == ("fit.yaml:9: constraints.r.loss: constraint 'r' declares a "
                               "robust loss, which 'weighting: estimated' does not support: "
                               "remove one of them")
+
+
+@pytest.mark.parametrize(("size", "kind", "factor"), [(4.0, "huber", 1.345),
+                                                      (40.0, "cauchy", 2.3849)])
+def test_the_remedy_measures_the_noise_without_the_outliers(size: float, kind: str,
+                                                            factor: float) -> None:
+    """find_outliers against numpy: a line with 6 outliers of ``size`` (noise 0.5, so 8
+    and 80 noise spreads); the refit is numpy's least squares without the rows set aside."""
+    from symcal.analysis.outliers import find_outliers, remedy_yaml, robust_std
+
+    rng = np.random.default_rng(8)
+    x = np.linspace(-1, 3, 80)
+    y = 0.4 + 1.7 * x + 0.5 * rng.normal(size=80)
+    bad = np.arange(3, 80, 13)
+    y[bad] += size
+    a = np.column_stack([np.ones_like(x), x])
+
+    def residuals(keep: np.ndarray) -> np.ndarray:
+        coef = np.linalg.lstsq(a[keep], y[keep], rcond=None)[0]
+        return (y - a @ coef)[:, None]
+
+    def refit(aside: np.ndarray) -> np.ndarray:
+        return residuals(~aside[:, 0])
+
+    g = residuals(np.ones(80, dtype=bool))
+    found = find_outliers("calibration", ("r",), ("mm",), np.array([1.0]), g, None,
+                          "squared", refit=refit)
+    assert found.dominate and sorted(o.row for o in found.listed) == bad.tolist()
+    keep = np.ones(80, dtype=bool)
+    keep[bad] = False
+    clean = robust_std(residuals(keep)[keep, 0])
+    assert found.clean_std == {"r": pytest.approx(clean, rel=1e-12)}
+    assert found.gross is (kind == "cauchy")
+    assert found.robust_std["r"] > clean          # the squared fit's spread is inflated
+    assert remedy_yaml(found) == ("constraints:\n  r:\n    loss: {type: " + kind + ", scale: "
+                                  f"{float(f'{factor * clean:.2g}'):g}}}    # beside its "
+                                  "expr; scale in mm\n")

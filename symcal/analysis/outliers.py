@@ -10,11 +10,26 @@ so with probability 6e-7).  The outliers *dominate* when they carry more than
 the gradient (``w`` the final weight of a robust loss, 1 for squared residuals): with
 squared residuals that is their share of the cost Σ (g/σ)²; a robust loss that
 down-weights them leaves them a small share.
+
+The remedy (:func:`remedy_yaml`) must work when applied as printed.  The squared fit's
+residuals are a poor guide to the noise: the outliers pull the estimate, and the
+structure they leave inflates every residual's spread (count slips of 1 % of the rows
+inflate it five to ten times).  So where outliers dominate a squared fit, the fit is
+repeated with the flagged residuals set aside (a weight of 0), the outliers are flagged
+again against that fit, and so on until they stay the same (:data:`REFITS` at most): the
+robust spread of the residuals kept then measures the noise (``clean_std``).  Outliers
+beyond :data:`GROSS` such spreads are gross, and the remedy is a redescending loss
+(Cauchy, whose weight falls as ``1/(1 + z)``: a gross error has almost none) at
+:data:`CAUCHY_SCALE` spreads; milder ones get Huber at :data:`HUBER_SCALE` spreads (both
+95 % efficient on Gaussian noise).  Measured on the platen problem with count slips of
+1 % and 5 % of the rows, at worst over every parameter: the printed Cauchy loss lands
+0.34-0.77 standard errors from a squared fit without the slipped rows (seeds 11 and
+14-20); the former Huber at twice the squared fit's spread 3.8-89 (seeds 11-13).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,6 +43,18 @@ DOMINATE = 0.5
 LISTED = 20
 #: The median absolute deviation of a Gaussian is this fraction of its σ (1/1.4826).
 MAD_TO_SIGMA = 1.482602218505602
+#: Most refits with the flagged residuals set aside (see the module docstring).
+REFITS = 5
+#: Outliers are gross when the median of them lies beyond this many spreads of the
+#: residuals kept.
+GROSS = 10.0
+#: The scales of the suggested losses in spreads of the residuals kept: Cauchy and
+#: Huber are 95 % efficient on Gaussian noise at 2.3849 and 1.345 σ.
+CAUCHY_SCALE = 2.3849
+HUBER_SCALE = 1.345
+#: ``refit(aside)``: the residual rows ``g/σ`` (``N × n_g``) of the fit solved again with
+#: the residuals ``aside`` (a boolean ``N × n_g`` mask) weighted 0; None if it failed.
+Refit = Callable[[np.ndarray], "np.ndarray | None"]
 
 
 @dataclass(frozen=True)
@@ -89,6 +116,13 @@ class Outliers:
         Their share of Σ ψ² (see the module docstring).
     listed
         The largest, at most :data:`LISTED`, largest whitened residual first.
+    clean_std
+        Where outliers dominate a squared fit: each constraint's robust standard
+        deviation (display unit) of the residuals kept once the fit is solved again
+        without the outliers (see the module docstring); else None.
+    gross
+        Whether the outliers lie beyond :data:`GROSS` of those spreads (a redescending
+        loss is then the remedy).
     """
 
     dataset: str
@@ -101,6 +135,8 @@ class Outliers:
     observations: int
     share: float
     listed: tuple[Outlier, ...]
+    clean_std: dict[str, float] | None = None
+    gross: bool = False
 
     @property
     def dominate(self) -> bool:
@@ -120,16 +156,20 @@ class Outliers:
                 "count": self.count, "rows": self.rows,
                 "by_constraint": dict(self.by_constraint), "observations": self.observations,
                 "share": self.share, "dominate": self.dominate,
-                "listed": [o.to_dict() for o in self.listed]}
+                "listed": [o.to_dict() for o in self.listed],
+                "clean_std": None if self.clean_std is None else dict(self.clean_std),
+                "gross": self.gross}
 
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any]) -> Outliers:
         """Inverse of :meth:`to_dict`."""
         units = {k: "" if v == "(internal)" else v for k, v in doc["units"].items()}
+        clean = doc.get("clean_std")
         return cls(doc["dataset"], doc["loss"], dict(doc["robust_std"]), units,
                    doc["count"], doc["rows"], dict(doc["by_constraint"]),
                    doc["observations"], doc["share"],
-                   tuple(Outlier.from_dict(o) for o in doc["listed"]))
+                   tuple(Outlier.from_dict(o) for o in doc["listed"]),
+                   None if clean is None else dict(clean), bool(doc.get("gross", False)))
 
 
 def robust_std(values: np.ndarray) -> float:
@@ -153,6 +193,7 @@ def find_outliers(
     weights: np.ndarray | None,
     loss: str,
     time: np.ndarray | None = None,
+    refit: Refit | None = None,
 ) -> Outliers:
     """The outliers of one fit.
 
@@ -173,6 +214,10 @@ def find_outliers(
         The loss in words (``"squared"`` without a robust one).
     time
         The time of each observation (None: unknown).
+    refit
+        Solves the fit again with some residuals set aside (:data:`Refit`): where
+        outliers dominate a squared fit, to measure the noise without them
+        (``clean_std``, ``gross``).  None: not measured.
 
     Returns
     -------
@@ -195,22 +240,58 @@ def find_outliers(
                 names[cols[i]], float(g[rows[i], cols[i]] * to_display[cols[i]]),
                 units[cols[i]], float(z[rows[i], cols[i]]), float(w[rows[i], cols[i]]))
         for i in order)
+    clean, gross = None, False
+    if refit is not None and weights is None and share > DOMINATE:
+        measured = _without_outliers(g, beyond, refit)
+        if measured is not None:
+            clean = {nm: float(s * f)
+                     for nm, s, f in zip(names, measured[0], to_display, strict=True)}
+            gross = measured[1]
     return Outliers(dataset, loss,
                     {nm: float(s * f) for nm, s, f in zip(names, stds, to_display, strict=True)},
                     dict(zip(names, units, strict=True)), int(beyond.sum()), n * ng,
                     {nm: int(beyond[:, k].sum()) for k, nm in enumerate(names)},
-                    int(np.any(beyond, axis=1).sum()), share, listed)
+                    int(np.any(beyond, axis=1).sum()), share, listed, clean, gross)
 
 
-#: The robust loss suggested where outliers dominate, and its scale in robust standard
-#: deviations of the residual.
-REMEDY_LOSS = "huber"
-REMEDY_SCALE = 2.0
+def _without_outliers(g: np.ndarray, flagged: np.ndarray, refit: Refit
+                      ) -> tuple[np.ndarray, bool] | None:
+    """Each constraint's robust spread of ``g/σ`` once the fit is solved again without the
+    flagged residuals, flagged again against that fit until they stay the same; and
+    whether the outliers are gross.  None when a refit fails."""
+    flagged = flagged.copy()
+    for _ in range(REFITS):
+        h = refit(flagged)
+        if h is None or not np.all(np.isfinite(h)):
+            return None
+        kept = ~flagged
+        stds = np.array([robust_std(h[kept[:, k], k]) for k in range(h.shape[1])])
+        centre = np.array([np.median(h[kept[:, k], k]) if kept[:, k].any() else 0.0
+                           for k in range(h.shape[1])])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(stds[None, :] > 0, np.abs(h - centre[None, :]) / stds[None, :], 0.0)
+        again = z > THRESHOLD
+        if np.array_equal(again, flagged) or not again.any():
+            break
+        flagged = again
+    gross = bool(flagged.any() and float(np.median(z[flagged])) > GROSS)
+    return stds, gross
+
+
+def remedy(outliers: Outliers) -> tuple[str, float, dict[str, float]]:
+    """The suggested loss: its type, its scale in spreads, and each constraint's spread
+    (display unit) the scale multiplies (see the module docstring)."""
+    spread = outliers.clean_std if outliers.clean_std is not None else outliers.robust_std
+    if outliers.gross:
+        return "cauchy", CAUCHY_SCALE, spread
+    return "huber", HUBER_SCALE, spread
 
 
 def remedy_yaml(outliers: Outliers) -> str:
-    """The YAML that gives each constraint with outliers a robust loss: Huber, its scale
-    :data:`REMEDY_SCALE` robust standard deviations of the residual (in its unit).
+    """The YAML that gives each constraint with outliers a robust loss that works as
+    written: Cauchy at :data:`CAUCHY_SCALE` spreads of the residual when the outliers are
+    gross, else Huber at :data:`HUBER_SCALE`, the spread measured without the outliers
+    where it was (``clean_std``), in the constraint's unit.
 
     Returns
     -------
@@ -218,14 +299,15 @@ def remedy_yaml(outliers: Outliers) -> str:
         Lines to merge into the problem's ``constraints:`` (each ``loss:`` beside the
         constraint's ``expr:``); empty when no constraint has an outlier.
     """
+    kind, factor, spread = remedy(outliers)
     lines = []
     for name, count in outliers.by_constraint.items():
         if count == 0:
             continue
-        scale = float(f"{REMEDY_SCALE * outliers.robust_std[name]:.2g}")
+        scale = float(f"{factor * spread[name]:.2g}")
         if not scale > 0:
             continue
         unit = outliers.units.get(name) or "internal units"
-        lines += [f"  {name}:", f"    loss: {{type: {REMEDY_LOSS}, scale: {scale:g}}}"
+        lines += [f"  {name}:", f"    loss: {{type: {kind}, scale: {scale:g}}}"
                   f"    # beside its expr; scale in {unit}"]
     return "constraints:\n" + "\n".join(lines) + "\n" if lines else ""

@@ -11,8 +11,17 @@ an *output set* (:class:`OutputSet`): they are written into a fresh staging fold
 their destination and moved into place together, with SIGINT and SIGTERM held back while
 they move; a staging folder or temporary file left by a killed run is cleaned up (or its
 complete set moved into place) by the next write to that folder.  Each folder symcal
-writes to records the files it wrote there (:data:`MANIFEST`); an existing file that is
-neither recorded there nor recognisably symcal's own is never replaced unless forced.
+writes to records the files it wrote there (:data:`MANIFEST`), each with its set; an
+existing file that is neither recorded there nor recognisably symcal's own is never
+replaced unless forced.
+
+Durability and readers: every file is flushed to disk (``fsync``) before it is renamed
+into place, and its folder after; the record is written last, once every member of a set
+is in place.  A reader of a set (:func:`check_set`: ``result.json`` for ``codegen``,
+``design --result``, ``Result.load``) refuses one whose files are not all those of one
+set, or that a run is moving in (or was killed moving in).  A command that writes into a
+folder holds the folder's lock for its whole run (:func:`writing_to`): a second command
+writing to the same folder is refused with a message, never interleaved.
 
 Inputs are read only from regular files (no FIFO, device or directory) of bounded size
 (:func:`check_input_file`).
@@ -21,6 +30,7 @@ Inputs are read only from regular files (no FIFO, device or directory) of bounde
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import math
@@ -101,6 +111,24 @@ def display_path(path: str | Path) -> str:
         return str(path.resolve().relative_to(Path.cwd().resolve()))
     except (ValueError, OSError):
         return str(path)
+    except RuntimeError:  # a loop of symbolic links (Python before 3.13)
+        try:
+            return os.path.relpath(os.path.abspath(path))
+        except ValueError:
+            return str(path)
+
+
+#: What a loop of symbolic links is called in messages.
+LINK_LOOP = "a loop of symbolic links (following them leads back to a link already followed)"
+
+
+def resolve(path: str | Path) -> Path:
+    """``Path(path).resolve()``, a loop of symbolic links raised as :class:`OSError`
+    (``ELOOP``) on every Python (before 3.13 pathlib raises ``RuntimeError``)."""
+    try:
+        return Path(path).resolve()
+    except RuntimeError:
+        raise OSError(errno.ELOOP, LINK_LOOP, str(path)) from None
 
 
 def _kind(mode: int) -> str:
@@ -358,12 +386,25 @@ def forget_committed() -> None:
     _COMMITTED.clear()
 
 
+#: The folders whose lock this process holds for a whole command ((device, inode) → fd).
+_HELD: dict[tuple[int, int], int] = {}
+
+
+def _identity(folder: Path) -> tuple[int, int]:
+    st = os.stat(folder)
+    return st.st_dev, st.st_ino
+
+
 @contextlib.contextmanager
 def _locked(folder: Path) -> Iterator[None]:
-    """Hold an exclusive lock on ``folder`` (where the platform has ``flock``)."""
+    """Hold an exclusive lock on ``folder`` (where the platform has ``flock``), waiting
+    for it; a folder this process holds already (:func:`writing_to`) is not locked again."""
     try:
         import fcntl
     except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    if _identity(folder) in _HELD:
         yield
         return
     fd = os.open(folder, os.O_RDONLY)
@@ -372,6 +413,132 @@ def _locked(folder: Path) -> Iterator[None]:
         yield
     finally:
         os.close(fd)
+
+
+@contextlib.contextmanager
+def writing_to(folder: str | Path, option: str) -> Iterator[None]:
+    """Hold the lock of the output folder ``folder`` while a command writes there.
+
+    The folder is created if absent (and removed again, with the folders created for it,
+    when the command leaves it empty: a failed run leaves no trace).  Another command
+    that holds the folder's lock is not waited for: the second is refused.
+
+    Parameters
+    ----------
+    folder
+        The output folder (``--out DIR``).
+    option
+        How the user named it, for messages (``"--out res"``).
+
+    Raises
+    ------
+    SymcalError
+        When another symcal run holds the folder's lock.
+    """
+    folder = Path(folder)
+    created = []
+    probe = folder
+    while not probe.exists() and probe.parent != probe:
+        created.append(probe)
+        probe = probe.parent
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        fcntl = None  # type: ignore[assignment]
+    fd = os.open(folder, os.O_RDONLY)
+    key = _identity(folder)
+    try:
+        if fcntl is not None and key not in _HELD:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise SymcalError(f"{option}: another symcal run is writing to "
+                                  f"{display_path(folder)} (it holds the folder's lock); "
+                                  "wait for it to end, or choose another folder") from None
+        else:
+            os.close(fd)
+            fd = -1
+        if fd >= 0:
+            _HELD[key] = fd
+        yield
+    finally:
+        if fd >= 0:
+            _HELD.pop(key, None)
+            os.close(fd)
+        for path in created:    # deepest first; only folders left empty
+            try:
+                path.rmdir()
+            except OSError:
+                break
+
+
+# ------------------------------------------------------------------------ readers
+
+def check_set(path: str | Path, label: str) -> None:
+    """Refuse to read ``path`` when the output set it belongs to is incomplete or mixed.
+
+    A file symcal recorded in its folder (:data:`MANIFEST`) must be as recorded, and so
+    must every other file of the set it was written with; and no set may be moving into
+    the folder (a staging folder marked complete whose files are still in it: a run
+    moving it in now, or killed while it did).  A file that is not recorded (written by
+    :meth:`Result.save <symcal.calibrate.result.Result.save>` or copied from elsewhere)
+    is read as it is.
+
+    Parameters
+    ----------
+    path
+        The file about to be read (``result.json``).
+    label
+        How to name it in messages (``"result file res/result.json"``).
+
+    Raises
+    ------
+    SymcalError
+        Naming the set's state and what to do.
+    """
+    path = Path(path)
+    folder = path.parent
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return
+    for name in names:
+        match = _STAGING.match(name)
+        stage = folder / name
+        if match is None or not (stage / COMMIT_MARK).is_file():
+            continue
+        try:
+            pending = [n for n in json.loads((stage / COMMIT_MARK).read_text("utf-8"))
+                       if (stage / n).is_file()]
+        except (OSError, ValueError):
+            continue
+        if pending:
+            who = ("a symcal run (pid {}) is moving a new set in now; read it when the run "
+                   "ends" if _pid_alive(int(match.group(1)))
+                   else "a run was killed while moving a new set in (pid {}); the next "
+                        "symcal write to the folder finishes it").format(match.group(1))
+            raise SymcalError(f"{label}: the result set in {display_path(folder)} is "
+                              f"incomplete: {', '.join(sorted(pending))} not yet in place; "
+                              f"{who}")
+    digests, sets = _records(folder)
+    if path.name not in digests:
+        return
+    members = [n for n, s in sets.items() if s == sets.get(path.name)] \
+        if path.name in sets else [path.name]
+    for name in sorted(members, key=lambda n: n != path.name):
+        try:
+            same = _sha256(folder / name) == digests[name]
+        except OSError:
+            raise SymcalError(f"{label}: the result set in {display_path(folder)} is "
+                              f"incomplete: {name} is missing") from None
+        if not same:
+            what = (f"{name} changed since symcal wrote it" if name == path.name
+                    else f"{name} changed since symcal wrote it with {path.name}")
+            raise SymcalError(f"{label}: the result set in {display_path(folder)} is mixed: "
+                              f"{what} (written again separately, edited, or a write was "
+                              "interrupted); write the set again, or remove "
+                              f"{display_path(folder / MANIFEST)} to read the file as it is")
 
 
 @contextlib.contextmanager
@@ -399,30 +566,76 @@ def _signals_held() -> Iterator[None]:
             signal.raise_signal(sig)
 
 
+def _fsync_folder(folder: Path) -> None:
+    """Flush a folder's entries (the renames into it) to disk, where the system can."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # pragma: no cover - a folder that cannot be opened (not POSIX)
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover - file systems that cannot sync a folder
+        pass
+    finally:
+        os.close(fd)
+
+
+def _fsync_file(path: Path) -> None:
+    """Flush a written file's content to disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def _write_atomic(path: Path, data: bytes) -> None:
-    """Temporary file and rename, without :func:`clean_stale` (used while moving in)."""
+    """Temporary file (flushed to disk) and rename, then the folder flushed; without
+    :func:`clean_stale` (used while moving in)."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.symcal-{os.getpid()}-",
                                suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
         os.chmod(tmp, _file_mode(path))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    _fsync_folder(path.parent)
+
+
+def _records(folder: Path) -> tuple[dict[str, str], dict[str, str]]:
+    """The record of ``folder``: name → sha256, and name → the set it was written with
+    (files of versions before sets have none)."""
+    files = _manifest(folder)
+    try:
+        doc = json.loads(read_input_bytes(folder / MANIFEST, 1 << 22))
+        sets = doc.get("sets") if isinstance(doc, dict) else None
+    except (OSError, ValueError):
+        sets = None
+    return files, ({str(k): str(v) for k, v in sets.items()} if isinstance(sets, dict)
+                   else {})
 
 
 def _move_in(stage: Path, folder: Path) -> None:
-    """Move the complete set in ``stage`` into ``folder`` and record it there."""
+    """Move the complete set in ``stage`` into ``folder`` (folder flushed to disk), then
+    record it there: the record is written last, so that until it is, a reader sees the
+    set's files disagree with it (:func:`check_set`)."""
     digests = json.loads((stage / COMMIT_MARK).read_text(encoding="utf-8"))
-    manifest = _manifest(folder)
+    set_id = stage.name.removeprefix(STAGING_PREFIX)
+    manifest, sets = _records(folder)
     for name, digest in digests.items():
         if (stage / name).is_file():
             os.replace(stage / name, folder / name)
             _COMMITTED.append(folder / name)
         manifest[name] = digest
-    doc = {"symcal_outputs": 1, "files": dict(sorted(manifest.items()))}
+        sets[name] = set_id
+    _fsync_folder(folder)
+    doc = {"symcal_outputs": 1, "files": dict(sorted(manifest.items())),
+           "sets": dict(sorted(sets.items()))}
     _write_atomic(folder / MANIFEST, (json.dumps(doc, indent=1) + "\n").encode("utf-8"))
     (stage / COMMIT_MARK).unlink()
 
@@ -495,6 +708,7 @@ class OutputSet:
             for name in names:
                 digests[name] = _sha256(stage / name)
                 os.chmod(stage / name, _file_mode(self.folder / name))
+                _fsync_file(stage / name)
             _write_atomic(stage / COMMIT_MARK, json.dumps(digests).encode("utf-8"))
             with _signals_held():
                 self.moving = True

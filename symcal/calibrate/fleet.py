@@ -401,7 +401,8 @@ def solve_fleet(
         a :class:`distributed.Client` of your own or a
         :class:`~symcal.solvers.dask_executor.DaskExecutor` (left open).
     workers
-        Worker processes of the embedded cluster.
+        Worker processes of the embedded cluster: at most one per usable core, and never
+        more than there are units to solve.
     bars
         Progress bars (:func:`symcal.base.progress.terminal_bars`); None: silent.
     on_unit
@@ -434,6 +435,9 @@ def solve_fleet(
                             f"{', '.join(problem.datasets)}")
     if workers is not None and workers < 1:
         raise SymcalError(f"workers: must be at least 1, found {workers}")
+    if workers is not None and workers > usable_cores():
+        raise SymcalError(f"workers: at most {usable_cores()} on this machine (one worker "
+                          f"process per usable core), found {workers}")
     units = find_units(problem, fleet)
     tasks = _tasks(problem, units, data, options, drop_invalid, report)
     docs: dict[str, Mapping[str, Any]] = {}

@@ -27,7 +27,7 @@ from symcal.analysis.identifiability import Conditioning, Identifiability, Uncer
 from symcal.analysis.implicit import ImplicitCheck
 from symcal.analysis.outliers import Outliers
 from symcal.base.errors import SymcalError, excerpt
-from symcal.base.files import atomic_write_text, json_text
+from symcal.base.files import atomic_write_text, check_set, json_text
 from symcal.base.numeric import mapped
 from symcal.data.dataset import Dataset
 from symcal.language.yamlio import display_path
@@ -619,6 +619,7 @@ def read_result_document(result: str | Path | Mapping[str, Any]) -> tuple[Mappin
         label = "the result"
     else:
         label = f"result file {result}"
+        check_set(result, label)
         try:
             text = Path(result).read_text(encoding="utf-8")
         except FileNotFoundError:
@@ -633,6 +634,9 @@ def read_result_document(result: str | Path | Mapping[str, Any]) -> tuple[Mappin
         except json.JSONDecodeError as exc:
             raise SymcalError(f"{label} is not valid JSON: {exc.msg} at line {exc.lineno}, "
                               f"column {exc.colno}") from None
+        except ValueError as exc:  # an integer of more than 4300 digits
+            raise SymcalError(f"{label} is not a symcal result: {exc}") from None
+        _check_numbers(doc, label)
     if not isinstance(doc, Mapping) or "symcal_result" not in doc:
         raise SymcalError(f"{label} is not a symcal result (no 'symcal_result' key); "
                           "write one with 'symcal solve PROBLEM --out DIR'")
@@ -640,6 +644,24 @@ def read_result_document(result: str | Path | Mapping[str, Any]) -> tuple[Mappin
         raise SymcalError(f"{label} has format version {doc['symcal_result']!r}; this symcal "
                           f"reads version {FORMAT}")
     return doc, label
+
+
+def _check_numbers(doc: Any, label: str, at: str = "") -> None:
+    """Refuse a number symcal never writes: one beyond a double's range (400 digits), or
+    inf and NaN (written as null)."""
+    stack = [(doc, at)]
+    while stack:
+        item, where = stack.pop()
+        if isinstance(item, Mapping):
+            stack += [(v, f"{where}.{k}" if where else str(k)) for k, v in item.items()]
+        elif isinstance(item, list):
+            stack += [(v, f"{where}[{i}]") for i, v in enumerate(item)]
+        elif isinstance(item, int) and not isinstance(item, bool) and abs(item) > 2 ** 1023:
+            raise SymcalError(f"{label}: {where}: a number of {len(str(abs(item)))} digits, "
+                              "beyond the range of a double (about 1.8e308)")
+        elif isinstance(item, float) and not math.isfinite(item):
+            raise SymcalError(f"{label}: {where}: {item} is not a finite number (symcal "
+                              "writes null there)")
 
 
 def check_result_problem(doc: Mapping[str, Any], label: str, problem: Problem) -> None:

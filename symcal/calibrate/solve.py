@@ -71,9 +71,12 @@ def _robust(
 
 
 def _outliers(objective: Objective, data: Dataset, theta: np.ndarray,
-              weights: np.ndarray | None, losses: RowLosses | None) -> Outliers | None:
+              weights: np.ndarray | None, losses: RowLosses | None,
+              solve_again: Callable[[Objective], SolverOutput] | None = None
+              ) -> Outliers | None:
     """The observations the stage's fit treats as outliers (None where a residual is not
-    finite at the estimate)."""
+    finite at the estimate); ``solve_again`` solves the stage's objective with per-row
+    weights, for the outliers' noise measured without them."""
     problem = objective.problem
     g = objective.residuals(data, theta)
     if not np.all(np.isfinite(g)):
@@ -85,7 +88,19 @@ def _outliers(objective: Objective, data: Dataset, theta: np.ndarray,
         data.name, objective.constraints, tuple(q.unit for q in quantities),
         np.array([q.sigma / DISPLAY_UNITS[q.unit] for q in quantities]), g, weights,
         "squared" if losses is None else "; ".join(losses.texts),
-        None if time_col is None else np.asarray(data.columns[time_col], dtype=float))
+        None if time_col is None else np.asarray(data.columns[time_col], dtype=float),
+        None if solve_again is None else _refit(objective, data, solve_again))
+
+
+def _refit(objective: Objective, data: Dataset,
+           solve_again: Callable[[Objective], SolverOutput]) -> Callable[[np.ndarray],
+                                                                          np.ndarray | None]:
+    """The residual rows of the stage solved again with some residuals set aside."""
+    def refit(aside: np.ndarray) -> np.ndarray | None:
+        out = solve_again(objective.with_row_weights((~aside).astype(float)))
+        return objective.residuals(data, out.theta) if out.success else None
+
+    return refit
 
 
 def _constraint_costs(objective: Objective, data: Source, before: np.ndarray,
@@ -324,7 +339,9 @@ def run_stage(
         tuple(n for n, m in zip(names, moved, strict=True) if not m), tuple(at_bound),
         conditioning(r_start, out.rows, names, scales),
         conditioning(out.r_factor, out.rows, names, scales, gauges=exact_null), ident, unc,
-        tuple(notes), _outliers(plain, data, out.theta, weights, losses), gauges,
+        tuple(notes), _outliers(plain, data, out.theta, weights, losses, lambda weighted:
+                                solve_stage(weighted, data, out.theta, method, None,
+                                            stage.name, options)[0]), gauges,
     )
     return out.theta, result
 

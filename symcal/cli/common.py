@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
+import os
 import signal
+import stat
 import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -19,6 +22,7 @@ from symcal.base.errors import (
     EXIT_FAILED,
     EXIT_INTERRUPTED,
     EXIT_TERMINATED,
+    SpecError,
     SymcalError,
     escape_controls,
     excerpt,
@@ -127,6 +131,16 @@ def solve_progress(args: argparse.Namespace, label: str = "solve"
         yield show
 
 
+def out_lock(folder: str | Path | None, option: str) -> contextlib.AbstractContextManager:
+    """The lock of the output folder ``folder`` for the rest of a command (nothing when
+    None): a second command writing there is refused (:func:`symcal.base.files.writing_to`)."""
+    if not folder:
+        return contextlib.nullcontext()
+    from symcal.base.files import writing_to
+
+    return writing_to(folder, option)
+
+
 def write_stdout(text: str) -> None:
     """Write a report to stdout, control characters (other than newline and tab) escaped."""
     sys.stdout.write(escape_controls(text, keep="\n\t"))
@@ -202,16 +216,58 @@ def _interrupted(exc: KeyboardInterrupt) -> tuple[str, int]:
             f"{', '.join(str(p) for p in done)}", code)
 
 
+def _root_only(shown: str) -> bool:
+    """Whether the file a message names is root's and others may not read it."""
+    try:
+        st = os.stat(shown)
+    except (OSError, ValueError):
+        return False
+    return stat.S_ISREG(st.st_mode) and st.st_uid == 0 and not st.st_mode & stat.S_IROTH
+
+
+def _without_content(exc: SymcalError) -> str:
+    """The message of ``exc``, its quotes of a root-only file's content left out.
+
+    A message quotes content between single quotes (and a YAML key in its key path): for
+    a file of root's that others may not read (``/etc/shadow``), everything from the
+    first quote to the last, and the key path, are replaced.
+    """
+    message = str(exc)
+    where = getattr(exc, "where", None)
+    if isinstance(exc, SpecError) and where is not None:
+        head = where.file if where.line is None else f"{where.file}:{where.line}"
+        file, detail = where.file, exc.detail
+    else:
+        head, sep, detail = message.partition(": ")
+        file = head.rsplit(":", 1)[0] if head.rsplit(":", 1)[-1].isdigit() else head
+        if not sep:
+            return message
+    if not _root_only(file):
+        return message
+    if "'" in detail:
+        first, last = detail.index("'"), detail.rindex("'")
+        detail = detail[:first] + "'…'" + detail[last + 1:] if last > first else \
+            detail[:first] + "…"
+    return f"{head}: {detail} (the file's content is not quoted: it is root's and others " \
+           "may not read it)"
+
+
 def failure(exc: BaseException) -> tuple[str, int]:
     """The one message and the exit code for any exception a command raised."""
+    from symcal.base.files import LINK_LOOP, display_path
+
     if isinstance(exc, SymcalError):
-        return str(exc), exc.exit_code
+        return _without_content(exc), exc.exit_code
     if isinstance(exc, KeyboardInterrupt):
         return _interrupted(exc)
     if isinstance(exc, MemoryError):
         return ("out of memory: the input is too large for this machine", EXIT_BAD_INPUT)
     if isinstance(exc, RecursionError):
         return "the input is nested too deeply to be read", EXIT_BAD_INPUT
+    if isinstance(exc, RuntimeError) and str(exc).startswith("Symlink loop from "):
+        exc = OSError(errno.ELOOP, LINK_LOOP, str(exc)[len("Symlink loop from "):].strip("'"))
+    if isinstance(exc, OSError) and exc.errno == errno.ELOOP and exc.filename:
+        return f"{excerpt(display_path(exc.filename), 200)}: {LINK_LOOP}", EXIT_BAD_INPUT
     if isinstance(exc, OSError):
         where = f"{excerpt(exc.filename, 200)}: " if exc.filename else ""
         return (f"{where}{exc.strerror or exc.__class__.__name__}", EXIT_BAD_INPUT)

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from symcal.base.errors import SymcalError
-from symcal.cli.common import debug_option, inputs_of, write_stdout
+from symcal.cli.common import debug_option, inputs_of, out_lock, write_stdout
 
 HELP = "predict the uncertainty of a planned motion and optimise it within its limits"
 
@@ -65,24 +65,30 @@ def run(args: argparse.Namespace) -> int:
     problem = load_problem(args.problem)
     scenario = load_scenario(args.scenario)
     targets = tuple(parse_target(text, problem) for text in args.target)
+    for target in targets:
+        first = next(t for t in targets if t.name == target.name)
+        if first is not target:
+            raise SymcalError(f"--target {target.text}: a second target for '{target.name}' "
+                              f"(the first is --target {first.text}); give one per parameter")
     inputs = inputs_of(args, [problem])
     option = f"--out {args.out}"
     if args.out:
         check_outputs([Path(args.out) / name for name in OUTPUTS], inputs, option)
     result = Result.load(args.result, problem) if args.result else None
-    if args.optimize:
-        outcome = design(problem, scenario, criterion=args.criterion, targets=targets,
-                         seed=args.seed)
-    else:
-        base = predict(problem, scenario, seed=args.seed)
-        outcome = Design(base, None, scenario, None, (), {}, {}, (), {}, "not optimised")
-    path = str(Path(args.out) / "scenario.yaml") if args.out else None
-    text = design_report(outcome, result)
-    write_stdout(json_text(design_document(outcome, path)) if args.json else text)
-    if args.out:
-        _write(args, outcome, text, inputs, option)
-        if not args.json:
-            write_stdout(f"\nwrote {path}, report.txt and motion.png\n")
+    with out_lock(args.out, option):
+        if args.optimize:
+            outcome = design(problem, scenario, criterion=args.criterion, targets=targets,
+                             seed=args.seed)
+        else:
+            base = predict(problem, scenario, seed=args.seed)
+            outcome = Design(base, None, scenario, None, (), {}, {}, (), {}, "not optimised")
+        path = str(Path(args.out) / "scenario.yaml") if args.out else None
+        text = design_report(outcome, result)
+        write_stdout(json_text(design_document(outcome, path)) if args.json else text)
+        if args.out:
+            _write(args, outcome, text, inputs, option)
+            if not args.json:
+                write_stdout(f"\nwrote {path}, report.txt and motion.png\n")
     solved = not args.optimize or outcome.message.startswith("only n") or any(
         outcome.message.endswith(s) for s in SOLVED)
     return 0 if solved else 1

@@ -16,7 +16,7 @@ from typing import Any
 
 from symcal.base.errors import SymcalError, escape_controls
 from symcal.calibrate.fleet_summary import failure_reason
-from symcal.cli.common import data_map, inputs_of, progress, progress_bars, write_stdout
+from symcal.cli.common import data_map, inputs_of, out_lock, progress, progress_bars, write_stdout
 
 #: What ``--out DIR`` holds for the fleet, beside one folder per unit.
 FLEET_OUTPUTS = ("fleet.json", "fleet.txt", "fleet.png")
@@ -27,12 +27,17 @@ UNIT_OUTPUTS = ("result.json", "report.txt")
 def _check_out(out: Path, fleet: Path, units: list[str], inputs: set[Path]) -> None:
     """Refuse outputs before any work: an input or a foreign file replaced, or a result
     folder that the next run would take for a unit."""
-    from symcal.base.files import check_outputs
+    from symcal.base.files import check_outputs, display_path
 
     option = f"--out {out}"
     if out.resolve().parent == fleet.resolve():
         raise SymcalError(f"{option}: a folder inside the fleet folder would be taken for a "
                           "unit by the next run; write the results elsewhere")
+    for unit in units:
+        if unit in FLEET_OUTPUTS:
+            raise SymcalError(f"{option}: the unit folder {display_path(fleet / unit)} has the "
+                              f"name of the fleet's own output {display_path(out / unit)}; "
+                              "rename the unit folder")
     paths = [out / name for name in FLEET_OUTPUTS]
     paths += [out / unit / name for unit in units for name in UNIT_OUTPUTS]
     check_outputs(paths, inputs, option)
@@ -78,6 +83,13 @@ def run_fleet(args: argparse.Namespace) -> int:
         raise SymcalError(f"--workers {args.workers}: must be at least 1")
     if args.scheduler is not None and args.workers is not None:
         raise SymcalError("--workers applies to the local cluster, not with --scheduler")
+    from symcal.solvers.executor import usable_cores
+
+    cores = usable_cores()
+    if args.workers is not None and args.workers > cores:
+        raise SymcalError(f"--workers {args.workers}: at most {cores} on this machine (one "
+                          "worker process per usable core; more would only compete for "
+                          "them, each with its own memory)")
     problem = load_problem(args.problem)
     if args.weighting:
         problem = problem.with_weighting(args.weighting)
@@ -100,20 +112,22 @@ def run_fleet(args: argparse.Namespace) -> int:
         for call in callbacks:
             call(unit, doc, report)
 
-    result = solve_fleet(problem, fleet, data, options, drop_invalid=args.drop_invalid,
-                         executor=args.scheduler, workers=args.workers, bars=bars,
-                         on_unit=on_unit, report=text_report)
-    document = json_text(result.to_dict())
-    text = fleet_text(result.summary, str(fleet))
-    if out is not None:
-        with OutputSet(out, inputs, f"--out {out}") as stage:
-            atomic_write_text(stage / "fleet.json", document)
-            atomic_write_text(stage / "fleet.txt", text)
-            atomic_write_bytes(stage / "fleet.png", fleet_png(result.summary))
-    show = not args.quiet or not result.success
-    if show:
-        write_stdout(document if args.json else text)
-        if out is not None and not args.json:
+    with out_lock(out, f"--out {out}"):
+        result = solve_fleet(problem, fleet, data, options, drop_invalid=args.drop_invalid,
+                             executor=args.scheduler, workers=args.workers, bars=bars,
+                             on_unit=on_unit, report=text_report)
+        document = json_text(result.to_dict())
+        text = fleet_text(result.summary, str(fleet))
+        if out is not None:
+            with OutputSet(out, inputs, f"--out {out}") as stage:
+                atomic_write_text(stage / "fleet.json", document)
+                atomic_write_text(stage / "fleet.txt", text)
+                atomic_write_bytes(stage / "fleet.png", fleet_png(result.summary))
+    if args.json:  # the document always, whatever --quiet says
+        write_stdout(document)
+    elif not args.quiet or not result.success:
+        write_stdout(text)
+        if out is not None:
             write_stdout(f"\nwrote {len(result.units)} unit folder(s) and fleet.json, "
                          f"fleet.txt, fleet.png to {out}\n")
     if not args.quiet:

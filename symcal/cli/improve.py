@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from symcal.base.errors import SymcalError
-from symcal.cli.common import data_map, data_options, inputs_of, progress
+from symcal.cli.common import data_map, data_options, inputs_of, out_lock, progress
 
 HELP = "improve the model round by round until the diagnosis is quiet"
 #: The most rounds one run may take.
@@ -53,13 +53,14 @@ def run(args: argparse.Namespace) -> int:
     option = f"--out {args.out}"
     check_outputs([out / n for n in ("final.yaml", "ladder.txt", "ladder.json", "ladder.png")],
                   inputs_of(args), option)
-    result = improve(args.problem, out, data_map(args), args.max_rounds, args.alpha,
-                     args.drop_invalid, None if args.quiet else progress)
-    rungs = compare([r.result for r in result.rounds])
-    with OutputSet(out, inputs_of(args), option) as stage:
-        atomic_write_text(stage / "ladder.txt", ladder_report(rungs))
-        atomic_write_text(stage / "ladder.json", plain_json([r.to_dict() for r in rungs]))
-        save_ladder_plot(rungs, stage)
+    with out_lock(out, option):
+        result = improve(args.problem, out, data_map(args), args.max_rounds, args.alpha,
+                         args.drop_invalid, None if args.quiet else progress)
+        rungs = compare([r.result for r in result.rounds])
+        with OutputSet(out, inputs_of(args), option) as stage:
+            atomic_write_text(stage / "ladder.txt", ladder_report(rungs))
+            atomic_write_text(stage / "ladder.json", plain_json([r.to_dict() for r in rungs]))
+            save_ladder_plot(rungs, stage)
     if args.json:
         sys.stdout.write(plain_json(result.to_dict()))
     else:

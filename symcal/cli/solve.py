@@ -7,7 +7,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from symcal.base.errors import SymcalError
-from symcal.cli.common import data_map, data_options, inputs_of, solve_progress, write_stdout
+from symcal.cli.common import (
+    data_map,
+    data_options,
+    inputs_of,
+    out_lock,
+    solve_progress,
+    write_stdout,
+)
 
 if TYPE_CHECKING:
     from symcal.calibrate.result import Result
@@ -33,7 +40,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                      help="iteration limit of lm and IPOPT stages (default: the problem's, else "
                           "200)")
     cmd.add_argument("--quiet", action="store_true",
-                     help="no progress on stderr and no report on success")
+                     help="no progress on stderr and no text report on success (--json "
+                          "still prints its document)")
     fleet = cmd.add_argument_group(
         "fleet", "calibrate every unit of a fleet folder in parallel on Dask: one "
                  "subfolder per unit holding NAME.csv, NAME.npz or NAME.parquet for the "
@@ -62,9 +70,7 @@ def run(args: argparse.Namespace) -> int:
     """
     from symcal.base.files import check_outputs
     from symcal.base.options import MAX_ITER_LIMIT
-    from symcal.calibrate.solve import solve
     from symcal.problem.build import load_problem
-    from symcal.report.text import json_report, text_report
 
     if args.max_iter is not None and not 1 <= args.max_iter <= MAX_ITER_LIMIT:
         raise SymcalError(f"--max-iter {args.max_iter}: must be between 1 and "
@@ -84,6 +90,16 @@ def run(args: argparse.Namespace) -> int:
         check_outputs([Path(args.out) / name for name in OUTPUTS], inputs, option)
     if args.weighting:
         problem = problem.with_weighting(args.weighting)
+    with out_lock(args.out, option):
+        return _solve(args, problem, data, inputs, option)
+
+
+def _solve(args: argparse.Namespace, problem: Any, data: dict[str, str], inputs: set[Path],
+           option: str) -> int:
+    """Solve, print, write (while holding the lock of ``--out``); the exit code."""
+    from symcal.calibrate.solve import solve
+    from symcal.report.text import json_report, text_report
+
     options = problem.options.over(method=args.method, max_iter=args.max_iter)
     fit = problem.fit_dataset
     with solve_progress(args) as shown:
@@ -101,12 +117,11 @@ def run(args: argparse.Namespace) -> int:
                            progress=shown)
     text = text_report(result)
     show = not args.quiet or not result.success
-    if args.json:
+    if args.json:  # the document always, whatever --quiet says
         doc = json_report(result)
         if args.out:
             _write(args.out, result, text, inputs, option)
-        if show:
-            write_stdout(doc)
+        write_stdout(doc)
         return 0 if result.success else 1
     if show:
         write_stdout(text)

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 import warnings
 import zipfile
+import zlib
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -59,6 +61,37 @@ class Dataset:
         return out
 
 
+class Table(dict):
+    """Columns read from a file (name → 1-D float array), with where each row came from.
+
+    Attributes
+    ----------
+    unit
+        How a row is named in messages: ``"line"`` (CSV) or ``"row"`` (NPZ, Parquet,
+        columns given in Python: counted from 1).
+    lines
+        For a CSV file, the line of each row when blank lines were skipped; None when
+        row ``r`` (from 0) is on line ``r + 2``.
+    """
+
+    def __init__(self, columns: Mapping[str, np.ndarray], unit: str = "row",
+                 lines: np.ndarray | None = None) -> None:
+        super().__init__(columns)
+        self.unit = unit
+        self.lines = lines
+
+
+def rows_text(columns: Mapping[str, np.ndarray], rows: np.ndarray) -> str:
+    """Where rows ``rows`` (from 0) of ``columns`` are, in words: ``line 8`` or
+    ``lines 3, 5, ...`` for a CSV file, ``rows 4, 7`` (from 1) otherwise; at most five."""
+    unit = getattr(columns, "unit", "row")
+    lines = getattr(columns, "lines", None)
+    first = np.asarray(rows[:5], dtype=int)
+    numbers = (first + 1 if unit != "line" else first + 2 if lines is None else lines[first])
+    shown = ", ".join(str(int(k)) for k in numbers) + (", ..." if len(rows) > 5 else "")
+    return f"{unit}{'' if len(rows) == 1 else 's'} {shown}"
+
+
 def _freeze(columns: dict[str, np.ndarray], copy: bool = True) -> dict[str, np.ndarray]:
     out = {}
     for k, v in columns.items():
@@ -89,11 +122,20 @@ def _name(text: str) -> str:
 
 
 def _is_number(cell: str) -> bool:
+    """Whether numpy reads ``cell`` as a number (Python's ``float`` also takes ``1_0``
+    and the digits of other scripts, such as Arabic-Indic ones; numpy does not)."""
     try:
         float(cell)
     except ValueError:
         return False
-    return "_" not in cell
+    return "_" not in cell and cell.isascii()
+
+
+def _why_not(cell: str) -> str:
+    """What to add to "is not a number" about ``cell``."""
+    if not cell.isascii() and any(ch.isdigit() for ch in cell):
+        return " (a number is written with the ASCII digits 0-9)"
+    return ""
 
 
 def _bad_lines(shown: str, header: list[str], lines: list[str], first: int) -> DataError:
@@ -108,7 +150,7 @@ def _bad_lines(shown: str, header: list[str], lines: list[str], first: int) -> D
         for name, cell in zip(header, row, strict=True):
             if not _is_number(cell):
                 return DataError(f"{shown}:{lineno}: column '{_name(name)}': "
-                                 f"'{_name(cell)}' is not a number")
+                                 f"'{_name(cell)}' is not a number{_why_not(cell)}")
     return DataError(f"{shown}: could not be read as a numeric CSV table")
 
 
@@ -123,13 +165,20 @@ def _decode(block: bytes, shown: str, lineno: int) -> str:
                         f"column {column}); a dataset is CSV text or an NPZ file") from None
 
 
-def _blocks(fh: BinaryIO, shown: str) -> Iterator[tuple[int, list[str]]]:
-    """(number of the first line, lines) of a CSV file, a few MiB of whole lines at a time."""
+def _blocks(fh: BinaryIO, shown: str, cr_only: bool = False
+            ) -> Iterator[tuple[int, list[str]]]:
+    """(number of the first line, lines) of a CSV file, a few MiB of whole lines at a time.
+
+    Lines end with LF or CRLF, or, in a file whose lines all end with CR alone
+    (``cr_only``), with CR; a CR alone inside a file of LF lines is refused.
+    """
     lineno, rest = 1, b""
     while True:
         data = fh.read(BLOCK_BYTES)
         if not data:
             break
+        if cr_only:
+            data = data.replace(b"\r", b"\n")
         data = rest + data
         cut = data.rfind(b"\n") + 1
         if len(data) - cut > MAX_LINE_BYTES:
@@ -138,11 +187,23 @@ def _blocks(fh: BinaryIO, shown: str) -> Iterator[tuple[int, list[str]]]:
                             "this is not a CSV table")
         block, rest = data[:cut], data[cut:]
         if block:
-            text = _decode(block, shown, lineno)
-            yield lineno, text.replace("\r\n", "\n").split("\n")[:-1]
+            text = _decode(block, shown, lineno).replace("\r\n", "\n")
+            if "\r" in text:
+                _lone_cr(shown, text, lineno)
+            yield lineno, text.split("\n")[:-1]
             lineno += block.count(b"\n")
     if rest:
-        yield lineno, [_decode(rest, shown, lineno).rstrip("\r")]
+        text = _decode(rest, shown, lineno).removesuffix("\r")
+        if "\r" in text:
+            _lone_cr(shown, text, lineno)
+        yield lineno, [text]
+
+
+def _lone_cr(shown: str, text: str, first: int) -> None:
+    """Refuse a carriage return that does not end a line of a file of LF lines."""
+    line = first + text.count("\n", 0, text.index("\r"))
+    raise DataError(f"{shown}:{line}: a carriage return (CR) inside a line; a line ends with "
+                    "LF, CRLF, or CR throughout the file")
 
 
 def _refuse_comments(shown: str, lines: list[str], first: int) -> None:
@@ -184,14 +245,14 @@ def _parse_lines(shown: str, header: list[str], lines: list[str], first: int) ->
     return values
 
 
-def _count_lines(path: Path) -> int:
-    """Lines of a file (a last line without newline counts), read in blocks."""
-    count, last = 0, b"\n"
+def _count_lines(path: Path, end: bytes = b"\n") -> int:
+    """Lines of a file ending with ``end`` (a last line without it counts), in blocks."""
+    count, last = 0, end
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(BLOCK_BYTES), b""):
-            count += block.count(b"\n")
+            count += block.count(end)
             last = block[-1:]
-    return count + (last != b"\n")
+    return count + (last != end)
 
 
 def _header(shown: str, line: str) -> list[str]:
@@ -210,7 +271,7 @@ def _header(shown: str, line: str) -> list[str]:
     return header
 
 
-def _read_csv(path: Path, shown: str) -> dict[str, np.ndarray]:
+def _read_csv(path: Path, shown: str) -> Table:
     """Stream a CSV file into one preallocated (columns × rows) array, a block at a time."""
     with open(path, "rb") as fh:
         head = fh.read(8192)
@@ -220,12 +281,14 @@ def _read_csv(path: Path, shown: str) -> dict[str, np.ndarray]:
     if b"\0" in head:
         raise DataError(f"{shown}: a binary file, not CSV text; a dataset is CSV text or an "
                         "NPZ file")
-    rows = max(_count_lines(path) - 1, 0)
+    cr_only = b"\r" in head and b"\n" not in head     # classic Mac OS line ends
+    rows = max(_count_lines(path, b"\r" if cr_only else b"\n") - 1, 0)
     header: list[str] | None = None
     out: np.ndarray | None = None
     filled = 0
+    blocks: list[tuple[int, int, list[int] | None]] = []  # first row, first line, lines
     with open(path, "rb") as fh:
-        for first, lines in _blocks(fh, shown):
+        for first, lines in _blocks(fh, shown, cr_only):
             if header is None:
                 header = _header(shown, lines[0].removeprefix("\ufeff"))
                 out = np.empty((len(header), rows))
@@ -234,6 +297,9 @@ def _read_csv(path: Path, shown: str) -> dict[str, np.ndarray]:
             values = _parse_lines(shown, header, lines, first) if lines else np.empty((0, 0))
             if filled + len(values) > rows:
                 raise DataError(f"{shown}: the file changed while it was read")
+            kept = None if len(values) == len(lines) else [     # blank lines skipped
+                first + i for i, text in enumerate(lines) if text.strip()]
+            blocks.append((filled, first, kept))
             if len(values):
                 out[:, filled:filled + len(values)] = values.T
                 filled += len(values)
@@ -243,55 +309,156 @@ def _read_csv(path: Path, shown: str) -> dict[str, np.ndarray]:
         raise DataError(f"{shown}: no observations (the file has a header but no rows)")
     if filled < rows:
         out = out[:, :filled].copy() if filled < 0.9 * rows else out[:, :filled]
-    return {name: out[i] for i, name in enumerate(header)}
+    return Table({name: out[i] for i, name in enumerate(header)}, "line",
+                 _row_lines(filled, blocks))
 
 
-def _read_npz(path: Path, shown: str) -> dict[str, np.ndarray]:
-    """The arrays of an NPZ file: 1-D real numbers, all of one length."""
+def _row_lines(rows: int, blocks: list[tuple[int, int, list[int] | None]]
+               ) -> np.ndarray | None:
+    """The line of every row when blank lines were skipped, else None (row r on line
+    r + 2); ``blocks`` gives each block's first row and line, and the lines of its rows
+    when it had blank lines."""
+    if all(kept is None for _, _, kept in blocks):
+        return None
+    lines = np.empty(rows, dtype=np.int64)
+    ends = [start for start, _, _ in blocks[1:]] + [rows]
+    for (start, first, kept), end in zip(blocks, ends, strict=True):
+        lines[start:end] = kept if kept is not None else np.arange(first, first + end - start)
+    return lines
+
+
+#: Most observations an NPZ file may hold (as many as a simulated dataset): its arrays are
+#: inflated whole, so a longer log is a folder of shards (:mod:`symcal.data.shards`).
+MAX_NPZ_ROWS = 100_000_000
+#: Bytes of an NPZ array inflated at a time.
+NPZ_CHUNK_BYTES = 1 << 22
+
+
+@dataclass(frozen=True)
+class _Member:
+    """One array of an NPZ file as its ``.npy`` header describes it."""
+
+    info: zipfile.ZipInfo
+    dtype: np.dtype
+    length: int
+    offset: int      # bytes of the header, before the data
+
+
+def _physical_memory() -> int | None:
+    """Bytes of memory of this machine, or None where it cannot be told."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _npz_member(shown: str, zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> _Member:
+    """Read and check one member's ``.npy`` header (a few hundred bytes inflated)."""
+    name = _name(info.filename.removesuffix(".npy"))
+    try:
+        with zf.open(info) as fh:
+            version = np.lib.format.read_magic(fh)
+            read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                    else np.lib.format.read_array_header_2_0)
+            shape, _, dtype = read(fh)
+            offset = fh.tell()
+    except ValueError:
+        raise DataError(f"{shown}: member '{_name(info.filename)}' is not a NumPy array (no "
+                        ".npy header); an NPZ file holds one .npy array per column, as "
+                        "numpy.savez writes it") from None
+    if dtype.hasobject:
+        raise DataError(f"{shown}: array '{name}' holds Python objects; a dataset's arrays "
+                        "hold numbers")
+    if len(shape) != 1:
+        raise DataError(f"{shown}: array '{name}' has shape {shape}; every array must be "
+                        "1-D, one value per observation (one array per column)")
+    if dtype.kind not in "fiu":
+        raise DataError(f"{shown}: array '{name}' holds {dtype} values; every array must "
+                        "hold real numbers (float or integer)")
+    claimed, held = shape[0] * dtype.itemsize, info.file_size - offset
+    if claimed != held:
+        raise DataError(f"{shown}: array '{name}': its header claims {shape[0]} values "
+                        f"({claimed} bytes) but its member holds {held} bytes; the file is "
+                        "damaged or not written by numpy")
+    return _Member(info, dtype, shape[0], offset)
+
+
+def _npz_members(shown: str, zf: zipfile.ZipFile) -> dict[str, _Member]:
+    """Every array of an NPZ file from its header alone, checked before any is inflated:
+    one ``.npy`` member per name, 1-D real numbers, sizes that agree with the zip's
+    directory, one length, and a size this machine can hold."""
+    members: dict[str, _Member] = {}
+    for info in zf.infolist():
+        if not info.filename.endswith(".npy"):
+            raise DataError(f"{shown}: member '{_name(info.filename)}' is not a NumPy array "
+                            "(.npy); an NPZ file holds one .npy array per column, as "
+                            "numpy.savez writes it")
+        key = info.filename[:-4]
+        if key in members:
+            raise DataError(f"{shown}: array '{_name(key)}' appears twice (two members "
+                            f"named '{_name(info.filename)}'); an NPZ file names each array "
+                            "once")
+        members[key] = _npz_member(shown, zf, info)
+    lengths = {m.length for m in members.values()}
+    if len(lengths) > 1:
+        raise DataError(f"{shown}: arrays have different lengths {sorted(lengths)}")
+    rows = lengths.pop() if lengths else 0
+    if rows > MAX_NPZ_ROWS:
+        raise DataError(f"{shown}: the arrays hold {rows} observations; an NPZ file holds at "
+                        f"most {MAX_NPZ_ROWS} (a longer log is a folder of shards)")
+    need, have = rows * len(members) * 8, _physical_memory()
+    if have is not None and need > have:
+        raise DataError(f"{shown}: the arrays need {need / 2**30:.1f} GiB as numbers, more "
+                        f"than this machine's {have / 2**30:.1f} GiB of memory")
+    return members
+
+
+def _npz_array(zf: zipfile.ZipFile, member: _Member) -> np.ndarray:
+    """A member's values as floats, inflated a few MiB at a time."""
+    out = np.empty(member.length)
+    step = max(NPZ_CHUNK_BYTES // member.dtype.itemsize, 1)
+    with zf.open(member.info) as fh:
+        fh.read(member.offset)
+        for start in range(0, member.length, step):
+            count = min(step, member.length - start)
+            data = fh.read(count * member.dtype.itemsize)
+            if len(data) != count * member.dtype.itemsize:
+                raise EOFError("the array ends early")
+            out[start:start + count] = np.frombuffer(data, dtype=member.dtype)
+        fh.read(1)  # reach the end: zipfile checks the CRC there
+    return out
+
+
+def _read_npz(path: Path, shown: str) -> Table:
+    """The arrays of an NPZ file: 1-D real numbers, all of one length.
+
+    Every member's ``.npy`` header is read and checked first (names, shapes, types, sizes
+    against the zip's directory, lengths, the machine's memory), so a damaged file or a
+    deflate bomb is refused before any array is inflated; then each array is inflated
+    into floats a few MiB at a time.
+    """
     with open(path, "rb") as fh:
         head = fh.read(4)
     if head not in (b"PK\x03\x04", b"PK\x05\x06"):
         raise DataError(f"{shown}: not an NPZ file (no zip signature); write one with "
                         "numpy.savez")
-    columns: dict[str, np.ndarray] = {}
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            for key in npz.files:
-                columns[key] = _npz_column(shown, key, npz, columns)
+        with zipfile.ZipFile(path) as zf:
+            members = _npz_members(shown, zf)
+            return Table({key: _npz_array(zf, m) for key, m in members.items()})
     except DataError:
         raise
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError, KeyError) as exc:
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, KeyError, zlib.error,
+            NotImplementedError, RuntimeError) as exc:
         reason = excerpt(exc, 80)
         raise DataError(f"{shown}: not a readable NPZ file ({reason})") from None
-    lengths = {len(v) for v in columns.values()}
-    if len(lengths) > 1:
-        raise DataError(f"{shown}: arrays have different lengths {sorted(lengths)}")
-    return columns
-
-
-def _npz_column(shown: str, key: str, npz: Any, columns: dict[str, np.ndarray]) -> np.ndarray:
-    name = _name(key)
-    try:
-        arr = npz[key]
-    except ValueError as exc:
-        if "allow_pickle" in str(exc):
-            raise DataError(f"{shown}: array '{name}' holds Python objects; a dataset's arrays "
-                            "hold numbers") from None
-        raise
-    if arr.ndim != 1:
-        raise DataError(f"{shown}: array '{name}' has shape {arr.shape}; every array must be "
-                        "1-D, one value per observation (one array per column)")
-    if arr.dtype.kind not in "fiu":
-        raise DataError(f"{shown}: array '{name}' holds {arr.dtype} values; every array must "
-                        "hold real numbers (float or integer)")
-    return np.asarray(arr, dtype=float)
 
 
 #: The first (and last) bytes of a Parquet file.
 _PARQUET_MAGIC = b"PAR1"
 
 
-def _read_parquet(path: Path, shown: str) -> dict[str, np.ndarray]:
+def _read_parquet(path: Path, shown: str) -> Table:
     """The columns of a single Parquet file (pyarrow): flat real numbers, nulls as NaN."""
     with open(path, "rb") as fh:
         head = fh.read(4)
@@ -314,16 +481,18 @@ def _read_parquet(path: Path, shown: str) -> dict[str, np.ndarray]:
         if not (pa.types.is_integer(kind) or pa.types.is_floating(kind)):
             raise DataError(f"{shown}: column '{name}' holds {kind} values; every column "
                             "must hold real numbers (float or integer)")
-        column = table.column(field.name).cast(pa.float64())
+        # integers beyond 2**53 (a uint64 counter) round to the nearest double, as numpy
+        # and a CSV file's digits do; Arrow's checked cast would refuse them
+        column = table.column(field.name).cast(pa.float64(), safe=False)
         if column.null_count:  # a null is a missing value: NaN, refused or dropped later
             column = column.fill_null(float("nan"))
         columns[field.name] = np.asarray(column.to_numpy(), dtype=float)
     if not columns:
         raise DataError(f"{shown}: the Parquet file has no columns")
-    return columns
+    return Table(columns)
 
 
-def read_table(path: str | Path) -> dict[str, np.ndarray]:
+def read_table(path: str | Path) -> Table:
     """Read a CSV (header row, one row per observation), NPZ or Parquet file into columns.
 
     A CSV file is read in blocks of whole lines into one array sized from a first count
@@ -332,6 +501,11 @@ def read_table(path: str | Path) -> dict[str, np.ndarray]:
     An NPZ file must hold 1-D arrays of real numbers, all of one length.  A ``.parquet``
     file (one file, read with pyarrow) must hold columns of real numbers; its nulls
     become NaN, refused or dropped like any invalid value.
+
+    Returns
+    -------
+    Table
+        Column name → float array (a dict), knowing the line or row each row came from.
 
     Raises
     ------
@@ -403,10 +577,9 @@ def make_dataset(
     if bad.any():
         if not drop_invalid:
             rows = np.flatnonzero(bad)
-            shown = ", ".join(str(r + 2) for r in rows[:5]) + (", ..." if len(rows) > 5 else "")
-            which = f"line {shown}" if len(rows) == 1 else f"lines {shown}"
             raise DataError(f"{source}: {len(rows)} row(s) with NaN or inf in a needed column "
-                            f"({which}); fix them or pass --drop-invalid to drop them")
+                            f"({rows_text(columns, rows)}); fix them or pass --drop-invalid "
+                            "to drop them")
         columns = {k: np.asarray(v)[~bad] for k, v in columns.items()}
         dropped = int(bad.sum())
         if dropped == n:

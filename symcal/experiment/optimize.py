@@ -137,8 +137,9 @@ class Design:
 
     def scenario_yaml(self, base: str | Path, out_dir: str | Path) -> str:
         """The designed scenario as a file that ``extends`` ``base`` (the given scenario
-        file), for ``out_dir``: it replaces only the designed run's motion."""
-        import yaml
+        file), for ``out_dir``: it replaces only the designed run's motion.  Written by
+        the YAML emitter, so any path reads back as it was."""
+        from symcal.language.yamlio import dump_yaml
 
         space = self.baseline.scenario.design
         run = self.baseline.run if space is None else space.run
@@ -158,7 +159,7 @@ class Design:
                    f"({goal}); everything else as in {Path(base).name}",
             "runs": {run: {"scatter": scatter}},
         }
-        return yaml.safe_dump(doc, sort_keys=False)
+        return dump_yaml(doc)
 
 
 def _round(value: float) -> float:

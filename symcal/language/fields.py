@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import re
+import unicodedata
 from collections.abc import Iterable
 from typing import Any
 
@@ -93,7 +95,10 @@ def expect_list(value: Any, where: Where) -> YList:
 
 def expect_str(value: Any, where: Where) -> str:
     """Return ``value`` if it is non-empty text, else raise."""
-    if not isinstance(value, str) or not value.strip():
+    if isinstance(value, str) and not value.strip():
+        raise SpecError(where, "expected text, found an empty string" if not value
+                        else "expected text, found only spaces")
+    if not isinstance(value, str):
         raise SpecError(where, f"expected text, found {_type_name(value)}")
     return value
 
@@ -139,6 +144,15 @@ def expect_bool(value: Any, where: Where) -> bool:
 def is_name(text: str) -> bool:
     """Whether ``text`` is a plain identifier usable as a symbol name."""
     return text.isidentifier() and text.isascii()
+
+
+def plain_name(text: str, prefix: str = "p") -> str:
+    """``text`` (a file's stem, say) made a plain name: accents dropped, every run of
+    other characters an underscore, and ``prefix_`` before one that would start with a
+    digit or be empty (``prob-v2`` → ``prob_v2``, ``2nd try`` → ``p_2nd_try``)."""
+    ascii_text = unicodedata.normalize("NFKD", text).encode("ascii", "ignore").decode()
+    name = re.sub(r"[^A-Za-z0-9_]+", "_", ascii_text).strip("_")
+    return name if name and not name[0].isdigit() else f"{prefix}_{name}".rstrip("_")
 
 
 def expect_name(value: Any, where: Where, what: str = "name") -> str:

@@ -19,7 +19,7 @@ from typing import Any
 
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SpecError, Where
-from symcal.base.files import input_refusal
+from symcal.base.files import LINK_LOOP, input_refusal, resolve
 from symcal.language.fields import child_where, expect_str
 from symcal.language.yamlio import MAX_BYTES, YList, YMap, display_path, load_yaml
 
@@ -137,7 +137,14 @@ def _merged(
 
 def resolve_base(value: Any, at: Where, path: Path, what: str, chain: tuple[Path, ...]) -> Path:
     """The file ``extends: value`` names, checked against cycles, depth and absence."""
-    target = (path.parent / expect_str(value, at)).resolve()
+    if isinstance(value, str) and not value.strip():
+        raise SpecError(at, f"an empty file name; name the {what} file this one extends, or "
+                            "remove 'extends'")
+    named = path.parent / expect_str(value, at)
+    try:
+        target = resolve(named)
+    except OSError:
+        raise SpecError(at, f"{display_path(named)} is {LINK_LOOP}") from None
     if target in chain:
         names = " -> ".join(display_path(p) for p in (*chain, target))
         raise SpecError(at, f"{what}s extend each other in a cycle: {names}")

@@ -8,7 +8,7 @@ from typing import Any
 
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SpecError, Where, excerpt
-from symcal.base.files import input_refusal
+from symcal.base.files import LINK_LOOP, input_refusal, resolve
 from symcal.base.options import METHODS, SolveOptions
 from symcal.language import expr
 from symcal.language.common import (
@@ -209,7 +209,10 @@ def _doc(entry: YMap, where: Where) -> str:
 
 def _relative(base: Path, value: Any, where: Where) -> Path:
     text = expect_str(value, where)
-    return (base.parent / text).resolve()
+    try:
+        return resolve(base.parent / text)
+    except OSError:
+        raise SpecError(where, f"{display_path(base.parent / text)} is {LINK_LOOP}") from None
 
 
 class _ModelCache:

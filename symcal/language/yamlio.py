@@ -7,6 +7,12 @@ merged with the file it ``extends`` (:mod:`symcal.language.overlay`).  Only
 :class:`yaml.SafeLoader` constructors are used: no Python objects can be built from a
 file.
 
+Files symcal writes for itself or a person to read again (revisions, overlays, designed
+scenarios) are written by :func:`dump_yaml` and :func:`yaml_scalar`, the emitter with the
+same core schema: any text (a path with ``#``, ``: ``, quotes, brackets, a leading
+digit or unicode) is quoted exactly when the loader would otherwise read it as something
+else, never by string formatting.
+
 Scalars resolve by the YAML 1.2 core schema, not PyYAML's YAML 1.1 rules: ``010`` is 10,
 ``1:30`` and ``yes`` are text, ``1e-3`` and ``-.5`` are numbers, ``0x1F`` and ``0o17`` are
 integers.  Files are bounded before they are trusted: at most :data:`MAX_BYTES` bytes of
@@ -35,7 +41,7 @@ MAX_NODES = 200_000
 MAX_DIGITS = 1000
 
 __all__ = ["MAX_BYTES", "MAX_NESTING", "MAX_NODES", "YList", "YMap", "display_path",
-           "load_yaml"]
+           "dump_yaml", "load_yaml", "parse_yaml", "yaml_scalar"]
 
 
 class YMap(dict):
@@ -262,3 +268,84 @@ def _read_text(path: Path, shown: str, what: str) -> str:
         raise SpecError(Where(shown, line), f"cannot read {label}: not UTF-8 text (byte "
                                             f"0x{data[exc.start]:02x} at offset {exc.start})"
                         ) from None
+
+
+# --------------------------------------------------------------------------- writing
+
+class _Dumper(yaml.SafeDumper):
+    """SafeDumper that quotes text by the loader's rules (the YAML 1.2 core schema)."""
+
+
+_Dumper.yaml_implicit_resolvers = {k: list(v) for k, v in _Loader.yaml_implicit_resolvers.items()}
+
+
+def _represent_float(dumper: yaml.SafeDumper, value: float) -> yaml.ScalarNode:
+    """Floats as the shortest text that reads back the same (``0.001``, ``1e-05``)."""
+    if value != value:
+        text = ".nan"
+    elif value in (float("inf"), float("-inf")):
+        text = ".inf" if value > 0 else "-.inf"
+    else:
+        text = repr(value)
+    return dumper.represent_scalar("tag:yaml.org,2002:float", text)
+
+
+def _represent_str(dumper: yaml.SafeDumper, value: str) -> yaml.ScalarNode:
+    """Text with a line break or another character that is not printable (NEL, ESC) in
+    double quotes, where it is escaped; other text as the emitter sees fit."""
+    printable = all(ch.isprintable() or ch == " " for ch in value)
+    return dumper.represent_scalar("tag:yaml.org,2002:str", value,
+                                   style=None if printable else '"')
+
+
+def _represent_map(dumper: yaml.SafeDumper, value: dict) -> yaml.MappingNode:
+    return dumper.represent_dict(dict(value))
+
+
+def _represent_list(dumper: yaml.SafeDumper, value: list) -> yaml.SequenceNode:
+    return dumper.represent_list(list(value))
+
+
+class _Block(dict):
+    """A mapping always written as a block (a top-level section)."""
+
+
+def _represent_block(dumper: yaml.SafeDumper, value: _Block) -> yaml.MappingNode:
+    node = dumper.represent_dict(dict(value))
+    node.flow_style = False
+    return node
+
+
+_Dumper.add_representer(_Block, _represent_block)
+_Dumper.add_representer(float, _represent_float)
+_Dumper.add_representer(str, _represent_str)
+_Dumper.add_representer(YMap, _represent_map)
+_Dumper.add_representer(YList, _represent_list)
+_Dumper.add_representer(tuple, _represent_list)
+
+
+def dump_yaml(doc: Any) -> str:
+    """YAML text of plain data that :func:`load_yaml` reads back equal.
+
+    Keys keep their order; the top level's sections are blocks, and below them a mapping
+    or list of scalars is written on one line (``{value: 0, unit: mm}``); text is quoted
+    only where it must be.
+    """
+    if isinstance(doc, dict):
+        doc = _Block({k: _Block(v) if isinstance(v, dict) else v for k, v in doc.items()})
+    return yaml.dump(doc, Dumper=_Dumper, sort_keys=False, default_flow_style=None,
+                     allow_unicode=True, width=1 << 16)
+
+
+def yaml_scalar(value: Any) -> str:
+    """One scalar as YAML text that reads back equal in a block or a flow collection
+    (``prob.yaml``, ``'runs #2/prob.yaml'``, ``"a\\nb"``)."""
+    text = yaml.dump([value], Dumper=_Dumper, default_flow_style=True, allow_unicode=True,
+                     width=1 << 16).strip()
+    return text[1:-1].strip()
+
+
+def parse_yaml(text: str, source: str = "<text>") -> Any:
+    """The document of YAML ``text`` by the loader's rules (no size or file checks: for
+    text symcal wrote itself)."""
+    return _parse(text, source)

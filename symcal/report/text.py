@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import casadi as ca
 import numpy as np
 
-from symcal.analysis.outliers import THRESHOLD, Outliers, remedy_yaml
+from symcal.analysis.outliers import THRESHOLD, Outliers, remedy, remedy_yaml
 from symcal.base.files import json_text as plain_json
 from symcal.base.units import DISPLAY_UNITS, symbol
 from symcal.calibrate.result import REGRESSION_TOLERANCE, Regression, Result
@@ -305,8 +305,16 @@ def _outlier_lines(outliers: Outliers) -> list[str]:
         lines.append(f"  ... {outliers.count - len(outliers.listed)} more (the largest are "
                      "listed; rows count the dataset's observations from 0)")
     if outliers.dominate and outliers.squared:
-        lines.append("  To give these constraints a robust loss (Huber, scale about twice the "
-                     "robust standard deviation), add to the problem file:")
+        kind, factor, spreads_of = remedy(outliers)
+        what = ("Cauchy, which all but ignores gross errors" if kind == "cauchy"
+                else "Huber")
+        measured = ("spread of the residuals once the fit is solved again without the "
+                    "outliers" if outliers.clean_std is not None
+                    else "robust standard deviation of the residual")
+        spreads = ", ".join(f"{name} {std:.4g} {symbol(outliers.units.get(name, ''))}"
+                            for name, std in spreads_of.items())
+        lines.append(f"  To give these constraints a robust loss ({what}; scale {factor:g} × "
+                     f"the {measured}: {spreads}), add to the problem file:")
         lines += [f"    {ln}" for ln in remedy_yaml(outliers).splitlines()]
     return lines
 

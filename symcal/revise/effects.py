@@ -19,12 +19,16 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from symcal.analysis.discovery import Candidate
+from symcal.base.errors import escape_controls
 from symcal.base.files import write_output
 from symcal.base.units import internal_unit
+from symcal.language.yamlio import dump_yaml
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
 
@@ -73,37 +77,43 @@ def _unit(out: str, per: str, power: int = 1) -> str:
     return f"{out or '1'}/{per}" + (f"^{power}" if power > 1 else "")
 
 
-def _unit_key(unit: str) -> str:
-    """``, unit: U`` for a declaration in internal unit ``U`` (nothing for none)."""
-    return f", unit: {unit}" if unit else ""
+def _unit_key(unit: str) -> dict[str, str]:
+    """``{unit: U}`` for a declaration in internal unit ``U`` (nothing for none)."""
+    return {"unit": unit} if unit else {}
 
 
 @dataclass(frozen=True)
 class Suggestion:
-    """A candidate effect as a model extension and the instance's new bindings."""
+    """A candidate effect as a model extension and the instance's new bindings.
+
+    ``body`` is the model file's document after ``model`` and ``extends`` (doc,
+    constants, inputs, parameters, and expressions or outputs); every file is written by
+    the YAML emitter (:func:`~symcal.language.yamlio.dump_yaml`), so any path or text
+    reads back as it was.
+    """
 
     instance: str
     output: str
     model_name: str
-    body: tuple[str, ...]
+    body: Mapping[str, Any]
     new_inputs: dict[str, str]
 
     def model_text(self, extends: str) -> str:
         """The new model file, extending ``extends`` (a path as written in the file)."""
-        lines = [f"model: {self.model_name}", f"extends: {extends}", *self.body]
-        return "\n".join(lines) + "\n"
+        return dump_yaml({"model": self.model_name, "extends": extends, **self.body})
 
-    def instance_entry(self, model: str) -> str:
-        """The overlay's line that gives the instance the model file ``model``."""
-        inputs = ", ".join(f"{k}: {v}" for k, v in self.new_inputs.items())
-        entry = f"{{model: {model}" + (f", inputs: {{{inputs}}}" if inputs else "") + "}"
-        return f"  {self.instance}: {entry}"
+    def instance_entry(self, model: str) -> dict[str, Any]:
+        """The overlay's entry that gives the instance the model file ``model``."""
+        entry: dict[str, Any] = {"model": model}
+        if self.new_inputs:
+            entry["inputs"] = dict(self.new_inputs)
+        return {self.instance: entry}
 
     def overlay_text(self, name: str, base: str, model: str, doc: str) -> str:
         """A problem overlay named ``name`` that extends ``base`` and gives the instance
         the model file ``model`` (paths as written in the overlay)."""
-        return "\n".join([f"problem: {name}", f"extends: {base}", f"doc: {doc}",
-                          "instances:", self.instance_entry(model)]) + "\n"
+        return dump_yaml({"problem": name, "extends": base, "doc": doc,
+                          "instances": self.instance_entry(model)})
 
 
 def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
@@ -159,27 +169,24 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
              "quadratic": [_unit(out_unit, basis.unit), _unit(out_unit, basis.unit, 2)],
              "angle_harmonic": [_unit(out_unit, basis.angle_unit)] * 2}[basis.kind]
     scales = basis.scales or (0.001,) * len(params)
-    body = [f"doc: {model.name} plus {basis.description} on {output} (found by symcal "
-            "diagnose)"]
+    body: dict[str, Any] = {"doc": f"{model.name} plus {basis.description} on {output} "
+                                   "(found by symcal diagnose)"}
     if constants:
         var_unit = internal_unit(basis.unit)
-        body.append("constants:")
-        body += [f"  {n}: {{value: {val:g}{_unit_key(var_unit)}}}"
-                 for n, val in constants.values()]
+        body["constants"] = {n: {"value": float(f"{val:g}"), **_unit_key(var_unit)}
+                             for n, val in constants.values()}
     if new_inputs:
-        body.append("inputs:")
-        body += [f"  {k}: {{doc: bound to {val} in the problem{_unit_key(input_units[k])}}}"
-                 for k, val in new_inputs.items()]
-    body.append("parameters:")
-    body += [f"  {p}: {{value: 0, unit: {u}, scale: {s:.3g}}}"
-             for p, u, s in zip(params, units, scales, strict=True)]
+        body["inputs"] = {k: {"doc": f"bound to {val} in the problem",
+                              **_unit_key(input_units[k])} for k, val in new_inputs.items()}
+    body["parameters"] = {p: {"value": 0, "unit": u, "scale": float(f"{s:.3g}")}
+                          for p, u, s in zip(params, units, scales, strict=True)}
     terms_text = " + ".join(f"{p}*{t}" for p, t in zip(params, terms, strict=True))
     error = model.error_expression(output)
     if error is not None:
-        body += ["expressions:", f"  {error}: base.{error} + {terms_text}"]
+        body["expressions"] = {error: f"base.{error} + {terms_text}"}
     else:
-        body += ["outputs:", f"  {output}: base.{output} + {terms_text}"]
-    return Suggestion(instance, output, f"{model.name}_{tag}", tuple(body), new_inputs)
+        body["outputs"] = {output: f"base.{output} + {terms_text}"}
+    return Suggestion(instance, output, f"{model.name}_{tag}", body, new_inputs)
 
 
 def _overlay_name(problem: Problem, sug: Suggestion) -> str:
@@ -193,9 +200,10 @@ def effect_yaml(problem: Problem, cand: Candidate) -> str:
     home = Path(problem.path).parent
     inst = problem.instances[sug.instance]
     name = _overlay_name(problem, sug)
-    lines = [f"# models/{sug.model_name}.yaml (beside {Path(problem.path).name})",
+    beside = escape_controls(Path(problem.path).name)
+    lines = [f"# models/{sug.model_name}.yaml (beside {beside})",
              sug.model_text(_rel(inst.model.path, home / "models")).rstrip("\n"), "",
-             f"# {name}.yaml (beside {Path(problem.path).name}): the problem with it",
+             f"# {name}.yaml (beside {beside}): the problem with it",
              sug.overlay_text(name, Path(problem.path).name, f"models/{sug.model_name}.yaml",
                               f"{problem.name} plus {cand.label}").rstrip("\n")]
     return "\n".join(lines) + "\n"
@@ -210,18 +218,18 @@ def write_revision(problem: Problem, cand: Candidate, directory: str | Path,
     sugs = [suggestion(problem, c) for c in (cand, *also)]
     if len({s.instance for s in sugs}) != len(sugs):
         raise ValueError("one candidate per instance in a revision")
-    entries = []
+    entries: dict[str, Any] = {}
     for sug in sugs:
         model_path = directory / "models" / f"{sug.model_name}.yaml"
         inst = problem.instances[sug.instance]
         write_output(model_path, sug.model_text(_rel(inst.model.path, model_path.parent)))
-        entries.append(sug.instance_entry(_rel(model_path, directory)))
+        entries.update(sug.instance_entry(_rel(model_path, directory)))
     name = name or _overlay_name(problem, sugs[0])
     overlay = directory / f"{name}.yaml"
     labels = "; ".join(c.label for c in (cand, *also))
-    write_output(overlay, "\n".join([
-        f"problem: {name}", f"extends: {_rel(Path(problem.path), directory)}",
-        f"doc: {problem.name} plus {labels}", "instances:", *entries]) + "\n")
+    write_output(overlay, dump_yaml({
+        "problem": name, "extends": _rel(Path(problem.path), directory),
+        "doc": f"{problem.name} plus {labels}", "instances": entries}))
     return overlay
 
 

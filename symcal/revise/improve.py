@@ -18,11 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from symcal.analysis.discovery import Candidate
+from symcal.base.errors import SymcalError
 from symcal.base.files import write_output
 from symcal.calibrate.result import Result
 from symcal.calibrate.solve import solve
 from symcal.data.dataset import Dataset
 from symcal.data.loading import load_datasets
+from symcal.language.fields import plain_name
+from symcal.language.yamlio import dump_yaml
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
 from symcal.revise.diagnose import Diagnosis, diagnose
@@ -178,7 +181,7 @@ def _best_of_group(
     best: tuple[float, str, Path, Result] | None = None
     for i, label in enumerate(labels):
         path = _revision(diag, label, directory, f"{name}_try{i}")
-        revised = load_problem(path)
+        revised = _load_revision(path)
         new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
         why = _pays(new, result)
         if why is None:
@@ -195,13 +198,31 @@ def _best_of_group(
     if best is None:
         return None
     _, label, path, new = best
-    final = directory / f"{name}.yaml"
-    text = path.read_text(encoding="utf-8").replace(f"problem: {path.stem}\n",
-                                                      f"problem: {name}\n", 1)
-    write_output(final, text)
-    path.unlink()
+    final = _renamed(path, name)
     return label, final, solve(load_problem(final), {n: d for n, d in datasets.items()
                                                       if n in new.problem.datasets})
+
+
+def _renamed(path: Path, name: str) -> Path:
+    """The revision ``path`` (written by :func:`write_revision` or a variant's overlay,
+    named after its file) as ``name.yaml`` beside it, named ``name``."""
+    head, renamed = dump_yaml({"problem": path.stem}), dump_yaml({"problem": name})
+    text = path.read_text(encoding="utf-8")
+    assert text.startswith(head), f"{path} does not begin with {head!r}"
+    final = path.with_name(f"{name}.yaml")
+    write_output(final, renamed + text[len(head):])
+    path.unlink()
+    return final
+
+
+def _load_revision(path: Path) -> Problem:
+    """The revision symcal just wrote; a revision that does not load is removed (never
+    left in the output folder) and reported as an internal fault."""
+    try:
+        return load_problem(path)
+    except SymcalError as exc:
+        path.unlink(missing_ok=True)
+        raise RuntimeError(f"symcal wrote a revision it cannot read ({exc})") from None
 
 
 def siblings(diag: Diagnosis, lead: Candidate) -> tuple[Candidate, ...]:
@@ -249,7 +270,7 @@ def _try_siblings(
         return single
     label = "; ".join(c.label for c in (lead, *also))
     path = write_revision(diag.result.problem, lead, directory, f"{name}_all", also)
-    revised = load_problem(path)
+    revised = _load_revision(path)
     new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
     why = _pays(new, result)
     if why is None and single is not None and new.bic >= single[2].bic:
@@ -260,10 +281,7 @@ def _try_siblings(
         say(f"tried {label}: not kept, {why}")
         path.unlink(missing_ok=True)
         return single
-    final = directory / f"{name}.yaml"
-    write_output(final, path.read_text(encoding="utf-8").replace(
-        f"problem: {path.stem}\n", f"problem: {name}\n", 1))
-    path.unlink()
+    final = _renamed(path, name)
     return label, final, solve(load_problem(final), {n: d for n, d in datasets.items()
                                                       if n in new.problem.datasets})
 
@@ -322,6 +340,7 @@ def improve(
     result = solve(current, datasets)
     diag = diagnose(result, alpha)
     rounds = [Round(0, None, Path(problem), result, len(diag.significant))]
+    stem = plain_name(Path(problem).stem)   # revisions are named after the file
     rejected: list[tuple[str, str]] = []
     say(f"round 0: {current.name}: {len(diag.significant)} significant candidate(s)")
     last_try = len(rejected)
@@ -330,7 +349,7 @@ def improve(
             break
         last_try = len(rejected)
         kept = None
-        name = f"{Path(problem).stem}_round{k}"
+        name = f"{stem}_round{k}"
 
         def say_round(line: str, k: int = k) -> None:
             say(f"round {k}: {line}")
@@ -357,10 +376,9 @@ def improve(
         say(f"round {k}: added {label}: {len(diag.significant)} significant candidate(s) left")
     final = directory / "final.yaml"
     base = Path(os.path.relpath(rounds[-1].problem_file.resolve(), directory.resolve()))
-    write_output(final, f"problem: {Path(problem).stem}_final\n"
-                             f"extends: {base.as_posix()}\n"
-                             f"doc: the last revision symcal improve kept ({len(rounds) - 1} "
-                             "round(s))\n")
+    write_output(final, dump_yaml({
+        "problem": f"{stem}_final", "extends": base.as_posix(),
+        "doc": f"the last revision symcal improve kept ({len(rounds) - 1} round(s))"}))
     aliased = _aliased(diag, rejected[last_try:])
     left = [c for c in diag.significant if c.label not in dict(aliased)]
     quiet = not left and result.at_floor is not False

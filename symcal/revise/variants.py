@@ -25,7 +25,7 @@ from pathlib import Path
 
 from symcal.base.errors import SymcalError
 from symcal.language.model_file import ModelSpec, load_model
-from symcal.language.yamlio import YMap, load_yaml
+from symcal.language.yamlio import YMap, dump_yaml, load_yaml, parse_yaml, yaml_scalar
 from symcal.problem.build import load_problem, with_instance
 from symcal.problem.symbolic import Problem
 
@@ -68,13 +68,11 @@ class Variant:
             return Path(os.path.relpath(path.resolve(), directory.resolve())).as_posix()
 
         if self.problem_file is not None:
-            return (f"problem: {name}\nextends: {rel(self.problem_file)}\n"
-                    f"doc: {self.description}\n")
-        lines = [f"problem: {name}", f"extends: {rel(base)}", f"doc: {self.description}",
-                 "instances:"]
-        lines += [f"  {inst}: {{model: {rel(self.model_path(inst, directory))}}}"
-                  for inst in self.models]
-        return "\n".join(lines) + "\n"
+            return dump_yaml({"problem": name, "extends": rel(self.problem_file),
+                              "doc": self.description})
+        return dump_yaml({"problem": name, "extends": rel(base), "doc": self.description,
+                          "instances": {inst: {"model": rel(self.model_path(inst, directory))}
+                                        for inst in self.models}})
 
 
 def _extends_target(path: Path, what: str) -> tuple[Path | None, YMap | None]:
@@ -96,21 +94,21 @@ def _extends_target(path: Path, what: str) -> tuple[Path | None, YMap | None]:
 
 
 def _set_key(text: str, key: str, value: str) -> str:
-    """``text`` with its top-level ``key: ...`` line (a plain scalar) set to ``value``."""
+    """``text`` with its top-level ``key: ...`` line (a scalar on one line) set to
+    ``value``, written by the YAML emitter."""
     lines = text.splitlines()
     for i, line in enumerate(lines):
         if line.startswith(f"{key}:"):
-            lines[i] = f"{key}: {value}"
+            lines[i] = f"{key}: {yaml_scalar(value)}"
             return "\n".join(lines) + "\n"
-    return f"{key}: {value}\n" + text
+    return f"{key}: {yaml_scalar(value)}\n" + text
 
 
 def _rebase_text(text: str, origin: Path, target: Path) -> str:
     """A rebased model's text (its ``extends:`` relative to ``origin``) for ``target``."""
-    lines = text.splitlines()
-    for line in lines:
+    for line in text.splitlines():
         if line.startswith("extends:"):
-            base = (origin / line.split(":", 1)[1].strip()).resolve()
+            base = (origin / str(parse_yaml(line)["extends"])).resolve()
             return _set_key(text, "extends",
                             Path(os.path.relpath(base, target.resolve())).as_posix())
     return text

@@ -10,6 +10,7 @@ This module alone imports Dask (``distributed``), when an executor is made.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import logging
 from collections.abc import Callable, Iterable, Iterator
@@ -25,6 +26,14 @@ T = TypeVar("T")
 
 #: Environment of the embedded cluster's workers: one BLAS thread each.
 WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+#: Seconds a scheduler address has to connect and answer Dask's handshake and an
+#: ``identity`` request; an address that listens but does not speak Dask (an HTTP server, a
+#: silent port) is refused after this.
+HANDSHAKE_SECONDS = 20.0
+#: Dask's own log level in the client and the embedded cluster's processes: nothing of
+#: its logging (heartbeats failing at shutdown, restarts, tracebacks) reaches a terminal;
+#: what matters to a user reaches them as a unit's error or a message.
+DASK_LOG_LEVEL = logging.CRITICAL + 1
 
 
 class DaskExecutor:
@@ -85,22 +94,91 @@ def dask_client(scheduler: str | None = None, workers: int | None = None,
     """
     from distributed import Client, LocalCluster
 
-    if scheduler is not None:
-        try:
-            client = Client(scheduler, timeout="20s")
-        except (OSError, TimeoutError, ValueError) as exc:
+    with _quiet_dask():
+        if scheduler is not None:
             named = f"{option} {excerpt(scheduler, 80)}: " if option else ""
-            raise SymcalError(f"{named}cannot reach the Dask scheduler "
-                              f"{excerpt(scheduler, 80)} ({excerpt(exc, 120)})") from None
-        try:
+            _check_scheduler(scheduler, named)
+            try:
+                client = Client(scheduler, timeout=f"{HANDSHAKE_SECONDS}s")
+            except (OSError, TimeoutError, ValueError) as exc:
+                raise SymcalError(f"{named}cannot reach the Dask scheduler "
+                                  f"{excerpt(scheduler, 80)} ({excerpt(exc, 120)})") from None
+            try:
+                yield client
+            finally:
+                client.close()
+            return
+        # no dashboard; the scheduler's own HTTP server on a free port of this host only
+        # (its default, 8787 on every interface, warns when another cluster has it)
+        with LocalCluster(n_workers=workers or usable_cores(), threads_per_worker=1,
+                          processes=True, dashboard_address="127.0.0.1:0",
+                          silence_logs=DASK_LOG_LEVEL, env=dict(WORKER_ENV)) as cluster, \
+                Client(cluster) as client:
             yield client
+
+
+@contextlib.contextmanager
+def _quiet_dask() -> Iterator[None]:
+    """Dask's loggers (``distributed``, ``tornado``, ``asyncio``) silent in this process
+    while a client runs, restored after."""
+    import warnings
+
+    names = ("distributed", "dask", "tornado", "asyncio")
+    saved = [(logging.getLogger(n), logging.getLogger(n).level) for n in names]
+    for logger, _ in saved:
+        logger.setLevel(DASK_LOG_LEVEL)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", module=r"(distributed|dask|tornado)(\.|$)")
+            yield
+    finally:
+        for logger, level in saved:
+            logger.setLevel(level)
+
+
+def _check_scheduler(address: str, named: str) -> None:
+    """Refuse an address that is not a Dask scheduler within :data:`HANDSHAKE_SECONDS`:
+    nothing listens, something listens but never answers Dask's handshake (a silent
+    port, an HTTP server), or a Dask server that is not a scheduler.  The whole exchange
+    has one deadline (Dask's own connect timeout does not cover the handshake)."""
+    import asyncio
+
+    from distributed.comm import connect
+    from distributed.comm.addressing import parse_address
+
+    shown = excerpt(address, 80)
+    try:
+        parse_address(address)
+    except ValueError as exc:
+        raise SymcalError(f"{named}not a Dask scheduler address ({excerpt(exc, 120)}); "
+                          "write tcp://HOST:PORT") from None
+
+    async def exchange() -> Any:
+        comm = await connect(address, timeout=HANDSHAKE_SECONDS)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
         finally:
-            client.close()
-        return
-    with LocalCluster(n_workers=workers or usable_cores(), threads_per_worker=1,
-                      processes=True, dashboard_address=None, silence_logs=logging.ERROR,
-                      env=dict(WORKER_ENV)) as cluster, Client(cluster) as client:
-        yield client
+            comm.abort()
+
+    def run() -> Any:   # its own event loop, in a thread: a caller's loop may be running
+        return asyncio.run(asyncio.wait_for(exchange(), HANDSHAKE_SECONDS))
+
+    try:
+        with concurrent.futures.ThreadPoolExecutor(1) as pool:
+            reply = pool.submit(run).result()
+    except TimeoutError:
+        raise SymcalError(f"{named}something listens at {shown} but does not answer as a "
+                          f"Dask scheduler within {HANDSHAKE_SECONDS:g} s (is it another "
+                          "service, such as a web server?)") from None
+    except (OSError, ValueError, TypeError, EOFError) as exc:
+        reason = excerpt(exc, 120) or exc.__class__.__name__
+        raise SymcalError(f"{named}cannot reach the Dask scheduler {shown} ({reason})"
+                          ) from None
+    kind = reply.get("type") if isinstance(reply, dict) else None
+    if kind != "Scheduler":
+        raise SymcalError(f"{named}{shown} answers, but not as a Dask scheduler (it says it "
+                          f"is {excerpt(kind or 'something else', 40)})")
 
 
 @contextlib.contextmanager

@@ -152,8 +152,9 @@ class Objective:
         Parameters
         ----------
         transform
-            Optional ``n_g × n_g`` matrix T applied to each observation's block of
-            residuals and Jacobian rows (T g_i, T J_i) before reduction.
+            Optional ``k × n_g`` matrix T applied to each observation's block of
+            residuals and Jacobian rows (T g_i, T J_i) before reduction; ``k`` may be
+            less than ``n_g`` (a square root of a singular covariance).
 
         Returns
         -------

@@ -75,7 +75,9 @@ class Pass:
     columns
         The problem's columns, in the order of ``u`` (to read a shard).
     transform
-        Optional ``n_g × n_g`` matrix applied to each observation's g and J (``r``).
+        Optional ``k × n_g`` matrix applied to each observation's g and J (``r``); each
+        observation then gives ``k`` rows, which may be fewer than ``n_g`` (the square
+        root of a singular covariance).
     """
 
     kind: Kind
@@ -127,9 +129,10 @@ class Pass:
         if self.kind == "normal":
             jac2, res = jac.reshape(m * ng, n), g.reshape(m * ng)
             return float(res @ res), jac2.T @ res, jac2.T @ jac2
-        if self.transform is not None:
+        if self.transform is not None:    # k rows per observation, maybe fewer than n_g
             g = g @ self.transform.T
             jac = np.einsum("ab,mbn->man", self.transform, jac)
+            ng = self.transform.shape[0]
         block = np.empty((m * ng, n + 1), order="F")     # column-major for LAPACK
         block[:, :n] = jac.reshape(m * ng, n)
         block[:, n] = g.reshape(m * ng)
