@@ -52,9 +52,9 @@ def noise_floors(result: Result) -> dict[tuple[str, str], float]:
     simulated.
 
     A dataset simulated from a scenario (a problem's ``simulate:`` dataset, not replaced
-    by other data) has the floors the simulator states
-    (:func:`symcal.simulation.noise_floor`); a residual or comparison ``NAME`` has one when
-    they include ``NAME_std``.  Elsewhere the floor is unknown and absent.
+    by other data) has the floors the scenario's declared noise leaves in each constraint
+    (:func:`symcal.experiment.predict.noise_floors`).  Elsewhere the floor is unknown and
+    absent.
 
     Parameters
     ----------
@@ -66,7 +66,8 @@ def noise_floors(result: Result) -> dict[tuple[str, str], float]:
     dict
         ``(dataset, name)`` → the standard deviation noise alone leaves, internal units.
     """
-    from symcal.simulation import load_scenario, noise_floor
+    from symcal.experiment.predict import noise_floors as propagated
+    from symcal.simulation import load_scenario
 
     names = {s.name for s in result.statistics}
     by_scenario: dict[str, dict[str, float]] = {}
@@ -76,10 +77,11 @@ def noise_floors(result: Result) -> dict[tuple[str, str], float]:
         if (spec is None or spec.scenario is None or info.file is not None
                 or info.source != spec.source):
             continue
-        key = str(spec.scenario)
+        key = f"{spec.scenario}|{spec.run}"
         if key not in by_scenario:
             try:
-                by_scenario[key] = noise_floor(load_scenario(spec.scenario))
+                by_scenario[key] = propagated(result.problem, load_scenario(spec.scenario),
+                                              spec.run)
             except (SymcalError, OSError):
                 by_scenario[key] = {}
         for name in names:
@@ -754,9 +756,12 @@ def design_report(design: Design, result: Result | None = None) -> str:
         space = base.scenario.design
         limits = {} if space is None else space.bounds
         rows = [["motion", "given", "designed", "limits"]]
-        for key in ("n", "x", "y", "theta_deg", "dwell"):
+        units = design.units
+        for key in design.before:
             lim = limits.get(key)
-            rows.append([key, _motion_text(design.before[key]), _motion_text(design.after[key]),
+            shown = f"{key} ({units[key]})" if units.get(key) else key
+            rows.append([shown, _motion_text(design.before[key]),
+                         _motion_text(design.after[key]),
                          "fixed" if lim is None else _motion_text(tuple(lim))])
         lines += ["  " + r for r in _table(rows, "llll")]
         lines.append("  binding limits: " + (", ".join(design.binding) or "none"))
