@@ -41,10 +41,10 @@ def platen_pair():
 
 def test_implicit_platen_reaches_the_noise_floor(platen_pair) -> None:
     _, explicit, implicit, floor = platen_pair
-    ratio = implicit.stat("g_p").after.std / floor
+    ratio = implicit.stat("g_p", unit="mm").after.std / floor
     assert abs(ratio - 1) < 0.05, ratio
     # the explicit model cannot: it leaves a structured residual of order e'·e
-    assert explicit.stat("g_p").after.std / floor > 1.2
+    assert explicit.stat("g_p", unit="mm").after.std / floor > 1.2
 
 
 def test_implicit_platen_recovers_truth_where_explicit_is_biased(platen_pair) -> None:
@@ -200,5 +200,5 @@ def test_implicit_dual_reaches_the_noise_floor_on_clean_data() -> None:
     explicit = symcal.solve(PROBLEMS / "dual_sensor_calibration.yaml", data)
     for name in ("g_x", "g_y", "g_p"):
         floor = floors[f"{name}_std"] * dof
-        assert abs(implicit.stat(name).after.std / floor - 1) < 0.05, name
-    assert explicit.stat("g_p").after.std / (floors["g_p_std"] * dof) > 1.1
+        assert abs(implicit.stat(name, unit="mm").after.std / floor - 1) < 0.05, name
+    assert explicit.stat("g_p", unit="mm").after.std / (floors["g_p_std"] * dof) > 1.1

@@ -74,7 +74,7 @@ def _ratio(result: symcal.Result, scenario, dataset: str, seed: int) -> float:
             result.uncertainty.dof / result.rows)
     else:
         floor = _realized_floor(seed)
-    return result.stat("g_p", dataset).after.std / floor
+    return result.stat("g_p", dataset, unit="mm").after.std / floor
 
 
 def _named(diag, truth: str) -> bool:
@@ -311,7 +311,7 @@ def test_coordination_gain_is_named_by_its_channels_and_fixed(tmp_path) -> None:
     floors = courier_scenarios.floors(again.problem, scenario)
     dof = np.sqrt(again.uncertainty.dof / again.rows)
     for name in ("g_x", "g_y", "g_p"):
-        assert again.stat(name).after.std < 1.10 * floors[f"{name}_std"] * dof, name
+        assert again.stat(name, unit="mm").after.std < 1.10 * floors[f"{name}_std"] * dof, name
 
 
 def _assert_dual_at_floor(result: symcal.Result, scenario) -> None:

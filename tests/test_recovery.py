@@ -56,9 +56,9 @@ def test_every_identifiable_parameter_within_four_standard_errors(clean_result) 
 def test_calibrated_residual_at_noise_floor(clean_result) -> None:
     scenario, result = clean_result
     floor = _floor(scenario) * np.sqrt((N - RANK) / N)
-    after = result.stat("g_p").after.std
+    after = result.stat("g_p", unit="mm").after.std
     assert abs(after / floor - 1) < 0.2, (after, floor)
-    assert result.stat("g_p").before.std > 20 * floor
+    assert result.stat("g_p", unit="mm").before.std > 20 * floor
 
 
 def test_fly_by_improves_against_interferometer(clean_result) -> None:
@@ -87,7 +87,7 @@ def test_hidden_lateral_effect_keeps_residual_above_floor(scale, min_ratio) -> N
     scenario = _clean(*lateral)
     result = _solve(scenario, seed=12)
     floor = _floor(scenario) * np.sqrt((N - RANK) / N)
-    ratio = result.stat("g_p").after.std / floor
+    ratio = result.stat("g_p", unit="mm").after.std / floor
     assert ratio > min_ratio, ratio
     clean = _solve(_clean(), seed=12).stat("theta_x", "flyby")
     assert result.stat("theta_x", "flyby").after.std > 5 * clean.after.std

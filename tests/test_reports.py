@@ -106,8 +106,9 @@ def test_regression_flagged_in_result_text_and_json(gain: symcal.Result) -> None
     stats = gain.stat("position_y", "flyby")
     assert (reg.dataset, reg.name, reg.kind, reg.measure, reg.unit) == (
         "flyby", "position_y", "comparison", "std", "um")
-    assert reg.before == pytest.approx(stats.before.std / 1e-3)
-    assert reg.after == pytest.approx(stats.after.std / 1e-3)
+    assert stats.unit == "um"                          # the values are in the unit stated
+    assert reg.before == pytest.approx(stats.before.std)
+    assert reg.after == pytest.approx(stats.after.std)
     assert 7 < reg.before < 9 and reg.after > 2 * reg.before
 
     text = text_report(gain)
@@ -199,11 +200,11 @@ def test_noise_floor_column_equals_the_simulators_floor(clean: symcal.Result) ->
     # comparisons have no floor the simulator states: their cells stay blank
     theta = next(ln for ln in lines if "theta_x vs reference" in ln)
     assert theta.rstrip().endswith("mrad")
-    worst = max((clean.stat("g_p", d) for d in ("calibration", "flyby")),
+    worst = max((clean.stat("g_p", d, unit="mm") for d in ("calibration", "flyby")),
                 key=lambda s: s.after.std / floors[s.dataset])
     floor = floors[worst.dataset]
     assert (f"  worst against its noise floor: {worst.dataset} g_p std "
-            f"{worst.shown('after').std:.4g} µm = {worst.after.std / floor:.2f} × the floor "
+            f"{worst.after.std / 1e-3:.4g} µm = {worst.after.std / floor:.2f} × the floor "
             f"{floor / 1e-3:.4g} µm") in text
 
 
@@ -244,9 +245,9 @@ def _fake_diagnosis(result: symcal.Result, significant=(), **more) -> SimpleName
 
 def test_diagnosis_verdict_before_and_after_uncalibratable(gain: symcal.Result) -> None:
     reg = gain.regressions[0]
-    g_p = gain.stat("g_p", "calibration")
+    g_p = gain.stat("g_p", "calibration", unit="mm")
     floor = _floor(gain, "calibration")
-    where = [f"where it fails: calibration g_p std {g_p.shown('after').std:.4g} µm is "
+    where = [f"where it fails: calibration g_p std {g_p.after.std / 1e-3:.4g} µm is "
              f"{g_p.after.std / floor:.2f} × its noise floor",
              f"calibration made flyby position_y vs reference worse: std {reg.before:.4g} → "
              f"{reg.after:.4g} µm"]
