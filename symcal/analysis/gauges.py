@@ -776,7 +776,9 @@ def _varying_gauge(count: int, const: np.ndarray, reference: _Point, fallback: _
             break
     involved = [names[i] for i in np.flatnonzero(
         np.any(np.abs(np.array(directions)) > 1e-9, axis=0))] if directions else list(names)
-    fix = f"fix {_one_of(involved)}" if count == 1 else f"fix {count} of {_names(involved)}"
+    pivots = [names[int(np.flatnonzero(np.abs(d) > 1e-9)[0])] for d in directions]
+    fix = (f"fix {_one_of(involved)}" if count == 1 else f"fix {count} of {_names(involved)}"
+           + (f" (e.g. {_names(pivots)})" if len(pivots) == count else ""))
     combos = tuple(_combination(d, names) for d in directions)
     text = (f"symmetry: moving {_names(involved)} together along a curve that depends on "
             f"where they are leaves every constraint unchanged; {fix}")

@@ -516,6 +516,16 @@ def _apply(start: dict[str, object], variables: list[_Var], solution: dict[str, 
     return out
 
 
+def _whole(motion: Scatter | Dwells, n: int, n_hi: int) -> int:
+    """``n`` as observations the motion can have: whole dwells for a dwells run (rounded
+    up, or down to stay within ``n_hi``)."""
+    if not isinstance(motion, Dwells):
+        return n
+    whole = math.ceil(n / motion.samples) * motion.samples
+    return whole if whole <= n_hi else max(motion.samples,
+                                           (n_hi // motion.samples) * motion.samples)
+
+
 def _met(prediction: Prediction, targets: tuple[Target, ...]) -> dict[str, bool]:
     se = prediction.se
     return {t.name: se.get(t.name) is not None and float(se[t.name]) <= t.value  # type: ignore[arg-type]
@@ -570,7 +580,8 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
             raise SymcalError(f"--target {tg.text}: '{tg.name}' is determined only in a "
                               "combination with other parameters, on any motion of this "
                               "problem; target an identifiable parameter")
-    start = motion_values(scenario, motion_of(scenario, run))
+    motion = motion_of(scenario, run)
+    start = motion_values(scenario, motion)
     limits = space.bounds
     n_lo, n_hi = (int(limits["n"][0]), int(limits["n"][1])) if "n" in limits else (
         int(start["n"]), int(start["n"]))  # type: ignore[call-overload]
@@ -590,11 +601,13 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
             solution, best = {}, max(((float(baseline.se[t.name]) / t.value) ** 2  # type: ignore[arg-type]
                                       for t in targets), default=0.0)
         n = n_hi if not targets else min(max(math.ceil(best * baseline.n * 1.02), n_lo), n_hi)
+        n = _whole(motion, n, n_hi)
         values = _apply(start, variables, solution, n)
         designed = predict(problem, with_motion(scenario, run, values), run, seed)
         if targets:
             worst = max(float(designed.se[t.name]) / t.value for t in targets)  # type: ignore[arg-type]
-            fitted = min(max(math.ceil(n * worst**2 * 1.02), n_lo), n_hi)
+            fitted = _whole(motion, min(max(math.ceil(n * worst**2 * 1.02), n_lo), n_hi),
+                            n_hi)
             if fitted != n:  # the exact prediction needs more, or fewer, observations
                 values_n = _apply(start, variables, solution, fitted)
                 again = predict(problem, with_motion(scenario, run, values_n), run, seed)
@@ -605,7 +618,7 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
             break
     met = _met(designed, targets)
     binding = list(active)
-    if "n" in limits and int(values["n"]) == n_hi and (  # type: ignore[call-overload]
+    if "n" in limits and int(values["n"]) == _whole(motion, n_hi, n_hi) and (  # type: ignore[call-overload]
             criterion is not None or not all(met.values())):
         binding.append(f"n <= {n_hi}")
     return Design(baseline, designed, with_motion(scenario, run, values), criterion,
