@@ -16,6 +16,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from symcal.base import jit
 from symcal.base.errors import SpecError
 from symcal.base.numeric import mapped
 from symcal.base.units import size
@@ -160,6 +161,13 @@ def _functions(scenario: Scenario) -> dict[str, Any]:
     return fns
 
 
+def _fast(fns: dict[str, Any], samples: int) -> dict[str, Any]:
+    """The functions, compiled for a run of many samples as the solvers' passes are
+    (:mod:`symcal.base.jit`: the same IEEE operations, so the same readings)."""
+    use, build = jit.wanted(samples)
+    return {k: jit.fast(f, build) for k, f in fns.items()} if use else fns
+
+
 def noiseless(scenario: Scenario, t: np.ndarray, states: np.ndarray) -> dict[str, np.ndarray]:
     """Every column's reading, without noise, in its declared unit.
 
@@ -168,7 +176,7 @@ def noiseless(scenario: Scenario, t: np.ndarray, states: np.ndarray) -> dict[str
     SpecError
         When the ``solve`` columns do not converge (named, at the first of them).
     """
-    fns = _functions(scenario)
+    fns = _fast(_functions(scenario), t.size)
     base = np.vstack([states, t[None, :]])
     zero = np.zeros(1)
     if "start" in fns:
