@@ -388,6 +388,8 @@ def input_noise(scenario: Scenario) -> dict[str, float]:
 
 
 def quiet(scenario: Scenario) -> Scenario:
-    """The scenario without noise or quantization on any column."""
+    """The scenario without noise or quantization on any column (its random streams as
+    they were).  A change made in Python: :meth:`Scenario.overlay` of the result starts
+    again from the file's document, noise included."""
     columns = tuple(replace(c, noise=0.0, quantization=0.0) for c in scenario.columns)
     return replace(scenario, columns=columns)
