@@ -130,9 +130,13 @@ def test_courier_scenarios_reproduce_the_courier_simulator_bit_for_bit():
              SCENARIOS / "courier_dual_clean.yaml",
              "hidden": ROOT / "examples" / "hidden_effect" / "scenario.yaml"}
     checked = 0
+    scenarios = {name: load_scenario(path) for name, path in files.items()}
+    runs: dict[tuple[str, str, str], dict[str, np.ndarray]] = {}
     for key, expected in old.items():
         name, run, seed, column = key.split("|")
-        data = simulate_run(load_scenario(files[name]), run, seed=int(seed))
+        if (name, run, seed) not in runs:
+            runs[name, run, seed] = simulate_run(scenarios[name], run, seed=int(seed))
+        data = runs[name, run, seed]
         if isinstance(expected, str):
             assert _digest(data[column]) == expected, key
         else:
