@@ -3,7 +3,6 @@ approximation).  Data are simulated with the distortion applied at the true posi
 
 from __future__ import annotations
 
-import dataclasses
 import textwrap
 
 import numpy as np
@@ -15,7 +14,8 @@ from symcal.analysis.implicit import implicit_checks
 from symcal.base.errors import SpecError
 from symcal.cli import main
 from symcal.data.dataset import make_dataset
-from symcal.simulation import load_scenario, noise_floor, simulate_run, truth
+from symcal.experiment.predict import noise_floors
+from symcal.simulation import load_scenario, quiet, simulate_run, truth
 from symcal.solvers.objective import Objective
 
 PROBLEMS = ROOT / "problems"
@@ -34,16 +34,17 @@ def platen_pair():
     data = _data(scenario, seed=21)
     explicit = symcal.solve(PROBLEMS / "platen_self_calibration.yaml", data)
     implicit = symcal.solve(PROBLEMS / "platen_self_calibration_implicit.yaml", data)
-    floor = noise_floor(scenario)["g_p_std"] * np.sqrt((1000 - 33) / 1000)
+    # the floor the exact (implicit) model reaches: the noise propagated through it
+    floor = noise_floors(implicit.problem, scenario)["g_p_std"] * np.sqrt((1000 - 33) / 1000)
     return scenario, explicit, implicit, floor
 
 
 def test_implicit_platen_reaches_the_noise_floor(platen_pair) -> None:
     _, explicit, implicit, floor = platen_pair
-    ratio = implicit.stat("g_p").after.std / floor
+    ratio = implicit.stat("g_p", unit="mm").after.std / floor
     assert abs(ratio - 1) < 0.05, ratio
     # the explicit model cannot: it leaves a structured residual of order e'·e
-    assert explicit.stat("g_p").after.std / floor > 1.2
+    assert explicit.stat("g_p", unit="mm").after.std / floor > 1.2
 
 
 def test_implicit_platen_recovers_truth_where_explicit_is_biased(platen_pair) -> None:
@@ -93,9 +94,8 @@ def test_implicit_model_is_nonlinear_and_its_twin_linear() -> None:
 
 def test_explicit_and_implicit_agree_when_errors_are_tiny() -> None:
     scenario = load_scenario(SCENARIOS / "courier_platen_clean.yaml")
-    tiny = tuple(tuple(k * 1e-3 for k in seg) for seg in scenario.platen.segments)
-    scenario = dataclasses.replace(
-        scenario, platen=dataclasses.replace(scenario.platen, segments=tiny))
+    tiny = {k: v * 1e-3 for k, v in truth(scenario)["parameters"].items()}
+    scenario = scenario.overlay({"truth": tiny})
     data = _data(scenario, seed=22)
     explicit = symcal.solve(PROBLEMS / "platen_self_calibration.yaml", data)
     implicit = symcal.solve(PROBLEMS / "platen_self_calibration_implicit.yaml", data)
@@ -106,11 +106,7 @@ def test_explicit_and_implicit_agree_when_errors_are_tiny() -> None:
 
 @pytest.fixture(scope="module")
 def dual_noiseless():
-    scenario = load_scenario(SCENARIOS / "courier_dual_clean.yaml")
-    platen = dataclasses.replace(scenario.platen, noise=0.0, quantization=0.0)
-    scenario = dataclasses.replace(
-        scenario, platen=platen,
-        coordination=dataclasses.replace(scenario.coordination, noise=0.0))
+    scenario = quiet(load_scenario(SCENARIOS / "courier_dual_clean.yaml"))
     data = _data(scenario, seed=23)
     true = dict(truth(scenario)["parameters"])
     true["cs.h"] = true.pop("h")
@@ -202,11 +198,11 @@ def test_implicit_dual_reaches_the_noise_floor_on_clean_data() -> None:
     noise floor (within 5 %); the explicit problem stays above it on the same data."""
     scenario = load_scenario(SCENARIOS / "courier_dual_clean.yaml")
     data = _data(scenario, seed=25)
-    floors = noise_floor(scenario)
     dof = np.sqrt((3 * 1000 - 47) / (3 * 1000))
     implicit = symcal.solve(PROBLEMS / "dual_sensor_calibration_implicit.yaml", data)
+    floors = noise_floors(implicit.problem, scenario)   # what the exact model reaches
     explicit = symcal.solve(PROBLEMS / "dual_sensor_calibration.yaml", data)
     for name in ("g_x", "g_y", "g_p"):
         floor = floors[f"{name}_std"] * dof
-        assert abs(implicit.stat(name).after.std / floor - 1) < 0.05, name
-    assert explicit.stat("g_p").after.std / (floors["g_p_std"] * dof) > 1.1
+        assert abs(implicit.stat(name, unit="mm").after.std / floor - 1) < 0.05, name
+    assert explicit.stat("g_p", unit="mm").after.std / (floors["g_p_std"] * dof) > 1.1

@@ -7,12 +7,12 @@ determine is reported apart; every printed suggestion loads as written."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import re
 import shutil
 from pathlib import Path
 
+import courier_scenarios
 import numpy as np
 import pytest
 from conftest import ROOT
@@ -24,32 +24,28 @@ from symcal.cli import main
 from symcal.data.dataset import make_dataset
 from symcal.revise.diagnose import diagnose
 from symcal.revise.improve import improve
-from symcal.simulation import load_scenario, noise_floor, simulate_run
-from symcal.simulation.scenario import AngleTerm, Drift, Effects, Harmonic, Lateral
+from symcal.simulation import load_scenario, simulate_run
 
 PROBLEMS = ROOT / "problems"
 EXPLICIT = PROBLEMS / "platen_self_calibration.yaml"
 IMPLICIT = PROBLEMS / "platen_self_calibration_implicit.yaml"
-NO = (AngleTerm(), AngleTerm(), AngleTerm(), AngleTerm())
 
 #: case -> (effects, the true candidate (or a member of its group), parameter suffix and
 #: true coefficients of the term symcal adds, sign of the instance it may land on)
 CASES = {
-    "harmonic": (Effects(harmonics=((), (Harmonic(3, 0.002, -0.0015),), (), ())),
+    "harmonic": (courier_scenarios.harmonic(2, 3, sin=0.002, cos=-0.0015),
                  "s2.p_hat += harmonic 3 of s2.p (period 1.016 mm)"),
-    "drift": (Effects(drift=(Drift(rate=2e-5), Drift(), Drift(), Drift())),
+    "drift": (courier_scenarios.drift(1, rate=2e-5),
               "s1.p_hat += a slow drift in time (t)"),
-    "angle-dependent gain": (Effects(angle=(AngleTerm(), AngleTerm(), AngleTerm(a=0.3),
-                                            AngleTerm())),
+    "angle-dependent gain": (courier_scenarios.angle(3, a=0.3),
                              "s3.p_hat += a term linear in theta_raw"),
 }
 
 
-def _scenario(effects: Effects):
-    sc = load_scenario(PROBLEMS / "scenarios" / "courier_platen.yaml")
-    platen = dataclasses.replace(sc.platen, effects=effects, noise=5e-4,
-                                 distortion_at="true_position", geometry="small_angle")
-    return dataclasses.replace(sc, platen=platen)
+def _scenario(*effects: dict):
+    """The courier's physics (errors at the true position) with small angles, 0.5 um
+    noise and ``effects``."""
+    return courier_scenarios.platen(*effects, model=False)
 
 
 def _data(scenario, seed: int) -> dict[str, symcal.Dataset]:
@@ -61,7 +57,7 @@ def _realized_floor(seed: int) -> float:
     """g_p's spread on the fly-by at the true parameters of the exact model (the implicit
     one, no hidden effect) for this noise realization: the floor a held-out dataset can
     reach (the noise streams do not depend on the effects)."""
-    scenario = _scenario(Effects())
+    scenario = _scenario()
     flyby = _data(scenario, seed)["flyby"]
     problem = symcal.load_problem(IMPLICIT)
     true = symcal.simulation.truth(scenario)["parameters"]
@@ -74,11 +70,11 @@ def _ratio(result: symcal.Result, scenario, dataset: str, seed: int) -> float:
     """g_p's spread over its floor: on the calibration data the noise floor allowing for
     the degrees of freedom the fit used; on the fly-by the realized floor."""
     if dataset == "calibration":
-        floor = noise_floor(scenario)["g_p_std"] * np.sqrt(result.uncertainty.dof /
-                                                           result.rows)
+        floor = courier_scenarios.floors(result.problem, scenario)["g_p_std"] * np.sqrt(
+            result.uncertainty.dof / result.rows)
     else:
         floor = _realized_floor(seed)
-    return result.stat("g_p", dataset).after.std / floor
+    return result.stat("g_p", dataset, unit="mm").after.std / floor
 
 
 def _named(diag, truth: str) -> bool:
@@ -123,7 +119,7 @@ def test_clean_data_is_quiet_after_the_approximation(tmp_path) -> None:
     """No hidden effect: starting explicit, the model's own approximation is the one
     finding, switching to the implicit model reaches the floor and the diagnosis is
     quiet; starting implicit it is quiet at once."""
-    scenario = _scenario(Effects())
+    scenario = _scenario()
     data = _data(scenario, seed=61)
     result = improve(EXPLICIT, tmp_path / "explicit", data)
     assert [r.added for r in result.rounds] == [None, symcal.revise.diagnose.APPROXIMATION]
@@ -163,8 +159,7 @@ def test_lateral_dependence_is_not_calibratable_from_g_p() -> None:
     """A lateral term of s1 is absorbed by s4's own harmonics in g_p: reported apart, with
     the dual problem (which has g_x, g_y on the same sensors) as what can determine it,
     and never suggested."""
-    scenario = _scenario(Effects(lateral=(Lateral(0.006, -0.003), Lateral(), Lateral(),
-                                          Lateral())))
+    scenario = _scenario(courier_scenarios.lateral(1, 0.006, -0.003))
     diag = diagnose(symcal.solve(EXPLICIT, _data(scenario, seed=62)))
     truth = "s1.p_hat += harmonic 1 of s4.p (period 1.016 mm)"
     uncal = {m for c in diag.uncalibratable for m in (c.label, *c.indistinguishable)}
@@ -187,8 +182,8 @@ def test_predictions_are_what_solving_again_gives(case, start, tmp_path) -> None
     """For the candidate the loop applies, the predicted spreads on every dataset,
     held-out ones included, are within 20 % of what solving again with it gives (for the
     explicit problem on clean data the candidate is the switch to the implicit model)."""
-    effects = Effects() if case == "clean" else CASES[case][0]
-    data = _data(_scenario(effects), seed=63)
+    effects = () if case == "clean" else (CASES[case][0],)
+    data = _data(_scenario(*effects), seed=63)
     problem = symcal.load_problem(start)
     diag = diagnose(symcal.solve(problem, data))
     lead = diag.significant[0]
@@ -279,12 +274,10 @@ DUAL_IMPLICIT = PROBLEMS / "dual_sensor_calibration_implicit.yaml"
 
 
 def _dual(gain_y: float = 0.0):
-    from symcal.simulation.scenario import AxisNonlinearity
-
-    sc = load_scenario(PROBLEMS / "scenarios" / "courier_dual_clean.yaml")
-    coord = dataclasses.replace(sc.coordination,
-                                nonlinearity=(AxisNonlinearity(), AxisNonlinearity(g=gain_y)))
-    return dataclasses.replace(sc, coordination=coord)
+    """courier_dual_clean.yaml, the coordination sensor's y channel with a gain error."""
+    if not gain_y:
+        return courier_scenarios.dual()
+    return courier_scenarios.dual(courier_scenarios.psd(y={"g": gain_y}))
 
 
 @pytest.mark.slow
@@ -315,16 +308,16 @@ def test_coordination_gain_is_named_by_its_channels_and_fixed(tmp_path) -> None:
     from symcal.revise.effects import revised_problem
 
     again = symcal.solve(revised_problem(diag.result.problem, lead, tmp_path), data)
-    floors = noise_floor(scenario)
+    floors = courier_scenarios.floors(again.problem, scenario)
     dof = np.sqrt(again.uncertainty.dof / again.rows)
     for name in ("g_x", "g_y", "g_p"):
-        assert again.stat(name).after.std < 1.10 * floors[f"{name}_std"] * dof, name
+        assert again.stat(name, unit="mm").after.std < 1.10 * floors[f"{name}_std"] * dof, name
 
 
 def _assert_dual_at_floor(result: symcal.Result, scenario) -> None:
     """g_x, g_y and g_p within 10 % of their noise floors on every dataset (on the
     calibration data allowing for the degrees of freedom the fit used)."""
-    floors = noise_floor(scenario)
+    floors = courier_scenarios.floors(result.problem, scenario)
     dof = np.sqrt(result.uncertainty.dof / result.rows)
     for s in result.statistics:
         if s.name in ("g_x", "g_y", "g_p"):
@@ -419,10 +412,9 @@ def test_lateral_dependence_in_the_dual_problem_is_found_and_fixed(start, seed,
         assert term in added
     final = result.rounds[-1].result
     _assert_dual_at_floor(final, scenario)
-    lateral = scenario.platen.effects.lateral
+    lateral = symcal.simulation.truth(scenario)["effects"]["lateral"]["values"]
     params = dict(final.params)
     for i, other in enumerate(("s4", "s1", "s2", "s3")):
-        true = lateral[i]
-        for name, value in ((f"s{i + 1}.h1_sin_{other}_u", true.k9),
-                            (f"s{i + 1}.h1_cos_{other}_u", true.k10)):
+        for name, value in ((f"s{i + 1}.h1_sin_{other}_u", lateral[f"s{i + 1}.k9"]),
+                            (f"s{i + 1}.h1_cos_{other}_u", lateral[f"s{i + 1}.k10"])):
             assert abs(params[name].value - value) < 3 * params[name].se, name

@@ -159,8 +159,8 @@ def test_recovery_within_four_standard_errors(solved) -> None:
 def test_calibrated_residual_at_noise_floor(solved) -> None:
     result, _, _ = solved
     floor = 2 * NOISE * np.sqrt((1000 - 33) / 1000)
-    assert result.stat("g_p").after.rms == pytest.approx(floor, rel=0.1)
-    assert result.stat("g_p").before.rms > 5 * floor
+    assert result.stat("g_p", unit="mm").after.rms == pytest.approx(floor, rel=0.1)
+    assert result.stat("g_p", unit="mm").before.rms > 5 * floor
 
 
 def _variant(tmp_path: Path, extra: str, constraint: str) -> Path:

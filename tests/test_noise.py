@@ -5,7 +5,6 @@ section, units checked (exact error text); floors against an independent computa
 
 from __future__ import annotations
 
-import dataclasses
 import textwrap
 from pathlib import Path
 
@@ -14,6 +13,7 @@ import pytest
 from conftest import ROOT
 
 import symcal
+import symcal.simulation
 from symcal.analysis.floors import Fit, chi2_band, floor_tests, row_covariances
 from symcal.base.errors import SpecError
 from symcal.base.numeric import mapped
@@ -218,11 +218,8 @@ def test_floor_agrees_with_a_monte_carlo_of_the_declared_noise() -> None:
     (first order is exact here to 1e-3)."""
     problem = symcal.load_problem(PROBLEMS / "dual_sensor_calibration.yaml")
     sc = load_scenario(SCENARIOS / "courier_dual_clean.yaml")
-    quiet = dataclasses.replace(sc, platen=dataclasses.replace(sc.platen, noise=0.0,
-                                                               quantization=0.0),
-                                coordination=dataclasses.replace(sc.coordination, noise=0.0))
-    data = make_dataset("calibration", "noiseless", simulate_run(quiet, "calibration", 0, 50),
-                        [])
+    data = make_dataset("calibration", "noiseless",
+                        simulate_run(symcal.simulation.quiet(sc), "calibration", 0, 50), [])
     theta = np.array([p.value for p in problem.parameters])
     names = tuple(c.name for c in problem.constraints)
     floor = np.sqrt(np.diagonal(row_covariances(problem, names, data, theta), axis1=1,

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import symcal
+import symcal.simulation
 from symcal.base.errors import SpecError
 from symcal.language.overlay import (
     MAX_DEPTH,
@@ -98,23 +99,34 @@ datasets:
 SCENARIO = """\
 scenario: base
 doc: a toy courier
-platen:
-  noise: 0.001
-  segments:
-    s1: {k0: 0.004, k1: 0.017}
-    s2: {k0: -0.003}
-    s3: {k2: 0.014}
-    s4: {k1: -0.004}
-  effects:
-    lateral:
-      s1: {k9: -0.003, k10: 0.0015}
-    drift:
-      s1: {rate: 1.0e-5}
+constants:
+  sigma: 0.001
+  rho: {value: 1, unit: mm}
+truth:
+  s1.k0: 0.004
+  s1.k1: 0.017
+  s2.k0: -0.003
+states:
+  x: {unit: mm}
+  y: {unit: mm}
+  theta: {unit: deg}
+expressions:
+  e1: s1.k0 + s1.k1*sin(x/rho)
+columns:
+  p1: {expr: x - e1, unit: mm, noise: sigma}
+  p2: {expr: y - s2.k0, unit: mm, noise: sigma}
+effects:
+  lateral:
+    values: {s1.k9: -0.003, s1.k10: 0.0015}
+    add: {e1: s1.k9*sin(y/rho) + s1.k10*cos(y/rho)}
+  drift:
+    values: {s1.rate: 1.0e-5}
+    add: {e1: s1.rate*t}
 runs:
   calibration:
-    scatter: {n: 50, x: [0.0, 10.0], y: [0.0, 10.0], theta_deg: [-0.5, 0.5]}
+    scatter: {n: 50, x: [0.0, 10.0], y: [0.0, 10.0], theta: [-0.5, 0.5]}
   flyby:
-    line: {n: 20, from: [5.0, -5.0], to: [5.0, 5.0]}
+    line: {n: 20, from: {x: 5.0, y: -5.0}, to: {x: 5.0, y: 5.0}, theta: 0}
 """
 
 
@@ -225,9 +237,8 @@ def test_bundled_scenario_overlays_simulate_the_same_data(name: str) -> None:
     new = load_scenario(ROOT / "problems" / "scenarios" / f"{name}.yaml")
     old = load_scenario(CASES / f"{name}_full.yaml")
     assert new.name == old.name == name
-    # the design space (symcal design) is inherited but does not change the data
-    assert dataclasses.replace(new, doc="", source="", design=None) == dataclasses.replace(
-        old, doc="", source="", design=None)
+    assert symcal.simulation.truth(new) == symcal.simulation.truth(old)
+    assert new.column_names == old.column_names and new.run_names == old.run_names
     for run in old.run_names:
         for seed in (0, 3):
             a, b = simulate_run(new, run, seed=seed), simulate_run(old, run, seed=seed)
@@ -487,10 +498,11 @@ def test_scenarios_merge_deeply_and_null_removes(toy: Path) -> None:
     _write(toy, {"clean.yaml": """\
         scenario: clean
         extends: base/scen.yaml
-        platen:
-          noise: 0.0005
-          segments: {s1: {k1: 0.02}, s4: {k1: ~}}
-          effects: {drift: ~}
+        constants: {sigma: 0.0005}
+        truth: {s1.k1: 0.02, s2.k0: ~}
+        effects: {drift: ~}
+        expressions: {e1: s1.k0 + s1.k1*sin(x/rho)}
+        columns: {p2: {expr: y}}
         runs:
           calibration: {scatter: {x: [1.0, 2.0]}}
           flyby: ~
@@ -498,37 +510,41 @@ def test_scenarios_merge_deeply_and_null_removes(toy: Path) -> None:
     scenario = load_scenario(toy / "clean.yaml")
     base = load_scenario(toy / "base" / "scen.yaml")
     assert scenario.name == "clean" and scenario.doc == "a toy courier"
-    assert scenario.platen.noise == 0.0005
-    assert scenario.platen.segments[0][:2] == (0.004, 0.02)
-    assert scenario.platen.segments[3] == (0.0,) * 9
-    assert scenario.platen.segments[1:3] == base.platen.segments[1:3]
-    assert scenario.platen.effects.active() == ("lateral",)
+    assert scenario.column("p1").noise == 0.0005 and scenario.column("p2").noise == 0.0005
+    assert [(v.name, v.value) for v in scenario.truth] == [("s1.k0", 0.004), ("s1.k1", 0.02)]
+    assert [e.name for e in scenario.active_effects] == ["lateral"]
+    assert [e.name for e in base.active_effects] == ["lateral", "drift"]
     assert scenario.run_names == ("calibration",)
     scatter = scenario.runs[0].motion
-    assert (scatter.n, scatter.x, scatter.y) == (50, (1.0, 2.0), (0.0, 10.0))
+    assert (scatter.n, dict(scatter.ranges)["x"], dict(scatter.ranges)["y"]) == (
+        50, (1.0, 2.0), (0.0, 10.0))
     doc = plain(load_with_extends(toy / "clean.yaml", "scenario", merge_scenario)[0])
-    assert doc["platen"]["effects"] == {"lateral": {"s1": {"k9": -0.003, "k10": 0.0015}}}
+    assert doc["effects"] == {"lateral": {"values": {"s1.k9": -0.003, "s1.k10": 0.0015},
+                                          "add": {"e1": "s1.k9*sin(y/rho) + s1.k10*cos(y/rho)"}}}
+    assert doc["columns"]["p2"] == {"expr": "y", "unit": "mm", "noise": "sigma"}
 
 
 def test_scenario_without_effects(toy: Path) -> None:
-    _write(toy, {"clean.yaml": "scenario: clean\nextends: base/scen.yaml\n"
-                               "platen: {effects: ~}\n"})
+    _write(toy, {"clean.yaml": "scenario: clean\nextends: base/scen.yaml\neffects: ~\n"})
     scenario = load_scenario(toy / "clean.yaml")
-    assert scenario.platen.effects.active() == ()
+    assert scenario.active_effects == ()
     base = load_scenario(toy / "base" / "scen.yaml")
-    platen = dataclasses.replace(base.platen, effects=scenario.platen.effects)
-    assert scenario.platen == platen
+    plain_base = base.overlay({"effects": None})
+    for seed in (0, 1):
+        a = simulate_run(scenario, "calibration", seed=seed)
+        b = simulate_run(plain_base, "calibration", seed=seed)
+        assert all(np.array_equal(a[c], b[c]) for c in a)
 
 
 def test_scenario_errors_name_the_file_that_wrote_the_key(toy: Path) -> None:
     scen = toy / "base" / "scen.yaml"
-    scen.write_text(scen.read_text().replace("noise: 0.001", "nosie: 0.001"))
+    scen.write_text(scen.read_text().replace("noise: sigma}", "nosie: sigma}", 1))
     _write(toy, {"clean.yaml": "scenario: clean\nextends: base/scen.yaml\n"
-                               "platen: {l_s: -1}\n"})
+                               "runs: {calibration: {dt: -1}}\n"})
     message = _message(load_scenario, toy / "clean.yaml")
-    assert message.startswith("base/scen.yaml:4: platen.nosie: unknown key 'nosie' "
+    assert message.startswith("base/scen.yaml:17: columns.p1.nosie: unknown key 'nosie' "
                               "(did you mean 'noise'?); allowed keys: ")
     assert message.endswith(" (in the base of clean.yaml)")
     scen.write_text(SCENARIO)
     assert _message(load_scenario, toy / "clean.yaml") == (
-        "clean.yaml:3: platen.l_s: expected a positive number, found -1")
+        "clean.yaml:3: runs.calibration.dt: expected a positive number, found -1")

@@ -3,30 +3,28 @@ and a hidden lateral effect that keeps the residual above the floor."""
 
 from __future__ import annotations
 
-import dataclasses
-
+import courier_scenarios
 import numpy as np
 import pytest
 from conftest import ROOT
 
 import symcal
 from symcal.data.dataset import make_dataset
-from symcal.simulation import load_scenario, noise_floor, simulate_run, truth
-from symcal.simulation.scenario import Effects, Lateral
+from symcal.simulation import simulate_run, truth
 
 PROBLEM = ROOT / "problems" / "platen_self_calibration.yaml"
-SCENARIO = ROOT / "problems" / "scenarios" / "courier_platen.yaml"
 N = 1000
 RANK = 33
 
 
-def _clean(effects: Effects | None = None, noise: float = 5e-4):
+def _clean(*effects: dict):
     """The default scenario with the model's own assumptions (error at the reading,
-    small-angle geometry) and only the given effects."""
-    sc = load_scenario(SCENARIO)
-    platen = dataclasses.replace(sc.platen, effects=effects or Effects(), noise=noise,
-                                 distortion_at="reading", geometry="small_angle")
-    return dataclasses.replace(sc, platen=platen)
+    small-angle geometry: courier_platen_model.yaml) and only the given effects."""
+    return courier_scenarios.platen(*effects)
+
+
+def _floor(scenario) -> float:
+    return courier_scenarios.floors(PROBLEM, scenario)["g_p_std"]
 
 
 def _solve(scenario, seed: int) -> symcal.Result:
@@ -57,10 +55,10 @@ def test_every_identifiable_parameter_within_four_standard_errors(clean_result) 
 
 def test_calibrated_residual_at_noise_floor(clean_result) -> None:
     scenario, result = clean_result
-    floor = noise_floor(scenario)["g_p_std"] * np.sqrt((N - RANK) / N)
-    after = result.stat("g_p").after.std
+    floor = _floor(scenario) * np.sqrt((N - RANK) / N)
+    after = result.stat("g_p", unit="mm").after.std
     assert abs(after / floor - 1) < 0.2, (after, floor)
-    assert result.stat("g_p").before.std > 20 * floor
+    assert result.stat("g_p", unit="mm").before.std > 20 * floor
 
 
 def test_fly_by_improves_against_interferometer(clean_result) -> None:
@@ -84,11 +82,12 @@ def test_hidden_lateral_effect_keeps_residual_above_floor(scale, min_ratio) -> N
     floor's own sampling spread at N = 1000 is about 2.3 %, so 1.05 is a clear margin.
     The interferometer exposes what g_p hides: the stationary pair's angle on the fly-by.
     """
-    lateral = tuple(Lateral(k9 * scale, k10 * scale) for k9, k10 in LATERAL)
-    scenario = _clean(Effects(lateral=lateral))
+    lateral = [courier_scenarios.lateral(i + 1, k9 * scale, k10 * scale)
+               for i, (k9, k10) in enumerate(LATERAL)]
+    scenario = _clean(*lateral)
     result = _solve(scenario, seed=12)
-    floor = noise_floor(scenario)["g_p_std"] * np.sqrt((N - RANK) / N)
-    ratio = result.stat("g_p").after.std / floor
+    floor = _floor(scenario) * np.sqrt((N - RANK) / N)
+    ratio = result.stat("g_p", unit="mm").after.std / floor
     assert ratio > min_ratio, ratio
     clean = _solve(_clean(), seed=12).stat("theta_x", "flyby")
     assert result.stat("theta_x", "flyby").after.std > 5 * clean.after.std

@@ -33,7 +33,6 @@ from symcal.report.text import (
 )
 from symcal.revise.diagnose import diagnose
 from symcal.revise.ladder import compare, revision_labels
-from symcal.simulation import load_scenario, noise_floor
 
 PLATEN = ROOT / "problems" / "platen_self_calibration.yaml"
 SCENARIOS = ROOT / "problems" / "scenarios"
@@ -58,6 +57,12 @@ datasets:
 {more}""")
 
 
+def _series(result: symcal.Result, name: str, dataset: str | None = None):
+    """A residual's statistics as stored (internal units, with its floor test)."""
+    dataset = dataset or result.problem.fit_dataset
+    return next(s for s in result.statistics if (s.name, s.dataset) == (name, dataset))
+
+
 @pytest.fixture(scope="module")
 def gain(tmp_path_factory) -> symcal.Result:
     """Clean courier but for an angle-dependent gain in segment 2 (6 mm/rad): with the
@@ -68,10 +73,10 @@ def gain(tmp_path_factory) -> symcal.Result:
     _write(folder / "scenario.yaml", f"""\
 scenario: courier_platen_angle_gain
 extends: {SCENARIOS / "courier_platen_clean.yaml"}
-platen:
-  effects:
-    angle:
-      s2: {{a: 6.0}}
+effects:
+  angle_s2:
+    values: {{s2.a: 6.0}}
+    add: {{e2: ang*s2.a}}
 """)
     return symcal.solve(_variant(folder, "scenario.yaml", "platen_angle_gain",
                                  "weighting: equal\n"))
@@ -109,8 +114,9 @@ def test_regression_flagged_in_result_text_and_json(gain: symcal.Result) -> None
     stats = gain.stat("position_y", "flyby")
     assert (reg.dataset, reg.name, reg.kind, reg.measure, reg.unit) == (
         "flyby", "position_y", "comparison", "std", "um")
-    assert reg.before == pytest.approx(stats.before.std / 1e-3)
-    assert reg.after == pytest.approx(stats.after.std / 1e-3)
+    assert stats.unit == "um"                          # the values are in the unit stated
+    assert reg.before == pytest.approx(stats.before.std)
+    assert reg.after == pytest.approx(stats.after.std)
     assert 7 < reg.before < 9 and reg.after > 2 * reg.before
 
     text = text_report(gain)
@@ -179,7 +185,7 @@ def test_floor_column_is_the_propagated_noise(clean: symcal.Result) -> None:
     estimate: 2 σ times the RMS slope of the calibrated readings, within 1 % of the
     simulator's 2 σ (which takes the slope as 1); the report reads it from the result."""
     floors = noise_floors(clean)
-    sim = noise_floor(load_scenario(SCENARIOS / "courier_platen_clean.yaml"))["g_p_std"]
+    sim = 2 * np.sqrt(0.0005**2 + 0.0002**2 / 12)   # 0.5 µm noise, 0.2 µm steps, 2 readings
     assert set(floors) == {(d, n) for d in ("calibration", "flyby")
                            for n in ("g_p", "theta_x", "theta_y")} | {("flyby", "position_y")}
     for dataset in ("calibration", "flyby"):
@@ -195,7 +201,7 @@ def test_floor_column_is_the_propagated_noise(clean: symcal.Result) -> None:
     # at the raw reading leaves e'·e, scenario courier_platen_clean.yaml): above it on the
     # calibration scatter (χ²/dof 1.57), at it on the fly-by
     for dataset, mark in (("calibration", "ABOVE"), ("flyby", "at")):
-        s = clean.stat("g_p", dataset)
+        s = _series(clean, "g_p", dataset)
         row = next(ln for ln in lines if ln.split()[:2] == [dataset, "g_p"])
         lo, hi = s.noise.band
         assert row.split()[-5:] == ["µm", f"{s.floor / 1e-3:.4g}", f"{s.chi2_dof:.3g}",
@@ -248,7 +254,7 @@ def test_floor_unknown_without_declared_noise_and_estimated_on_time_ordered_rows
                for s in json.loads(json_report(unknown))["statistics"])
 
     ordered = symcal.solve(_bare_problem(tmp_path / "b", time=True), data)
-    s = ordered.stat("g_p")
+    s = _series(ordered, "g_p")
     assert s.noise.method == "successive differences"
     # the scatter's poses are random in time: successive differences see the noise and the
     # model's remaining error alike, here the noise alone (1 µm), within its sampling error
@@ -256,8 +262,8 @@ def test_floor_unknown_without_declared_noise_and_estimated_on_time_ordered_rows
     assert "* estimated from the data (successive differences" in text_report(ordered)
 
     declared = symcal.solve(PLATEN, data)
-    assert declared.stat("g_p").noise.method == "propagated"
-    assert declared.stat("g_p").floor == pytest.approx(2 * 0.503e-3, rel=0.02)
+    assert _series(declared, "g_p").noise.method == "propagated"
+    assert _series(declared, "g_p").floor == pytest.approx(2 * 0.503e-3, rel=0.02)
 
 
 def test_bundled_report_uses_symbols() -> None:
@@ -323,7 +329,7 @@ def test_diagnosis_report_flags_the_regression(gain: symcal.Result, gain_diagnos
     assert head[1:] == [f"  {ln}" for ln in diagnosis_verdict(gain_diagnosis)]
     assert f"  {line}" in head
     assert f"  {line} ({reg.ratio:.2f} ×)" in text.split("Worse after calibration")[1]
-    stats = gain.stat("g_p", "flyby")
+    stats = _series(gain, "g_p", "flyby")
     floor, (lo, hi) = stats.floor, stats.noise.band
     std = float(np.std(next(v for v in gain_diagnosis.residuals
                              if (v.dataset, v.name) == ("flyby", "g_p")).after)) / 1e-3
@@ -340,7 +346,7 @@ def test_diagnosis_document(gain: symcal.Result, gain_diagnosis) -> None:
     assert doc["verdict"] == diagnosis_verdict(gain_diagnosis)
     rows = {(r["dataset"], r["name"]): r for r in doc["residuals"]}
     for key in (("flyby", "g_p"), ("flyby", "position_y")):
-        stats = gain.stat(key[1], key[0])
+        stats = _series(gain, key[1], key[0])
         assert rows[key]["noise_floor"] == pytest.approx(stats.floor / 1e-3)
         assert rows[key]["chi2_dof"] == pytest.approx(stats.chi2_dof)
     assert doc["at_floor"] is False

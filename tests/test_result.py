@@ -71,14 +71,18 @@ def test_value_agrees_with_an_independent_evaluation(project) -> None:
                      + k[f"s{i}.k{col + 1}"] * np.cos(h * f * p))
         return p + e
 
-    g_p = (p_hat(1) - p_hat(3)) - (p_hat(2) - p_hat(4))
-    np.testing.assert_allclose(result.value("g_p", "flyby"), g_p, rtol=0, atol=1e-12)
+    g_p = (p_hat(1) - p_hat(3)) - (p_hat(2) - p_hat(4))     # mm, internal
+    # in the unit each quantity declares (g_p in um, theta_x in mrad), or as asked
+    assert result.unit_of("g_p") == "um" and result.unit_of("theta_x") == "mrad"
+    np.testing.assert_allclose(result.value("g_p", "flyby"), g_p / 1e-3, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(result.value("g_p", "flyby", unit="(internal)"), g_p, rtol=0,
+                               atol=1e-12)
     # an expression (a comparison of the same name is reached as NAME only when no
     # constraint, expression or signal has it)
-    np.testing.assert_allclose(result.value("theta_x", "flyby"), (p_hat(1) - p_hat(3)) / 9.7,
-                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(result.value("theta_x", "flyby", unit="rad"),
+                               (p_hat(1) - p_hat(3)) / 9.7, rtol=0, atol=1e-12)
     # a comparison: estimate − reference
-    np.testing.assert_allclose(result.value("position_y", "flyby"),
+    np.testing.assert_allclose(result.value("position_y", "flyby", unit="mm"),
                                (p_hat(2) + p_hat(4)) / 2 - fly["y_ref"], rtol=0, atol=1e-12)
     with pytest.raises(KeyError, match="no quantity 'g_q' \\(did you mean 'g_p'\\?\\)"):
         result.value("g_q")
@@ -149,7 +153,7 @@ def test_a_reloaded_result_renders_byte_for_byte_the_same(tmp_path, monkeypatch)
     simulation (both are made to fail here), and gives the same text and JSON."""
     import builtins
 
-    import symcal.simulation.courier
+    import symcal.simulation.engine
     from symcal.report.text import json_report, text_report
 
     result = symcal.solve(ROOT / "problems" / "dual_sensor_calibration.yaml")
@@ -162,8 +166,8 @@ def test_a_reloaded_result_renders_byte_for_byte_the_same(tmp_path, monkeypatch)
     monkeypatch.setattr(builtins, "open", refuse)
     monkeypatch.setattr(Path, "read_text", refuse)
     monkeypatch.setattr(Path, "read_bytes", refuse)
-    for name in ("simulate_run", "simulate", "noise_floor", "truth"):
-        monkeypatch.setattr(symcal.simulation.courier, name, refuse)
+    for name in ("simulate_run", "simulate", "run_states", "truth"):
+        monkeypatch.setattr(symcal.simulation.engine, name, refuse)
     again_text = text_report(loaded)
     again_doc = json_report(loaded)
     monkeypatch.undo()

@@ -15,10 +15,10 @@
 
 from __future__ import annotations
 
-import dataclasses
 import re
 from pathlib import Path
 
+import courier_scenarios
 import numpy as np
 import pytest
 import scipy.optimize
@@ -30,7 +30,6 @@ from symcal.data.dataset import make_dataset
 from symcal.report.text import diagnosis_document, diagnosis_report, text_report
 from symcal.revise.diagnose import diagnose
 from symcal.simulation import load_scenario, simulate_run, slipped_rows, truth
-from symcal.simulation.scenario import CountSlip, Effects
 
 LOSSES = ("huber", "soft_l1", "cauchy", "arctan")
 
@@ -174,14 +173,10 @@ constraints:
 
 def _slipping(fraction: float = 0.01, segment: int = 0):
     """The default scenario with the model's assumptions (as in test_recovery) and count
-    slips of one segment (s1) on ``fraction`` of the observations."""
-    sc = load_scenario(SCENARIO)
-    slips = [CountSlip()] * 4
-    slips[segment] = CountSlip(fraction)
-    effects = Effects(count_slips=tuple(slips))
-    platen = dataclasses.replace(sc.platen, effects=effects, noise=5e-4,
-                                 distortion_at="reading", geometry="small_angle")
-    return dataclasses.replace(sc, platen=platen)
+    slips of one segment (s1) on ``fraction`` of the observations (every segment is
+    listed, so that each draws from the slips' stream as the courier simulator did)."""
+    fractions = {i: fraction if i == segment + 1 else 0.0 for i in range(1, 5)}
+    return courier_scenarios.platen(courier_scenarios.count_slips(fractions))
 
 
 @pytest.fixture(scope="module")
@@ -223,7 +218,7 @@ def test_a_robust_loss_recovers_every_parameter_within_three_standard_errors(sli
 
 def test_the_robust_report_names_the_slipped_rows(slips) -> None:
     scenario, data, _, robust, _ = slips
-    slipped = slipped_rows(scenario, "calibration", SEED)["s1"]
+    slipped = slipped_rows(scenario, "calibration", SEED)["p1"]
     assert 4 <= len(slipped) <= 20            # 1 % of 1000, drawn
     outliers = robust.outliers
     assert outliers.squared is False and not outliers.dominate
@@ -245,7 +240,7 @@ def test_with_squared_residuals_the_report_says_outliers_dominate(slips) -> None
     outliers = squared.outliers
     assert outliers.squared and outliers.dominate
     assert sorted(o.row for o in outliers.listed) == slipped_rows(scenario, "calibration",
-                                                                  SEED)["s1"]
+                                                                  SEED)["p1"]
     text = text_report(squared)
     verdict = text.split("\n\n")[1]
     assert "outliers dominate:" in verdict and "a robust loss is the remedy" in verdict
@@ -282,7 +277,7 @@ def _worst_gap(result: symcal.Result, reference: symcal.Result) -> float:
 
 def _without_slips(scenario, data, seed: int) -> symcal.Result:
     """The squared fit on the same data without the slipped rows: the answer."""
-    rows = slipped_rows(scenario, "calibration", seed)["s1"]
+    rows = slipped_rows(scenario, "calibration", seed)["p1"]
     columns = data["calibration"].columns
     keep = np.ones(data["calibration"].n, dtype=bool)
     keep[rows] = False
@@ -316,7 +311,7 @@ def test_diagnose_flags_outliers_before_missing_effects_and_its_yaml_works(slips
     assert _worst_gap(fixed, _without_slips(scenario, data, SEED)) < 1.0
     assert not fixed.outliers.dominate      # what diagnose checks first
     assert sorted(o.row for o in fixed.outliers.listed) == slipped_rows(
-        scenario, "calibration", SEED)["s1"]
+        scenario, "calibration", SEED)["p1"]
 
 
 @pytest.mark.slow
@@ -344,39 +339,40 @@ def test_outliers_survive_save_and_load(slips) -> None:
 
 def test_the_simulated_slips_are_where_the_truth_says() -> None:
     scenario = _slipping(0.05, segment=1)
-    clean = dataclasses.replace(scenario, platen=dataclasses.replace(
-        scenario.platen, effects=Effects()))
+    clean = scenario.overlay({"effects": {"count_slips": {"on": False}}})
     slipped = simulate_run(scenario, "calibration", seed=4, n=600)
     plain = simulate_run(clean, "calibration", seed=4, n=600)
-    rows = truth(scenario, seed=4, n=600)["effects"]["count_slips"]["values"]["rows"]
+    rows = truth(scenario, seed=4, n=600)["effects"]["count_slips"]["rows"]
     assert rows["calibration"] == slipped_rows(scenario, "calibration", 4, 600)
-    for i, name in enumerate(("s1", "s2", "s3", "s4")):
-        jump = slipped[f"p{i + 1}"] - plain[f"p{i + 1}"]
+    for i in range(1, 5):
+        jump = slipped[f"p{i}"] - plain[f"p{i}"]
         hit = np.flatnonzero(jump)
-        assert hit.tolist() == rows["calibration"][name]
+        assert hit.tolist() == rows["calibration"][f"p{i}"]
         np.testing.assert_allclose(np.abs(jump[hit]), 1.016 / 4, rtol=1e-12)
-    assert 15 <= len(rows["calibration"]["s2"]) <= 45      # 5 % of 600 (binomial)
+    assert 15 <= len(rows["calibration"]["p2"]) <= 45      # 5 % of 600 (binomial)
     assert {"t", "p1", "x_ref"} <= set(slipped) and slipped["t"].size == 600
     # a shorter run is a prefix of a longer one
-    assert slipped_rows(scenario, "calibration", 4, 300)["s2"] == [
-        r for r in rows["calibration"]["s2"] if r < 300]
-    assert truth(scenario)["effects"]["count_slips"]["values"] == {
-        "fraction": {"s1": 0.0, "s2": 0.05, "s3": 0.0, "s4": 0.0}}
+    assert slipped_rows(scenario, "calibration", 4, 300)["p2"] == [
+        r for r in rows["calibration"]["p2"] if r < 300]
+    assert {c: v["fraction"] for c, v in truth(scenario)["effects"]["count_slips"][
+        "slips"].items()} == {"p1": 0.0, "p2": 0.05, "p3": 0.0, "p4": 0.0}
 
 
 def test_a_scenario_declares_count_slips(tmp_path: Path) -> None:
     clean = ROOT / "problems" / "scenarios" / "courier_platen_clean.yaml"
     path = tmp_path / "slips.yaml"
-    path.write_text(f"scenario: slips\nextends: {clean}\nplaten:\n  effects:\n"
-                    "    count_slips: {s3: {fraction: 1.5}}\n")
+    path.write_text(f"scenario: slips\nextends: {clean}\neffects:\n"
+                    "  count_slips: {slips: {p3: {fraction: 1.5, size: rho/4}}}\n")
     with pytest.raises(SpecError) as err:
         load_scenario(path)
-    assert err.value.detail == ("fraction is a share of the observations: expected a number "
-                                "from 0 to 1, found 1.5")
+    assert str(err.value).endswith("effects.count_slips.slips.p3.fraction: fraction is a "
+                                   "share of the observations: expected a number from 0 to "
+                                   "1, found 1.5")
     path.write_text(path.read_text().replace("1.5", "0.02"))
-    effects = load_scenario(path).platen.effects
-    assert effects.active() == ("count_slips",)
-    assert [e.fraction for e in effects.count_slips] == [0.0, 0.0, 0.02, 0.0]
+    effects = load_scenario(path).active_effects
+    assert [e.name for e in effects] == ["count_slips"]
+    assert [(s.column, s.fraction, s.size) for s in effects[0].slips] == [
+        ("p3", 0.02, 1.016 / 4)]
 
 
 # --------------------------------------------------------------------------- bad input

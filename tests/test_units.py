@@ -38,8 +38,12 @@ def test_sizes_in_internal_units_are_exact() -> None:
 def test_unknown_and_offset_units_are_refused() -> None:
     assert units.check_unit("furlong") is None            # exotic but valid: a length
     assert units.check_unit("mmm") == "unknown unit 'mmm' (did you mean 'mm'?)"
-    assert units.check_unit("degC") == ("unit 'degC' has an offset (like degC): it cannot be "
-                                        "scaled; use an absolute unit (K)")
+    assert units.check_unit("degC") == (
+        "unit 'degC' has an offset (0 degC is 273.15 K): symcal converts units by scaling "
+        "alone, which cannot carry an offset; use 'kelvin' for a temperature, or "
+        "'delta_degC' for a temperature difference")
+    assert units.size("kelvin") == units.size("delta_degC") == 1.0     # the alternatives
+    assert units.size("delta_degF") == pytest.approx(5 / 9)
     assert units.check_unit("1000 mm") == "'1000 mm' is not a unit (it holds a number)"
 
 

@@ -7,8 +7,12 @@ data:
 - **offset**: a constant direction leaves every constraint unchanged (parameters that
   enter only through a difference, e.g. two encoders' zeros);
 - **scale**: the constraints are homogeneous in a set of parameters,
-  ``g(λ^w·θ_S) = λ^k·g(θ_S)``: whatever fits, a scaled copy fits too, and a least-squares
-  solve slides down to the trivial point where the whole set is zero;
+  ``g(λ^w·θ_S) = λ^k·g(θ_S)``, the powers ``w`` of either sign: whatever fits, a scaled
+  copy fits too, and for ``k > 0`` a least-squares solve slides down to the trivial point
+  where those with a positive power are zero (and those with a negative one grow without
+  bound); ``k = 0`` is an invariance (``(r, b) → (λ r, λ b)`` in ``r/b``).  The powers
+  are found jointly at the random points, as the constant ``w`` with
+  ``J·(w∘θ) = k·g`` at every one of them;
 - **rotation**: the constraints turn together (``g → R(α)·g``), so the cost
   ``Σ‖g‖²`` is unchanged although no single constraint is, e.g. a base frame's angle
   turned together with a point expressed in it;
@@ -26,12 +30,19 @@ Euler relation), ``K`` antisymmetric for a rotation.  The Jacobian is the model'
 noise-free one at random points, so a symmetry found here is exact whatever the noise in
 the data; :mod:`symcal.base.linalg` decides what is numerically zero.  The test uses a bounded,
 evenly spread sample of the observations (:data:`SAMPLE`).
+
+Gauges that share parameters are one *fix set* when fixing one suggested parameter of
+each would not fix them all (two scales that both suggest ``r``): each then says how many
+of their parameters to fix, with an example that does.  A solve that ends where the
+constraints vanish whatever the data (on the sample with each column scrambled) is a
+collapse onto a trivial point, whatever its gauge was called.
 """
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -120,6 +131,11 @@ class Gauge:
 
 def _names(names: list[str] | tuple[str, ...]) -> str:
     return ", ".join(names)
+
+
+def _are(names: list[str], what: str) -> str:
+    """``a is zero`` or ``a, b are all zero``."""
+    return f"{names[0]} is {what}" if len(names) == 1 else f"{_names(names)} are all {what}"
 
 
 def _one_of(names: list[str]) -> str:
@@ -282,6 +298,7 @@ class GaugeAnalysis:
     points: int
     observations: int
     names: tuple[str, ...]
+    sample: Any = field(default=None, compare=False, repr=False)   # _Sample of the search
 
     @property
     def dimension(self) -> int:
@@ -290,23 +307,70 @@ class GaugeAnalysis:
 
     def collapse(self, theta_start: np.ndarray, theta_end: np.ndarray,
                  objective: Objective) -> str | None:
-        """Why the solve failed, when it slid onto the trivial point of a scale gauge
-        (every parameter of a homogeneous set gone to zero); None otherwise."""
+        """Why the solve failed, when it slid onto a trivial point: a scale gauge's
+        parameters of positive power all gone to zero (or those of negative power grown
+        without bound), or, whatever the gauges were called, constraints that vanish at
+        the end whatever the data; None otherwise."""
         scales = dict(zip(objective.names, objective.scales, strict=True))
         index = objective.problem.index
         for gauge in self.gauges:
-            if gauge.kind != "scale" or not gauge.degree or gauge.degree <= 0:
+            if gauge.kind != "scale" or not gauge.degree or gauge.degree <= 0 or \
+                    gauge.weights is None:
                 continue
-            idx = [index[n] for n in gauge.parameters]
-            sc = np.array([scales[n] for n in gauge.parameters])
-            before = float(np.linalg.norm(theta_start[idx] / sc))
-            after = float(np.linalg.norm(theta_end[idx] / sc))
-            if before > 0 and after < COLLAPSE * before:
+            shrink = [n for n in gauge.parameters if gauge.weights.get(n, 0.0) > 0]
+            grow = [n for n in gauge.parameters if gauge.weights.get(n, 0.0) < 0]
+
+            def size(names: list[str], theta: np.ndarray) -> float:
+                return float(np.linalg.norm([theta[index[n]] / scales[n] for n in names]))
+
+            before, after = size(shrink, theta_start), size(shrink, theta_end)
+            if shrink and before > 0 and after < COLLAPSE * before:
+                grew = ""
+                if grow and size(grow, theta_end) > size(grow, theta_start):
+                    grew = f" and {_names(grow)} grew"
                 return (f"failed: the solve collapsed onto the trivial point of a gauge: "
-                        f"{_names(gauge.parameters)} all went to zero (their size fell to "
+                        f"{_names(shrink)} all went to zero{grew} (their size fell to "
                         f"{after / before:.2g} of its start), where the constraints, "
                         f"homogeneous in them, vanish whatever the data; {gauge.fix}")
-        return None
+            if grow and size(grow, theta_end) > size(grow, theta_start) / COLLAPSE:
+                return (f"failed: the solve collapsed onto the trivial point of a gauge: "
+                        f"{_names(grow)} grew without bound, where the constraints, "
+                        f"homogeneous in them, vanish whatever the data; {gauge.fix}")
+        return self._trivial(theta_start, theta_end, objective)
+
+    def _trivial(self, theta_start: np.ndarray, theta_end: np.ndarray,
+                 objective: Objective) -> str | None:
+        """The collapse of a solve that ends where the constraints vanish whatever the
+        data: on the sample with each column scrambled (no longer consistent), the
+        constraints at the end are below :data:`COLLAPSE` of their size at the start."""
+        sample = self.sample
+        if sample is None or not self.gauges or sample.u.shape[1] < 2:
+            return None
+        rng = np.random.default_rng(0)
+        scrambled = np.array([rng.permutation(row) for row in sample.u])
+        start = sample.at(theta_start, scrambled)
+        end = sample.at(theta_end, scrambled)
+        real = sample.at(theta_start)
+        if start is None or end is None or real is None:
+            return None
+        size0 = float(np.linalg.norm(start[0]))
+        if size0 == 0 or float(np.linalg.norm(start[0] - real[0])) < 1e-3 * size0:
+            return None      # the constraints hardly depend on the data
+        size1 = float(np.linalg.norm(end[0]))
+        if size1 >= COLLAPSE * size0:
+            return None
+        scales = dict(zip(objective.names, objective.scales, strict=True))
+        index = objective.problem.index
+        moved = [g for g in self.gauges if g.parameters]
+        zero = [n for g in moved for n in g.parameters
+                if abs(theta_end[index[n]]) < COLLAPSE * max(abs(theta_start[index[n]]),
+                                                             scales[n])]
+        zero = list(dict.fromkeys(zero))
+        fixes = "; ".join(dict.fromkeys(g.fix for g in moved))
+        went = f": {_names(zero)} went to zero" if zero else ""
+        return (f"failed: the solve collapsed onto a trivial point, where the constraints "
+                f"vanish whatever the data (on scrambled data their size fell to "
+                f"{size1 / size0:.2g} of the start's){went}; {fixes}")
 
     def directions(self, objective: Objective, data: Dataset, theta: np.ndarray
                    ) -> np.ndarray:
@@ -462,25 +526,240 @@ def find_gauges(objective: Objective, data: Dataset, theta: np.ndarray, seed: in
         return GaugeAnalysis((), 0, sample.u.shape[1], names)
     scales = sample.scales
     gauges: list[Gauge] = []
-    # scale and rotation first: what K ≠ 0 does
-    generators = _covariant(points, sample)
     reference = start if start is not None else points[0]
     units = {p.name: p.unit for p in objective.problem.parameters}
-    for k in generators:
-        gauges.append(_covariant_gauge(k, points, reference, sample, names, units))
-    # invariances (K = 0): constant ones are offsets, the rest symmetries
+    # homogeneities: constant powers w with J·(w∘θ) = k·g at every point
+    const = common_null([p.null for p in points], n)
+    powers, zero_degree = _homogeneities(points, sample, const)
+    # scale and rotation first: what K ≠ 0 does
+    for k in _covariant(points, sample):
+        if powers is not None and np.allclose(k.reshape(sample.ng, sample.ng),
+                                              np.eye(sample.ng)):
+            gauges.append(_scale_gauge(powers, 1.0, reference, sample, names, units))
+        else:
+            gauges.append(_covariant_gauge(k, points, reference, sample, names, units))
+    # invariances (K = 0): constant ones are offsets, homogeneities of degree 0 scales,
+    # the rest symmetries
     d_inv = min(p.null.shape[0] for p in points)
     if d_inv:
-        const = common_null([p.null for p in points], n)
         if const.size:
             rows = _rref(const * scales[None, :])
             gauges += _group_offsets(rows, names)
-        varying = d_inv - const.shape[0]
+        for w in zero_degree:
+            gauges.append(_scale_gauge(w, 0.0, reference, sample, names, units))
+        varying = d_inv - const.shape[0] - len(zero_degree)
         if varying > 0:
             gauges.append(_varying_gauge(varying, const, reference, points[0], names,
                                          scales))
     gauges.sort(key=lambda g: KINDS.index(g.kind))
-    return GaugeAnalysis(tuple(gauges), len(points), sample.u.shape[1], names)
+    gauges = _fix_sets(gauges, reference, names)
+    return GaugeAnalysis(tuple(gauges), len(points), sample.u.shape[1], names, sample)
+
+
+# --------------------------------------------------------------------------- homogeneities
+
+
+def _homogeneities(points: list[_Point], sample: _Sample, const: np.ndarray
+                   ) -> tuple[np.ndarray | None, list[np.ndarray]]:
+    """The constraints' homogeneities: constant powers ``w`` and degree ``k`` with
+    ``J·(w∘θ) = k·g`` at every random point (in parameter units).
+
+    Returns
+    -------
+    (powers, zero_degree)
+        ``powers``: the powers of degree 1 (None when there is none), the representative
+        with the fewest negative and the fewest non-zero powers; ``zero_degree``: the
+        invariances of this form (``k = 0``), readable rows, none of which is a constant
+        offset or a parameter the constraints do not depend on.
+    """
+    n = sample.n
+    if not points or any(p.g.size < n + 2 for p in points):
+        return None, []
+    blocks = []
+    for p in points:
+        theta = p.theta[sample.index] / sample.scales
+        blocks.append(np.column_stack([p.jac * theta[None, :], -p.g]))
+    stacked = np.vstack(blocks)
+    norms = np.linalg.norm(stacked, axis=0)
+    norms = np.where(norms > 0, norms, 1.0)
+    _, sv, vt = np.linalg.svd(stacked / norms[None, :], full_matrices=True)
+    sv = np.concatenate([sv, np.zeros(vt.shape[0] - sv.size)])
+    null = vt[sv <= EXACT_RTOL * max(float(sv[0]), 1e-300)] / norms[None, :]
+    if not null.size:
+        return None, []
+    dead = np.all(np.array([np.all(np.abs(p.jac) <= EXACT_RTOL * max(
+        float(np.abs(p.jac).max(initial=0.0)), 1e-300), axis=0) for p in points]), axis=0)
+    null[:, :n][:, dead] = 0.0
+    degree = null[:, n]
+    powers = None
+    if np.max(np.abs(degree)) > EXACT_RTOL * np.max(np.abs(null)):
+        lead = degree / float(degree @ degree)          # lead · degree = 1
+        powers = lead @ null[:, :n]
+        basis = null_basis(degree[None, :], 1) if null.shape[0] > 1 else np.zeros((0, 1))
+        flat = basis @ null[:, :n] if basis.size else np.zeros((0, n))
+    else:
+        flat = null[:, :n]
+    zero = _independent(flat, const, points[0], sample)
+    if powers is not None:
+        powers = _simplest(powers, zero)
+    return powers, zero
+
+
+def _independent(rows: np.ndarray, const: np.ndarray, point: _Point, sample: _Sample
+                 ) -> list[np.ndarray]:
+    """Readable rows (RREF, largest power 1) of the degree-0 powers that are no constant
+    offset: their directions at a point, with the offsets', have full rank."""
+    if not rows.size:
+        return []
+    rows = rows[np.linalg.norm(rows, axis=1) > 1e-12]
+    if not rows.size:
+        return []
+    rows = _rref(range_basis(rows.T).T) if rows.shape[0] > 1 else rows
+    theta = point.theta[sample.index] / sample.scales
+    kept: list[np.ndarray] = []
+    base = [c for c in const] if const.size else []
+    for row in rows:
+        trial = np.array([*base, *(k * theta for k in kept), row * theta])
+        if np.linalg.matrix_rank(trial, tol=1e-9 * max(float(np.abs(trial).max()), 1e-300)) \
+                == len(trial):
+            kept.append(row)
+    out = []
+    for row in kept:
+        row = np.where(np.abs(row) > 1e-12 * np.max(np.abs(row)), row, 0.0)
+        row = row / np.max(np.abs(row))
+        if row[np.flatnonzero(row)[0]] < 0:
+            row = -row
+        out.append(_tidy(row))
+    return out
+
+
+def _tidy(w: np.ndarray) -> np.ndarray:
+    """Powers rounded to whole numbers and simple fractions where they are one."""
+    out = w.copy()
+    for i, x in enumerate(w):
+        for den in (1, 2, 3, 4):
+            if abs(x * den - round(x * den)) < 1e-6:
+                out[i] = round(x * den) / den
+                break
+    return out
+
+
+def _simplest(powers: np.ndarray, zero: list[np.ndarray]) -> np.ndarray:
+    """Of ``powers`` plus degree-0 rows, the one with the fewest negative and non-zero
+    powers (a scale of a positive set, where there is one)."""
+    best = powers
+
+    def key(w: np.ndarray) -> tuple[int, int]:
+        big = 1e-9 * max(float(np.max(np.abs(w))), 1e-300)
+        return int(np.sum(w < -big)), int(np.sum(np.abs(w) > big))
+
+    for row in zero:
+        options = [best] + [best - best[j] / row[j] * row for j in np.flatnonzero(row)]
+        best = min(options, key=key)
+    return _tidy(best)
+
+
+def _scale_gauge(w: np.ndarray, degree: float, reference: _Point, sample: _Sample,
+                 names: tuple[str, ...], units: Mapping[str, str]) -> Gauge:
+    """A homogeneity of the constraints (powers ``w``, degree 0 or 1) as a scale gauge."""
+    ng = sample.ng
+    big = np.max(np.abs(w))
+    support = np.abs(w) > 1e-9 * big
+    involved = [names[i] for i in np.flatnonzero(support)]
+    norm = 1.0 / big
+    weights = {names[i]: float(f"{w[i] * norm:.6g}") for i in np.flatnonzero(support)}
+    degree = float(f"{degree * norm:.6g}")
+    direction = w * reference.theta[sample.index]
+    lengths = all(internal_unit(units.get(m, "")) == "mm" for m in involved)
+    known = "a known length" if lengths else "one of them a known value"
+    fix = f"fix {_one_of(involved)} or give {known}"
+    power = "" if all(abs(x - 1) < 1e-9 for x in weights.values()) else (
+        " (powers " + ", ".join(f"{m}: {x:g}" for m, x in weights.items()) + ")")
+    up = [m for m in involved if weights[m] > 0]
+    down = [m for m in involved if weights[m] < 0]
+    if degree == 0:
+        moved = f"{_names(up)} up together with {_names(down)} down" if down else _names(up)
+        text = (f"scale: the constraints are homogeneous of degree 0 in "
+                f"{_names(involved)}{power}: scaling {moved} leaves every constraint "
+                f"unchanged; {fix}")
+    else:
+        trivial = ("the trivial point where they are all zero" if not down else
+                   f"the trivial point where {_are(up, 'zero')} and {_names(down)} "
+                   f"{'grows' if len(down) == 1 else 'grow'} without bound")
+        text = (f"scale: the constraints are homogeneous of degree {degree:g} in "
+                f"{_names(involved)}{power}: scaling them all fits as well, down to "
+                f"{trivial}; {fix}")
+    generator = tuple(tuple(float(1.0 if (a == b and degree) else 0.0) for b in range(ng))
+                      for a in range(ng))
+    return Gauge("scale", tuple(involved), (_combination(direction, names),), fix, text,
+                 generator, weights, degree)
+
+
+# --------------------------------------------------------------------------- fix sets
+
+
+def _suggested(gauge: Gauge) -> list[tuple[str, ...]]:
+    """The choices a gauge's own fix offers: one parameter each (several for a gauge of
+    more than one direction: its example)."""
+    if gauge.dimension > 1:
+        found = gauge.fix.split("(e.g. ", 1)
+        if len(found) == 2:
+            return [tuple(found[1].rstrip(")").split(", "))]
+        return [gauge.parameters[:gauge.dimension]]
+    fix = gauge.fix.split(" or give ", 1)[0]
+    fix = fix.removeprefix("fix ").removeprefix("one of ")
+    return [(name,) for name in fix.split(", ")]
+
+
+def _fix_sets(gauges: list[Gauge], reference: _Point, names: tuple[str, ...]) -> list[Gauge]:
+    """Gauges that share parameters, where fixing one suggested parameter of each can
+    leave a direction free, as one fix set: each says how many of their parameters to
+    fix, with an example that fixes them all."""
+    groups: list[list[int]] = []
+    for i, gauge in enumerate(gauges):
+        joined = [g for g in groups if any(set(gauge.parameters) & set(gauges[j].parameters)
+                                           for j in g)]
+        merged = [i] + [j for g in joined for j in g]
+        groups = [g for g in groups if g not in joined] + [sorted(merged)]
+    out = list(gauges)
+    for group in groups:
+        if len(group) < 2:
+            continue
+        members = [gauges[i] for i in group]
+        rows = np.array([[c.coefficients.get(n, 0.0) for n in names]
+                         for g in members for c in g.directions])
+        rows = rows / np.max(np.abs(rows), axis=1, keepdims=True)
+        total = len(rows)
+
+        def fixes(chosen: tuple[str, ...], rows: np.ndarray = rows, total: int = total
+                  ) -> bool:
+            cols = [names.index(c) for c in dict.fromkeys(chosen)]
+            sub = rows[:, cols]
+            return len(cols) >= total and np.linalg.matrix_rank(sub, tol=1e-9) == total
+
+        combos = itertools.islice(itertools.product(*(_suggested(g) for g in members)), 4096)
+        if all(fixes(tuple(n for part in combo for n in part)) for combo in combos):
+            continue
+        union = list(dict.fromkeys(n for g in members for n in g.parameters))
+        count = {n: sum(n in g.parameters for g in members) for n in union}
+        chosen: list[str] = []
+        for name in sorted(union, key=lambda n: (count[n], union.index(n))):
+            cols = [names.index(c) for c in [*chosen, name]]
+            if np.linalg.matrix_rank(rows[:, cols], tol=1e-9) == len(cols):
+                chosen.append(name)
+            if len(chosen) == total:
+                break
+        example = (" and ".join(chosen) if len(chosen) <= 2
+                   else ", ".join(chosen[:-1]) + f" and {chosen[-1]}")
+        shared = [n for n in union if count[n] > 1]
+        fix = (f"fix {total} of {_names(union)}: e.g. {example} (these {len(members)} "
+               f"gauges share {_names(shared)}, so one fix of each is not enough)")
+        for i in group:
+            g = gauges[i]
+            text = g.text[: len(g.text) - len(g.fix)] + fix if g.text.endswith(g.fix) \
+                else f"{g.text}; {fix}"
+            out[i] = replace(g, fix=fix, text=text)
+    return out
 
 
 def _varying_gauge(count: int, const: np.ndarray, reference: _Point, fallback: _Point,
@@ -497,7 +776,9 @@ def _varying_gauge(count: int, const: np.ndarray, reference: _Point, fallback: _
             break
     involved = [names[i] for i in np.flatnonzero(
         np.any(np.abs(np.array(directions)) > 1e-9, axis=0))] if directions else list(names)
-    fix = f"fix {_one_of(involved)}" if count == 1 else f"fix {count} of {_names(involved)}"
+    pivots = [names[int(np.flatnonzero(np.abs(d) > 1e-9)[0])] for d in directions]
+    fix = (f"fix {_one_of(involved)}" if count == 1 else f"fix {count} of {_names(involved)}"
+           + (f" (e.g. {_names(pivots)})" if len(pivots) == count else ""))
     combos = tuple(_combination(d, names) for d in directions)
     text = (f"symmetry: moving {_names(involved)} together along a curve that depends on "
             f"where they are leaves every constraint unchanged; {fix}")

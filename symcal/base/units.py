@@ -105,7 +105,8 @@ def parse_unit(text: str) -> Unit:
     ------
     UnitError
         For a string pint does not know (with a did-you-mean), a magnitude inside it
-        (``"1000 mm"``), or an offset unit (``degC``), which cannot be scaled.
+        (``"1000 mm"``), or an offset unit (``degC``), which cannot be scaled
+        (:func:`offset_refusal` says why and what to use: ``kelvin``, ``delta_degC``).
     """
     if not isinstance(text, str):
         raise UnitError(f"a unit must be text, found {type(text).__name__}")
@@ -124,8 +125,7 @@ def parse_unit(text: str) -> Unit:
         raise UnitError(f"'{excerpt(text)}' {what}" if what
                         else f"unknown unit '{excerpt(text)}'{hint}") from None
     if not quantity._ok_for_muldiv():  # noqa: SLF001 - pint's test for offset units
-        raise UnitError(f"unit '{excerpt(text)}' has an offset (like degC): it cannot be "
-                        "scaled; use an absolute unit (K)")
+        raise UnitError(offset_refusal(text, quantity))
     unit = quantity.units
     if not math.isclose(quantity.magnitude, 1.0):
         raise UnitError(f"'{excerpt(text)}' is not a unit (it holds a number)")
@@ -134,6 +134,30 @@ def parse_unit(text: str) -> Unit:
             or not 0 < magnitude < math.inf:
         raise UnitError(f"unit '{excerpt(text)}' is out of range (powers up to {MAX_POWER})")
     return unit
+
+
+def offset_refusal(text: str, quantity: Any) -> str:
+    """Why an offset unit (``degC``, ``degF``) is refused, and what to write instead.
+
+    symcal converts a unit by its size alone (a value enters its expressions multiplied
+    by it), which cannot carry an offset: 20 degC is 293.15 K, but a difference of 20
+    degC is 20 K.  pint names the two readings ``kelvin`` (or the offset unit's absolute
+    twin) and ``delta_degC``."""
+    reg = registry()
+    try:
+        zero = reg.Quantity(0.0, text).to("kelvin").magnitude
+        at_zero = f" (0 {excerpt(text)} is {zero:g} K)"
+    except Exception:  # noqa: BLE001 - any pint failure: leave the example out
+        at_zero = ""
+    delta = f"delta_{text.strip()}"
+    try:
+        reg.Quantity(1.0, delta)
+        twin = f"'{excerpt(delta)}' for a temperature difference"
+    except Exception:  # noqa: BLE001 - not every offset unit has a delta twin
+        twin = "a difference unit"
+    return (f"unit '{excerpt(text)}' has an offset{at_zero}: symcal converts units by "
+            f"scaling alone, which cannot carry an offset; use 'kelvin' for a temperature, "
+            f"or {twin}")
 
 
 def check_unit(text: str) -> str | None:

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from symcal.analysis.fit import SeriesStats
+from symcal.analysis.fit import SeriesStats, Spread
 from symcal.analysis.floors import DatasetTest, at_floor
 from symcal.analysis.gauges import GaugeAnalysis
 from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
@@ -166,6 +166,57 @@ def regressions(statistics: tuple[SeriesStats, ...],
         if after > (1.0 + tolerance) * before and after > 0:
             out.append(Regression(s.dataset, s.name, s.kind, measure, before, after, s.unit))
     return tuple(out)
+
+
+@dataclass(frozen=True)
+class Statistic:
+    """A residual or reference comparison on one dataset, before and after calibration,
+    in the unit ``unit`` names (``""``: symcal's internal units); what
+    :meth:`Result.stat` returns.
+
+    ``kind`` is ``"constraint"`` or ``"comparison"``; ``remove_mean`` says that a
+    comparison's mean is an arbitrary zero; ``floor`` is the noise floor (in ``unit``,
+    None when unknown) and ``chi2_dof`` the residual's χ²/dof against it.
+    """
+
+    name: str
+    kind: str
+    dataset: str
+    unit: str
+    n: int
+    before: Spread
+    after: Spread
+    remove_mean: bool = False
+    floor: float | None = None
+    chi2_dof: float | None = None
+
+    def shown(self, which: str) -> Spread:
+        """``before`` or ``after`` (already in :attr:`unit`)."""
+        spread: Spread = getattr(self, which)
+        return spread
+
+
+def _conversion(declared: str, wanted: str | None, name: str) -> tuple[str, float]:
+    """The unit a value of a quantity declared in ``declared`` is given in, and that
+    unit's size in internal units (divide an internal value by it)."""
+    from symcal.base.units import internal_unit, size
+
+    if wanted is None:
+        return declared, size(declared)
+    if wanted in ("", "(internal)"):
+        return internal_unit(declared), 1.0
+    if not declared:
+        raise ValueError(f"'{name}' declares no unit, so its values are in internal units; "
+                         f"ask for '(internal)' or declare its unit")
+    if internal_unit(wanted) != internal_unit(declared):
+        raise ValueError(f"'{wanted}' is not a unit of '{name}', which is in '{declared}'")
+    return wanted, size(wanted)
+
+
+def _scaled(spread: Spread, factor: float) -> Spread:
+    if factor == 1.0:
+        return spread
+    return Spread(spread.rms / factor, spread.mean / factor, spread.std / factor)
 
 
 @dataclass(frozen=True)
@@ -454,26 +505,65 @@ class Result:
         return (self.rows * float(np.log(self.rss / self.rows))
                 + self.identifiability.rank * float(np.log(self.rows)))
 
-    def stat(self, name: str, dataset: str | None = None) -> SeriesStats:
+    def stat(self, name: str, dataset: str | None = None, unit: str | None = None
+             ) -> Statistic:
         """The statistics of constraint or comparison ``name`` on ``dataset`` (default:
-        the fitted one)."""
+        the fitted one), in the unit its ``unit`` field names: the one the quantity is
+        declared in, or ``unit`` (any unit of its dimension; ``"(internal)"``: symcal's
+        internal units, mm, rad, s).
+
+        Raises
+        ------
+        KeyError
+            No such statistics.
+        ValueError
+            A ``unit`` of another dimension.
+        """
         dataset = dataset or self.problem.fit_dataset
         for s in self.statistics:
             if s.name == name and s.dataset == dataset:
-                return s
+                shown, factor = _conversion(s.unit, unit, name)
+                return Statistic(s.name, s.kind, s.dataset, shown, s.n,
+                                 _scaled(s.before, factor), _scaled(s.after, factor),
+                                 s.remove_mean,
+                                 None if s.floor is None else s.floor / factor, s.chi2_dof)
         raise KeyError(f"no statistics for '{name}' on dataset '{dataset}'")
 
-    def value(self, name: str, dataset: str | None = None) -> np.ndarray:
+    def unit_of(self, name: str) -> str:
+        """The unit a named constraint, expression, sensor signal or comparison is declared
+        in (``""``: none, so :meth:`value` gives it in internal units).
+
+        Raises
+        ------
+        KeyError
+            An unknown quantity, naming the ones there are.
+        """
+        problem = self.problem
+        for group in (problem.constraints, problem.expressions, problem.signals,
+                      problem.comparisons):
+            for q in group:
+                if q.name == name:
+                    return q.unit
+        problem.quantity(name)      # raises with the names there are
+        return ""
+
+    def value(self, name: str, dataset: str | None = None, unit: str | None = None
+              ) -> np.ndarray:
         """A named constraint, expression, sensor signal or comparison (estimate minus
         reference) evaluated at the estimate on every observation of ``dataset`` (default:
-        the fitted one), in internal units.
+        the fitted one), in the unit it is declared in (:meth:`unit_of`; internal units
+        when it declares none), or in ``unit`` (any unit of its dimension;
+        ``"(internal)"``: symcal's internal units).
 
         Raises
         ------
         KeyError
             An unknown quantity or dataset, naming the ones there are.
+        ValueError
+            A ``unit`` of another dimension.
         """
         sx = self.problem.quantity(name)
+        _, factor = _conversion(self.unit_of(name), unit, name)
         dataset = dataset or self.problem.fit_dataset
         if dataset not in self.data:
             raise KeyError(f"no dataset '{dataset}'; datasets: {', '.join(self.data)}")
@@ -482,8 +572,10 @@ class Result:
         if hasattr(ds, "shards"):          # a partitioned log: shard by shard, in order
             parts = [fn(self.theta, shard.dataset(ds.name).matrix(self.problem.columns))[0]
                      for shard in ds.shards]
-            return np.concatenate(parts)[:, 0]
-        return fn(self.theta, ds.matrix(self.problem.columns))[0][:, 0]
+            values = np.concatenate(parts)[:, 0]
+        else:
+            values = fn(self.theta, ds.matrix(self.problem.columns))[0][:, 0]
+        return values if factor == 1.0 else values / factor
 
     def to_dict(self) -> dict[str, Any]:
         """The whole result as plain data (JSON-ready)."""

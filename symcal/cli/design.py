@@ -22,7 +22,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     cmd = subparsers.add_parser("design", help=HELP)
     cmd.add_argument("problem", help="problem YAML file")
     cmd.add_argument("--scenario", required=True, metavar="SCENARIO.yaml",
-                     help="the courier, its noise and the planned motion")
+                     help="the system's truth, its noise and the planned motion")
     cmd.add_argument("--result", metavar="RESULT.json",
                      help="compare the predictions with the standard errors of this result")
     cmd.add_argument("--optimize", action="store_true",
@@ -106,4 +106,4 @@ def _write(args: argparse.Namespace, outcome: Any, text: str, inputs: set[Path],
         atomic_write_text(stage / "scenario.yaml",
                           outcome.scenario_yaml(args.scenario, args.out))
         atomic_write_text(stage / "report.txt", text)
-        save_design_figure(motions, stage / "motion.png")
+        save_design_figure(motions, stage / "motion.png", outcome.units)

@@ -1,4 +1,4 @@
-"""``symcal simulate``: simulate a courier scenario's runs to CSV or NPZ files."""
+"""``symcal simulate``: simulate a scenario's runs to CSV or NPZ files, and its truth."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Any
 from symcal.base.errors import SymcalError
 from symcal.cli.common import debug_option, inputs_of
 
-HELP = "simulate a courier scenario to CSV"
+HELP = "simulate a scenario (any system) to CSV or NPZ, with its truth"
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:

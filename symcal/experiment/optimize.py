@@ -1,13 +1,15 @@
-"""Which motion next: optimise a calibration run's motion within the courier's limits.
+"""Which motion next: optimise a calibration run's motion within the scenario's limits.
 
-A scenario's ``design`` section names a scatter run and the motion parameters that may
-change, with their limits (``x``, ``y``, ``theta_deg``, ``dwell``, ``n``).
-:func:`design` chooses them with IPOPT on exact sensitivities: the Fisher information of
-the motion is a CasADi graph from the motion's parameters through the courier's pose
-(:mod:`symcal.simulation.motion`) and the problem's symbolic Jacobian, so its derivatives by
-the motion are exact.  The expectation over a scatter's random poses is a fixed sample of
-``SAMPLES`` uniform draws (common random numbers), with the poses that dwell at the ends
-of the angle range as a second and third set.  Two goals:
+A scenario's ``design`` section names a scatter or dwells run and what may change, with
+limits: the range ``[lo, hi]`` of some of its states, the share of a scatter's draws that
+``dwell`` at the ends of their ranges, and ``n``.  :func:`design` chooses them with IPOPT
+on exact sensitivities: the Fisher information of the motion is a CasADi graph from the
+motion's parameters through the states (uniform draws within the ranges), the
+scenario's readings (:meth:`symcal.simulation.graph.Graph.explicit_columns`, noiseless, at
+the truth) and the problem's symbolic Jacobian, so its derivatives by the motion are
+exact.  The expectation over the random draws is a fixed sample of ``SAMPLES`` uniform
+draws (common random numbers), with the draws that dwell at the ends of their ranges as
+further sets (every combination of ends).  Two goals:
 
 - a criterion on the covariance of the identifiable parameters, measured in their scales:
   ``D`` (log det), ``A`` (trace) or ``E`` (largest eigenvalue, through a smooth
@@ -16,14 +18,15 @@ of the angle range as a second and third set.  Two goals:
   minimises ``max_j n_j``, ``n_j`` the observations target ``j`` needs; when even the
   limit on ``n`` does not suffice, the best reachable errors and the limits that bind.
 
-Every design is then predicted exactly by :func:`symcal.experiment.predict.predict` (the simulator's
-readings, noise and misfit, the solve's weighting), which is what is reported; ``n`` is
-raised to meet the targets on that prediction when the limits allow.
+Every design is then predicted exactly by :func:`symcal.experiment.predict.predict` (the
+scenario's readings, noise and misfit, the solve's weighting), which is what is reported;
+``n`` is raised to meet the targets on that prediction when the limits allow.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import os
 import re
@@ -40,9 +43,9 @@ from symcal.base.linalg import sqrt_psd, whitening
 from symcal.base.units import internal_unit, size
 from symcal.experiment.predict import Prediction, last_stage, operating_point, predict
 from symcal.problem.symbolic import Problem
-from symcal.simulation import Scenario
-from symcal.simulation.motion import ideal_columns
-from symcal.simulation.scenario import DESIGN_KEYS, DesignSpace, Run, Scatter
+from symcal.simulation import Scenario, run_states
+from symcal.simulation.graph import graph
+from symcal.simulation.scenario import Dwells, Scatter
 from symcal.solvers.objective import Objective
 
 #: The design criteria (``--criterion``).
@@ -51,7 +54,6 @@ CRITERIA: tuple[str, ...] = ("D", "A", "E")
 SAMPLES = 256
 #: Power of the smooth largest-eigenvalue criterion ``E``.
 E_POWER = 16
-_DEG = math.pi / 180.0
 
 #: A limit binds when the design ends within this fraction of its range from it (and
 #: its multiplier is not zero).
@@ -84,10 +86,10 @@ class Design:
     targets
         The standard-error targets.
     before, after
-        The run's motion parameters (``x``, ``y``, ``theta_deg`` as ``(lo, hi)``,
-        ``dwell``, ``n``) as given and as designed.
+        The run's motion as given and as designed (:func:`motion_values`: ``n``, each
+        ranged state's ``(lo, hi)`` in its unit, a scatter's ``dwell``).
     binding
-        The limits that bind at the optimum (``theta_deg <= 1.5``); with targets that
+        The limits that bind at the optimum (``theta <= 1.5 deg``); with targets that
         cannot be met, the limits that stop them.
     met
         Whether each target is met by the designed motion's prediction.
@@ -121,19 +123,17 @@ class Design:
         worst = max(float(se[t.name]) / t.value for t in self.targets)  # type: ignore[arg-type]
         return math.ceil(self.final.n * worst**2)
 
-    def poses(self, designed: bool, seed: int = 0) -> dict[str, np.ndarray]:
-        """The true poses of the run (given or designed motion): ``x``, ``y`` (mm, as the
-        motion states them) and ``theta_deg``."""
-        from symcal.simulation.courier import run_poses, stream
+    @property
+    def units(self) -> dict[str, str]:
+        """The unit of each state of the scenario."""
+        return {s.name: s.unit for s in self.baseline.scenario.states}
 
+    def poses(self, designed: bool, seed: int = 0) -> dict[str, np.ndarray]:
+        """The true states of the run (given or designed motion), each in its unit."""
         scenario = self.scenario if designed else self.baseline.scenario
         index = scenario.run_index(self.baseline.run)
-        run = scenario.runs[index]
-        motion = motion_of(scenario, run.name)
-        flat = dataclasses.replace(motion, rotate_about="platen")
-        poses = run_poses(scenario, dataclasses.replace(run, motion=flat),
-                          stream(seed, index, "pose"), None, stream(seed, index, "dwell"))
-        return {"x": poses.x, "y": poses.y, "theta_deg": poses.theta / _DEG}
+        _, states = run_states(scenario, scenario.runs[index], seed)
+        return {s.name: states[i] / s.size for i, s in enumerate(scenario.states)}
 
     def scenario_yaml(self, base: str | Path, out_dir: str | Path) -> str:
         """The designed scenario as a file that ``extends`` ``base`` (the given scenario
@@ -145,11 +145,17 @@ class Design:
         run = self.baseline.run if space is None else space.run
         rel = os.path.relpath(Path(base).resolve(), Path(out_dir).resolve())
         after = self.after
-        scatter: dict[str, object] = {"n": int(after["n"])}  # type: ignore[call-overload]
-        for key in ("x", "y", "theta_deg"):
+        motion = motion_of(self.baseline.scenario, run)
+        entry: dict[str, object] = {}
+        if isinstance(motion, Dwells):
+            entry["count"] = math.ceil(int(after["n"]) / motion.samples)  # type: ignore[call-overload]
+        else:
+            entry["n"] = int(after["n"])  # type: ignore[call-overload]
+        for key, _ in motion.ranges:
             ends: Any = after[key]
-            scatter[key] = [_round(float(ends[0])), _round(float(ends[1]))]
-        scatter["dwell"] = _round(float(after["dwell"]))  # type: ignore[arg-type]
+            entry[key] = [_round(float(ends[0])), _round(float(ends[1]))]
+        if isinstance(motion, Scatter):
+            entry["dwell"] = _round(float(after["dwell"]))  # type: ignore[arg-type]
         goal = (f"criterion {self.criterion}" if self.criterion else
                 "targets " + ", ".join(t.text for t in self.targets))
         doc = {
@@ -157,7 +163,7 @@ class Design:
             "extends": rel,
             "doc": f"run '{run}' of {self.baseline.scenario.name} designed by symcal design "
                    f"({goal}); everything else as in {Path(base).name}",
-            "runs": {run: {"scatter": scatter}},
+            "runs": {run: {motion.kind: entry}},
         }
         return dump_yaml(doc)
 
@@ -209,34 +215,48 @@ def parse_target(text: str, problem: Problem) -> Target:
 # --------------------------------------------------------------------------- motions
 
 
-def motion_of(scenario: Scenario, run: str) -> Scatter:
-    """The scatter motion of ``run`` (a line cannot be designed)."""
+def motion_of(scenario: Scenario, run: str) -> Scatter | Dwells:
+    """The scatter or dwells motion of ``run`` (a line or series cannot be designed)."""
     motion = scenario.runs[scenario.run_index(run)].motion
-    if not isinstance(motion, Scatter):
-        raise SymcalError(f"design: run '{run}' of scenario '{scenario.name}' is a line; only "
-                          "a scatter run can be designed")
+    if not isinstance(motion, (Scatter, Dwells)):
+        raise SymcalError(f"design: run '{run}' of scenario '{scenario.name}' is a "
+                          f"{motion.kind}; only a scatter or dwells run can be designed")
     return motion
 
 
-def motion_values(motion: Scatter) -> dict[str, object]:
-    """A scatter's motion parameters in the units of a design's limits."""
-    return {"x": tuple(motion.x), "y": tuple(motion.y),
-            "theta_deg": (motion.theta[0] / _DEG, motion.theta[1] / _DEG),
-            "dwell": motion.dwell, "n": motion.n}
+def motion_values(scenario: Scenario, motion: Scatter | Dwells) -> dict[str, object]:
+    """A motion as a design's limits state it: ``n``, each ranged state's ``(lo, hi)`` in
+    the state's unit, and a scatter's ``dwell``."""
+    out: dict[str, object] = {"n": motion.n}
+    for name, (lo, hi) in motion.ranges:
+        factor = scenario.state(name).size
+        out[name] = (lo / factor, hi / factor)
+    if isinstance(motion, Scatter):
+        out["dwell"] = motion.dwell
+    return out
 
 
 def with_motion(scenario: Scenario, run: str, values: dict[str, object]) -> Scenario:
-    """``scenario`` with ``run``'s scatter set to ``values`` (see :func:`motion_values`)."""
+    """``scenario`` with ``run``'s motion set to ``values`` (see :func:`motion_values`;
+    a dwells run gets the whole number of dwells that holds ``n``)."""
     index = scenario.run_index(run)
     old = scenario.runs[index]
     motion = motion_of(scenario, run)
-    th = values["theta_deg"]
-    new = dataclasses.replace(
-        motion, x=tuple(values["x"]), y=tuple(values["y"]),  # type: ignore[arg-type]
-        theta=(th[0] * _DEG, th[1] * _DEG),  # type: ignore[index]
-        dwell=float(values["dwell"]), n=int(values["n"]))  # type: ignore[arg-type,call-overload]
+    ranges = []
+    for name, (lo, hi) in motion.ranges:
+        factor = scenario.state(name).size
+        ends: Any = values.get(name, (lo / factor, hi / factor))
+        ranges.append((name, (float(ends[0]) * factor, float(ends[1]) * factor)))
+    n = int(values["n"])  # type: ignore[call-overload]
+    new: Scatter | Dwells
+    if isinstance(motion, Scatter):
+        new = dataclasses.replace(motion, ranges=tuple(ranges), n=n,
+                                  dwell=float(values.get("dwell", motion.dwell)))  # type: ignore[arg-type]
+    else:
+        new = dataclasses.replace(motion, ranges=tuple(ranges),
+                                  count=math.ceil(n / motion.samples))
     runs = list(scenario.runs)
-    runs[index] = Run(old.name, new, old.dt, old.t0, old.doc)
+    runs[index] = dataclasses.replace(old, motion=new)
     return dataclasses.replace(scenario, runs=tuple(runs))
 
 
@@ -252,26 +272,31 @@ class _Var:
     lower: float
     upper: float
     start: float
+    unit: str = ""
 
     @property
     def label(self) -> str:
         return self.key if self.end is None else f"{self.key}[{self.end}]"
 
     def bound_text(self, at_upper: bool) -> str:
-        return f"{self.key} {'<=' if at_upper else '>='} {self.upper if at_upper else self.lower:g}"
+        bound = self.upper if at_upper else self.lower
+        unit = f" {self.unit}" if self.unit else ""
+        return f"{self.key} {'<=' if at_upper else '>='} {bound:g}{unit}"
 
 
-def _variables(space: DesignSpace, start: dict[str, object]) -> list[_Var]:
+def _variables(scenario: Scenario, limits: tuple[tuple[str, tuple[float, float]], ...],
+               start: dict[str, object]) -> list[_Var]:
     out: list[_Var] = []
-    for key, (lo, hi) in space.limits:
+    for key, (lo, hi) in limits:
         if key == "n":
             continue
         value = start[key]
         if key == "dwell":
             out.append(_Var(key, None, lo, hi, float(value)))  # type: ignore[arg-type]
         else:
-            out.append(_Var(key, 0, lo, hi, float(value[0])))  # type: ignore[index]
-            out.append(_Var(key, 1, lo, hi, float(value[1])))  # type: ignore[index]
+            unit = scenario.state(key).unit
+            out.append(_Var(key, 0, lo, hi, float(value[0]), unit))  # type: ignore[index]
+            out.append(_Var(key, 1, lo, hi, float(value[1]), unit))  # type: ignore[index]
     return out
 
 
@@ -287,8 +312,8 @@ def _identifiable_basis(prediction: Prediction, names: tuple[str, ...],
 
 
 class _Model:
-    """The per-observation Fisher information of a scatter as a CasADi graph of its
-    motion parameters."""
+    """The per-observation Fisher information of a scatter or dwells motion as a CasADi
+    graph of its ranges and dwell share."""
 
     def __init__(self, problem: Problem, scenario: Scenario, run: str,
                  prediction: Prediction) -> None:
@@ -307,16 +332,16 @@ class _Model:
         self.variance = float(seen[0, 0]) if self.single else 1.0
         self.meat_root = None if (estimated or self.single) else sqrt_psd(seen).T
         motion = motion_of(scenario, run)
-        index = scenario.run_index(run)
-        run_spec = scenario.runs[index]
-        pose = ca.SX.sym("pose", 3)
+        run_spec = scenario.runs[scenario.run_index(run)]
+        g = graph(scenario)
         t_mid = run_spec.t0 + run_spec.dt * (motion.n - 1) / 2.0
-        cols = ideal_columns(scenario, motion, pose[0], pose[1], pose[2], t_mid)
-        missing = [c for c in problem.columns if c not in cols]
-        u = ca.vertcat(*(cols.get(c, 0.0) for c in problem.columns))
-        if any(c in missing for c in problem.columns_of(objective.g)):
+        readings = {name: ca.substitute(sx, g.t, ca.SX(t_mid)) / size(scenario.column(
+            name).unit) for name, sx in g.explicit_columns().items()}
+        missing = [c for c in problem.columns_of(objective.g) if c not in readings]
+        if missing:
             raise SymcalError(f"design: the problem reads column(s) {', '.join(missing)} "
                               f"that scenario '{scenario.name}' does not simulate")
+        u = ca.vertcat(*(readings.get(c, 0.0) for c in problem.columns))
         jac = ca.substitute(objective.jac, ca.vertcat(problem.theta, problem.u),
                             ca.vertcat(ca.DM(theta), u))
         b = ca.mtimes(ca.mtimes(jac, ca.DM(np.diag(self.scales))), ca.DM(self.basis))
@@ -324,9 +349,14 @@ class _Model:
         if self.meat_root is not None:
             outs.append(ca.vec(ca.mtimes(ca.DM(self.meat_root), b).T))
         self.ng, self.rank = ng, self.basis.shape[1]
-        self.per_pose = ca.Function("info", [pose], outs).map(SAMPLES, "serial")
+        self.per_pose = ca.Function("info", [g.states], outs).map(SAMPLES, "serial")
+        self.states = scenario.states
+        self.ranged = [name for name, _ in motion.ranges]
+        self.held = dict(motion.held)
+        self.dwell_at = list(motion.dwell_at)
+        self.sizes = {s.name: s.size for s in scenario.states}
         rng = np.random.default_rng(20240517)
-        self.draws = rng.uniform(size=(3, SAMPLES))
+        self.draws = rng.uniform(size=(len(self.ranged), SAMPLES))
 
     def _gram(self, poses: Any) -> tuple[Any, Any]:
         outs: Any = self.per_pose(poses)
@@ -336,21 +366,34 @@ class _Model:
         meat = ca.mtimes(mats[1], mats[1].T) / SAMPLES if len(mats) > 1 else None
         return bread, meat
 
-    def covariance(self, values: dict[str, ca.MX]) -> ca.MX:
+    def _poses(self, values: dict[str, Any], ends: dict[str, int]) -> Any:
+        """The states of the sample (``k × SAMPLES``, internal units); states in ``ends``
+        sit at that end (0: lo, 1: hi) of their range."""
+        rows = []
+        for state in self.states:
+            name = state.name
+            if name in self.held:
+                rows.append(ca.DM.ones(1, SAMPLES) * self.held[name])
+                continue
+            lo, hi = values[name]
+            factor = self.sizes[name]
+            if name in ends:
+                rows.append(ca.repmat((hi if ends[name] else lo) * factor, 1, SAMPLES))
+                continue
+            u = ca.DM(self.draws[self.ranged.index(name)]).T
+            rows.append((lo + (hi - lo) * u) * factor)
+        return ca.vertcat(*rows)
+
+    def covariance(self, values: dict[str, Any]) -> Any:
         """Scaled covariance (identifiable coordinates) of ONE observation's worth of
         information (divide by n)."""
-        u = ca.DM(self.draws)
-        x0, x1 = values["x"]
-        y0, y1 = values["y"]
-        t0, t1 = values["theta_deg"]
-        sx = x0 + (x1 - x0) * u[0, :]
-        sy = y0 + (y1 - y0) * u[1, :]
-        spread = ca.vertcat(sx, sy, (t0 + (t1 - t0) * u[2, :]) * _DEG)
-        low = ca.vertcat(sx, sy, ca.repmat(t0 * _DEG, 1, SAMPLES))
-        high = ca.vertcat(sx, sy, ca.repmat(t1 * _DEG, 1, SAMPLES))
-        w = values["dwell"]
-        parts = [(1 - w, self._gram(spread)), (w / 2, self._gram(low)),
-                 (w / 2, self._gram(high))]
+        w = values.get("dwell", 0.0)
+        parts = [(1 - w, self._gram(self._poses(values, {})))]
+        if self.dwell_at and not (isinstance(w, float) and w == 0.0):
+            combos = list(itertools.product((0, 1), repeat=len(self.dwell_at)))
+            for combo in combos:
+                ends = dict(zip(self.dwell_at, combo, strict=True))
+                parts.append((w / len(combos), self._gram(self._poses(values, ends))))
         bread: Any = sum(share * g[0] for share, g in parts)
         inverse = ca.solve(bread, ca.DM.eye(self.rank))
         if self.meat_root is None:
@@ -358,14 +401,14 @@ class _Model:
         meat: Any = sum(share * g[1] for share, g in parts)
         return ca.mtimes(ca.mtimes(inverse, meat), inverse)
 
-    def se2(self, cov: ca.MX, name: str) -> ca.MX:
+    def se2(self, cov: Any, name: str) -> Any:
         """Variance of parameter ``name`` (its unit squared) from a scaled covariance."""
         i = self.names.index(name)
         z = ca.DM(self.basis[i, :])
         return self.scales[i] ** 2 * ca.mtimes(ca.mtimes(z.T, cov), z)
 
 
-def _criterion(kind: str, cov: ca.MX, rank: int, reference: float) -> ca.MX:
+def _criterion(kind: str, cov: Any, rank: int, reference: float) -> Any:
     if kind == "D":
         return ca.log(ca.det(cov))
     if kind == "A":
@@ -382,17 +425,18 @@ def _optimise(model: _Model, variables: list[_Var], fixed: dict[str, object],
     """IPOPT over the motion; returns the values, the active bounds, the optimum and
     IPOPT's status."""
     d = ca.MX.sym("d", len(variables))
-    values: dict[str, ca.MX] = {}
-    for key in ("x", "y", "theta_deg"):
+    values: dict[str, Any] = {}
+    for key in model.ranged:
         ends = [next((d[i] for i, v in enumerate(variables) if v.key == key and v.end == e),
                      fixed[key][e]) for e in (0, 1)]  # type: ignore[index]
-        values[key] = tuple(ends)  # type: ignore[assignment]
-    values["dwell"] = next((d[i] for i, v in enumerate(variables) if v.key == "dwell"),
-                           fixed["dwell"])  # type: ignore[assignment]
+        values[key] = tuple(ends)
+    if "dwell" in fixed:
+        values["dwell"] = next((d[i] for i, v in enumerate(variables) if v.key == "dwell"),
+                               fixed["dwell"])
     cov = model.covariance(values)
     g: list[ca.MX] = []
     glb: list[float] = []
-    for key in ("x", "y", "theta_deg"):
+    for key in model.ranged:
         lo, hi = values[key]
         if isinstance(lo, ca.MX) or isinstance(hi, ca.MX):
             g.append(hi - lo)
@@ -458,7 +502,7 @@ def _ipopt(x: ca.MX, f: ca.MX, g: list[ca.MX], x0: list[float], lbx: list[float]
 def _apply(start: dict[str, object], variables: list[_Var], solution: dict[str, float],
            n: int) -> dict[str, object]:
     out = dict(start)
-    for key in ("x", "y", "theta_deg"):
+    for key in {v.key for v in variables if v.end is not None}:
         ends = list(start[key])  # type: ignore[call-overload]
         for v in variables:
             if v.key == key and v.end is not None:
@@ -471,6 +515,16 @@ def _apply(start: dict[str, object], variables: list[_Var], solution: dict[str, 
             out["dwell"] = min(max(solution[v.label], v.lower), v.upper)
     out["n"] = n
     return out
+
+
+def _whole(motion: Scatter | Dwells, n: int, n_hi: int) -> int:
+    """``n`` as observations the motion can have: whole dwells for a dwells run (rounded
+    up, or down to stay within ``n_hi``)."""
+    if not isinstance(motion, Dwells):
+        return n
+    whole = math.ceil(n / motion.samples) * motion.samples
+    return whole if whole <= n_hi else max(motion.samples,
+                                           (n_hi // motion.samples) * motion.samples)
 
 
 def _met(prediction: Prediction, targets: tuple[Target, ...]) -> dict[str, bool]:
@@ -511,9 +565,9 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
     space = scenario.design
     if space is None:
         raise SymcalError(f"scenario '{scenario.name}' ({scenario.source}) has no 'design' "
-                          "section: declare which motion parameters may change and their "
-                          "limits (design: {run: NAME, limits: {KEY: [lo, hi], ...}}, KEY one "
-                          f"of {', '.join(DESIGN_KEYS)})")
+                          "section: declare which run may change and its limits (design: "
+                          "{run: NAME, limits: {KEY: [lo, hi], ...}}, KEY a ranged state of "
+                          "the run, dwell or n)")
     if targets and criterion is not None:
         raise SymcalError("--criterion and --target: give one goal, a criterion or targets")
     criterion = None if targets else (criterion or "D")
@@ -527,11 +581,12 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
             raise SymcalError(f"--target {tg.text}: '{tg.name}' is determined only in a "
                               "combination with other parameters, on any motion of this "
                               "problem; target an identifiable parameter")
-    start = motion_values(motion_of(scenario, run))
+    motion = motion_of(scenario, run)
+    start = motion_values(scenario, motion)
     limits = space.bounds
     n_lo, n_hi = (int(limits["n"][0]), int(limits["n"][1])) if "n" in limits else (
         int(start["n"]), int(start["n"]))  # type: ignore[call-overload]
-    variables = _variables(space, start)
+    variables = _variables(scenario, space.limits, start)
     current = baseline
     values: dict[str, object] = dict(start)
     active: list[str] = []
@@ -547,11 +602,13 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
             solution, best = {}, max(((float(baseline.se[t.name]) / t.value) ** 2  # type: ignore[arg-type]
                                       for t in targets), default=0.0)
         n = n_hi if not targets else min(max(math.ceil(best * baseline.n * 1.02), n_lo), n_hi)
+        n = _whole(motion, n, n_hi)
         values = _apply(start, variables, solution, n)
         designed = predict(problem, with_motion(scenario, run, values), run, seed)
         if targets:
             worst = max(float(designed.se[t.name]) / t.value for t in targets)  # type: ignore[arg-type]
-            fitted = min(max(math.ceil(n * worst**2 * 1.02), n_lo), n_hi)
+            fitted = _whole(motion, min(max(math.ceil(n * worst**2 * 1.02), n_lo), n_hi),
+                            n_hi)
             if fitted != n:  # the exact prediction needs more, or fewer, observations
                 values_n = _apply(start, variables, solution, fitted)
                 again = predict(problem, with_motion(scenario, run, values_n), run, seed)
@@ -562,7 +619,7 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
             break
     met = _met(designed, targets)
     binding = list(active)
-    if "n" in limits and int(values["n"]) == n_hi and (  # type: ignore[call-overload]
+    if "n" in limits and int(values["n"]) == _whole(motion, n_hi, n_hi) and (  # type: ignore[call-overload]
             criterion is not None or not all(met.values())):
         binding.append(f"n <= {n_hi}")
     return Design(baseline, designed, with_motion(scenario, run, values), criterion,

@@ -3,15 +3,15 @@
 For the motion a scenario describes, :func:`predict` states what the calibration's last
 stage would report on data simulated from it, with nothing recorded:
 
-1. the run is simulated *without noise* (the simulator's own geometry, sensor errors and
-   hidden effects), at the scenario's true parameters (:func:`operating_point`);
+1. the run is simulated *without noise* (the scenario's readings, with its sensor errors
+   and hidden effects), at the scenario's true parameters (:func:`operating_point`);
 2. the noise model is the scenario's (:func:`symcal.simulation.input_noise`): each
    observation's constraints get the covariance ``S_i = G_i Σ G_iᵀ``, ``G_i = ∂g/∂u`` (exact,
    symbolic) and ``Σ`` the columns' noise variances;
 3. the weights are the solve's: ``weighting: estimated`` whitens by the covariance the
    solve estimates from the residuals of its *equal-weight* fit, so ``S`` is the mean
    noise covariance plus that of what an equal-weight refit of the noiseless data leaves
-   (the model's misfit to the simulated courier); equal weights keep ``g/σ``;
+   (the model's misfit to the simulated system); equal weights keep ``g/σ``;
    ``weighting: propagated`` (each observation whitened by its own propagated noise
    covariance) is predicted as that pooled whitening: the per-observation weights are
    not modelled (on the courier's motions the constraints' noise covariance varies
@@ -34,7 +34,6 @@ only through the residual covariance), so neither does the prediction.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -51,7 +50,7 @@ from symcal.base.units import size
 from symcal.data.dataset import Dataset, make_dataset
 from symcal.data.loading import needed_columns
 from symcal.problem.symbolic import Problem, Stage
-from symcal.simulation import Scenario, input_noise, simulate_run, truth
+from symcal.simulation import Scenario, input_noise, quiet, simulate_run, true_values
 from symcal.solvers.objective import Objective
 
 
@@ -105,28 +104,25 @@ class Prediction:
 def operating_point(problem: Problem, scenario: Scenario) -> np.ndarray:
     """θ at which a plan is evaluated: the scenario's true parameters.
 
-    A true parameter is matched by its name (``l_x``) or, when that is not a parameter of
-    the problem, by the one parameter whose last part it is (``h`` → ``cs.h``); the other
-    parameters keep their initial values.
+    A true value (the scenario's ``truth`` and its active effects' values) is matched by
+    its name (``l_x``) or, when that is not a parameter of the problem, by the one
+    parameter whose last part it is (``h`` → ``cs.h``), and converted to the parameter's
+    unit; the other parameters keep their initial values.
     """
     theta = np.array([p.value for p in problem.parameters])
     names = problem.parameter_names
-    for name, value in truth(scenario)["parameters"].items():
+    for name, (value, unit) in true_values(scenario).items():
         if name in problem.index:
-            theta[problem.index[name]] = value
-            continue
-        matches = [n for n in names if n.rsplit(".", 1)[-1] == name]
-        if len(matches) == 1:
-            theta[problem.index[matches[0]]] = value
+            target = name
+        else:
+            matches = [n for n in names if n.rsplit(".", 1)[-1] == name]
+            if len(matches) != 1:
+                continue
+            target = matches[0]
+        param = problem.parameters[problem.index[target]]
+        factor = size(unit) / size(param.unit)
+        theta[problem.index[target]] = value if factor == 1.0 else value * factor
     return theta
-
-
-def quiet(scenario: Scenario) -> Scenario:
-    """The scenario without noise (no reading noise, no quantization, exact angles)."""
-    platen = dataclasses.replace(scenario.platen, noise=0.0, quantization=0.0)
-    coord = scenario.coordination
-    coord = None if coord is None else dataclasses.replace(coord, noise=0.0)
-    return dataclasses.replace(scenario, platen=platen, coordination=coord)
 
 
 def design_run(problem: Problem, scenario: Scenario) -> str:
@@ -321,3 +317,50 @@ def predict(problem: Problem, scenario: Scenario, run: str | None = None, seed: 
     for p in problem.parameters:
         units[p.name] = p.unit
     return Prediction(scenario, run, data.n, stage, ident, unc, std, floor, units, cov)
+
+
+def noise_floors(problem: Problem, scenario: Scenario, run: str | None = None,
+                 seed: int = 0) -> dict[str, float]:
+    """The spread that noise alone leaves in each constraint of ``problem`` on data
+    simulated from ``scenario``, by propagation: the RMS over the run's (noiseless)
+    observations of ``sqrt(G_i Σ G_iᵀ)``, ``G_i = ∂g/∂u`` at the true parameters and ``Σ``
+    the columns' noise variances (first order; exact for a constraint linear in the
+    readings).
+
+    Parameters
+    ----------
+    problem
+        The problem whose constraints are measured.
+    scenario
+        The simulated system and its declared noise.
+    run
+        The run the floor is taken on (default: :func:`design_run`).
+    seed
+        Seed of the run's states.
+
+    Returns
+    -------
+    dict
+        ``NAME_std`` → the floor of constraint ``NAME`` in internal units, for every
+        constraint whose columns the scenario writes.
+    """
+    run = design_run(problem, scenario) if run is None else run
+    simulated = set(scenario.column_names)
+    constraints = [c for c in problem.constraints
+                   if set(problem.columns_of(c.sx)) <= simulated]
+    if not constraints or run not in scenario.run_names:
+        return {}
+    columns = simulate_run(quiet(scenario), run, seed=seed)
+    data = make_dataset("floor", f"{scenario.name} run '{run}' without noise", columns,
+                        needed_columns(problem))
+    g = ca.vertcat(*(c.sx for c in constraints))
+    fn = mapped(problem.theta, problem.u, [ca.jacobian(g, problem.u)], "noise_floor")
+    sigma = np.array([input_noise(scenario).get(c, 0.0) for c in problem.columns])
+    total = np.zeros(len(constraints))
+    theta = operating_point(problem, scenario)
+    u = data.matrix(problem.columns)
+    for part in chunks(data.n):
+        jac = fn(theta, u[:, part])[0].reshape(-1, len(problem.columns), len(constraints))
+        total += np.einsum("mua,u->a", jac**2, sigma**2)
+    return {f"{c.name}_std": float(np.sqrt(total[k] / data.n))
+            for k, c in enumerate(constraints)}

@@ -586,49 +586,55 @@ def _correlation_figure(corr: Mapping[str, Any]) -> Figure:
 # ----------------------------------------------------------------------- experiment design
 
 
-def design_figure(motions: Mapping[str, Mapping[str, Any]]) -> Figure:
+def design_figure(motions: Mapping[str, Mapping[str, Any]],
+                  units: Mapping[str, str] | None = None) -> Figure:
     """The designed motion beside the given one (``symcal design``).
 
     Parameters
     ----------
     motions
-        ``{"given": poses, "designed": poses}``, each with ``x``, ``y`` (mm, as the motion
-        states them) and ``theta_deg`` per observation.
+        ``{"given": states, "designed": states}``, each with every state of the run per
+        observation, in its unit.
+    units
+        The unit of each state (for the axes).
 
     Returns
     -------
     Figure
-        One panel per motion with its positions coloured by angle, and the histogram of
-        the angles of both.
+        One panel per state that changes over the run: the histogram of its values in
+        both motions.
     """
-    fig = _new_figure(11.0, 3.6)
-    axes = fig.subplots(1, 3)
-    limit = max(float(max(abs(_floats(m["theta_deg"])), default=0.0)) for m in motions.values())
-    limit = limit or 1.0
-    for ax, (label, poses) in zip(axes[:2], motions.items(), strict=False):
-        x, y, th = (_floats(poses[k]) for k in ("x", "y", "theta_deg"))
-        art = ax.scatter(x, y, c=th, s=4, cmap="coolwarm", vmin=-limit, vmax=limit,
-                         rasterized=len(x) > RASTERIZE_ABOVE)
-        ax.set_title(_text(f"{label} motion ({len(x)} observations)"))
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("y (mm)")
-        fig.colorbar(art, ax=ax, label="θ (deg)")
-    hist = axes[2]
-    for (label, poses), colour in zip(motions.items(), (BEFORE_COLOUR, AFTER_COLOUR),
-                                      strict=False):
-        hist.hist(_floats(poses["theta_deg"]), bins=30, range=(-limit, limit), alpha=0.7,
-                  color=colour, label=_text(label))
-    hist.set_xlabel("θ (deg)")
-    hist.set_ylabel("observations")
-    hist.set_title("angles")
-    hist.legend()
+    import numpy as np
+
+    units = dict(units or {})
+    given = next(iter(motions.values()))
+    moving = [k for k in given
+              if any(np.ptp(_floats(m[k])) > 0 for m in motions.values() if len(m[k]))]
+    moving = moving[:6] or list(given)[:1]
+    fig = _new_figure(3.7 * len(moving), 3.6)
+    axes = np.atleast_1d(fig.subplots(1, len(moving)))
+    for ax, key in zip(axes, moving, strict=True):
+        values = [_floats(m[key]) for m in motions.values()]
+        low = min(float(np.min(v)) for v in values if v.size)
+        high = max(float(np.max(v)) for v in values if v.size)
+        if high <= low:
+            low, high = low - 0.5, high + 0.5
+        for (label, poses), colour in zip(motions.items(), (BEFORE_COLOUR, AFTER_COLOUR),
+                                          strict=False):
+            ax.hist(_floats(poses[key]), bins=30, range=(low, high), alpha=0.7,
+                    color=colour, label=_text(f"{label} ({len(poses[key])})"))
+        unit = units.get(key, "")
+        ax.set_xlabel(_text(f"{key} ({unit})" if unit else key))
+        ax.set_ylabel("observations")
+        ax.legend()
     return fig
 
 
-def save_design_figure(motions: Mapping[str, Mapping[str, Any]], path: str | Path) -> Path:
+def save_design_figure(motions: Mapping[str, Mapping[str, Any]], path: str | Path,
+                       units: Mapping[str, str] | None = None) -> Path:
     """Write :func:`design_figure` to ``path`` (its suffix is the format: png, svg, pdf)."""
     fmt = _check_formats([Path(path).suffix.lstrip(".") or "png"])[0]
-    fig = design_figure(motions)
+    fig = design_figure(motions, units)
     try:
         return atomic_write_bytes(path, _render(fig, fmt))
     finally:

@@ -893,9 +893,12 @@ def design_report(design: Design, result: Result | None = None) -> str:
         space = base.scenario.design
         limits = {} if space is None else space.bounds
         rows = [["motion", "given", "designed", "limits"]]
-        for key in ("n", "x", "y", "theta_deg", "dwell"):
+        units = design.units
+        for key in design.before:
             lim = limits.get(key)
-            rows.append([key, _motion_text(design.before[key]), _motion_text(design.after[key]),
+            shown = f"{key} ({units[key]})" if units.get(key) else key
+            rows.append([shown, _motion_text(design.before[key]),
+                         _motion_text(design.after[key]),
                          "fixed" if lim is None else _motion_text(tuple(lim))])
         lines += ["  " + r for r in _table(rows, "llll")]
         lines.append("  binding limits: " + (", ".join(design.binding) or "none"))

@@ -117,7 +117,7 @@ def held_out_change(new: Result, old: Result, kind: str | None = None) -> float:
         if s.dataset == fit or (kind is not None and s.kind != kind):
             continue
         try:
-            before = old.stat(s.name, s.dataset).after.std
+            before = old.stat(s.name, s.dataset, "(internal)").after.std
         except KeyError:
             continue
         if before > 0 and s.after.std > 0:
@@ -164,7 +164,7 @@ def _inflated(new: Result, old: Result) -> str | None:
 
 def _spread(result: Result, name: str, dataset: str) -> float | None:
     try:
-        return result.stat(name, dataset).after.std
+        return result.stat(name, dataset, "(internal)").after.std
     except KeyError:
         return None
 

@@ -1,279 +1,275 @@
-"""Scenario files of the courier simulator: YAML -> validated, frozen dataclasses.
+"""Scenario files: any system's true states over its runs, its readings, its truth.
 
-A scenario states the *true* sensors of a simulated courier (Quaid & Rizzi, §2-3.2) and
-the motions ("runs") to record.  Units are mm, rad and s throughout; angles of motions
-are written in degrees (keys ending in ``_deg``) and stored in radians.
+A scenario says what a simulated experiment is, for any system, in the expression
+grammar of models and problems (:mod:`symcal.language.expr`; never ``eval``):
 
-Schema (``*`` marks a required key; every other key has the default shown)::
+- **states**: the true quantities that change over a run (a pose, an orientation, a
+  speed, a temperature), each with its unit; the time ``t`` (s) is always a state;
+- **runs**: how the states move over each run: a random ``scatter`` within ranges, a
+  ``line`` from one point to another, ``dwells`` (random points held for some samples
+  each), or a ``series`` (each state an expression of ``t``);
+- **columns**: each data column's raw reading, as an expression of the states (or, with
+  ``solve:``, the value that makes an equation vanish: a reading defined by the model it
+  must satisfy), with its declared noise (Gaussian ``noise``, ``quantization``);
+- **truth**: the models' parameters at their true values, named as the problem names
+  them (``s1.k0``, ``l_x``);
+- **effects**: hidden effects, each a named set of values and of terms added to
+  expressions or columns (``add``), or glitches of some readings (``slips``); an overlay
+  removes one with ``NAME: ~`` or switches it off with ``on: false``;
+- **design**: which motion parameters ``symcal design`` may change, within what limits.
 
-    scenario*: NAME                   # plain name
+Schema (``*`` marks a required key)::
+
+    scenario*: NAME
     doc: TEXT
-    platen*:
-      pitch: 1.016                    # tooth pitch rho (mm); f = 2 pi / rho
-      l_s: 9.7                        # distance between the segments of a pair (mm)
-      l_o: 4.85                       # offset of each segment along its own axis (mm)
-      distortion_at: true_position    # or: reading   (where eq. 3 is evaluated)
-      geometry: exact                 # or: small_angle (sin t -> t, cos t -> 1)
-      noise: 0.0001                   # Gaussian sigma of each reading (mm)
-      quantization: 0.0002            # reading step (mm); 0 disables
-      segments*:                      # eq. (3) coefficients (mm); missing k's are 0
-        s1*: {k0: 0, k1: 0, ..., k8: 0}
-        s2*: {...}
-        s3*: {...}
-        s4*: {...}
-      effects:                        # each one off unless present; listed segments only
-        lateral:         {s1: {k9: 0, k10: 0}, ...}               # mm, eq. (9) phase
-        angle:           {s1: {a: 0, b: 0, c: 0}, ...}             # mm/rad
-        harmonics:       {s1: [{n*: 3, sin: 0, cos: 0}, ...], ...}  # mm
-        drift:           {s1: {rate: 0, quadratic: 0}, ...}         # mm/s, mm/s^2
-        pitch_variation: {x: [{amplitude*: .., wavelength*: .., phase: 0}, ...], y: [...]}
-        count_slips:     {s1: {fraction*: 0.01}, ...}  # readings off by +-pitch/4 (glitches)
-    coordination:                     # optional: the coordination sensor (eq. 10-11)
-      h*: ..                          # height of the beacon above the PSD (mm)
-      l_x*: ..                        # body offset coordination sensor -> platen sensor (mm)
-      l_y*: ..
-      o_x*: ..                        # beacon position in platen coordinates (mm)
-      o_y*: ..
-      noise: 0                        # Gaussian sigma of psi_x and psi_y (rad)
-      nonlinearity:                   # PSD gain and nonlinearity: c + g c + n2 c^2 + n3 c^3
-        x: {g: 0, n2: 0, n3: 0}       # 1, 1/mm, 1/mm^2 (per axis)
-        y: {g: 0, n2: 0, n3: 0}
-    reference:                        # interferometer ground truth
-      position_noise: 0               # sigma of x_ref, y_ref (mm)
-      angle_noise: 0                  # sigma of theta_ref (rad)
-    runs*:                            # one or more, in order (the order seeds the streams)
+    extends: BASE.yaml                  # merged as in language/overlay.py
+    constants:                          # NAME: number | {value*, unit, doc}
+    truth:                              # NAME (dotted: s1.k0): number | {value*, unit, doc}
+    states*:                            # NAME: {unit, doc, value}   (value: held default)
+    expressions:                        # NAME: EXPR | {expr*, unit, doc}
+    columns*:                           # NAME: EXPR | {expr | solve, start, unit, noise,
+                                        #               quantization, stream, doc}
+    effects:                            # NAME: {doc, on, values, add, slips}
       NAME:
-        dt: 0.1                       # time step between samples (s)
-        t0: 0                         # time of the first sample (s)
+        values: {NAME: number | {value*, unit, doc}}   # seen by this effect's terms
+        add: {TARGET: EXPR}             # TARGET (an expression or column) gains EXPR;
+                                        # TARGET inside EXPR is its value before
+        slips: {COLUMN: {fraction*, size*}}  # a share of the rows reads off by +-size
+    runs*:
+      NAME:
+        dt: 0.1                         # s between samples
+        t0: 0                           # time of the first sample (s)
         doc: TEXT
-        scatter:                      # exactly one of scatter / line
-          n*: 1000
-          x*: [lo, hi]                # mm
-          y*: [lo, hi]                # mm
-          theta_deg*: [lo, hi]        # degrees
-          rotate_about: platen        # or: coordination
-          dwell: 0                    # share of poses at the ends of the theta range
-        line:
-          n*: 400
-          from*: [x, y]               # mm
-          to*: [x, y]                 # mm
-          theta_deg: 0                # constant angle (degrees)
-          theta_jitter_deg: 0         # sigma of Gaussian jitter on theta (degrees)
-          rotate_about: platen        # or: coordination
-
-    design:                           # optional: what ``symcal design`` may change
-      run*: NAME                      # a scatter run
+        scatter: {n*, STATE: [lo, hi] | value, dwell: 0, dwell_at: [STATE, ...]}
+        line: {n*, from*: {STATE: value}, to*: {STATE: value}, jitter: {STATE: sigma},
+               STATE: value}
+        dwells: {count*, samples*, STATE: [lo, hi] | value}
+        series: {n*, STATE: EXPR of t}
+    design:
+      run*: NAME                        # a scatter or dwells run
       doc: TEXT
-      limits*:                        # each listed motion parameter may change within
-        x: [lo, hi]                   #   its limits (mm); unlisted ones stay as written
-        y: [lo, hi]                   # mm
-        theta_deg: [lo, hi]           # degrees
-        dwell: [lo, hi]               # within [0, 1]
-        n: [lo, hi]                   # whole numbers of observations
+      limits*: {STATE: [lo, hi], dwell: [lo, hi], n: [lo, hi]}
 
-``dwell: w`` makes a share ``w`` of a scatter's poses dwell at the two ends of its
-``theta_deg`` range (half at each; drawn from a stream of their own, so the positions stay
-those of the same scatter without dwell); the rest turn uniformly over the range.  A
-``design`` section declares the courier's limits: the motion the run describes must lie
-within them.
+Units.  Every number is in the unit its entry declares (a state's range in the state's
+unit, a column's noise in the column's unit); inside, as in problems, every expression is
+in internal units (mm, rad, s, pint's root units otherwise), and each symbol enters
+multiplied by the size of its declared unit, so expressions of states, constants and
+truth are unit-consistent (checked once, at load, by :mod:`symcal.language.dimensions`).
+A column's reading is written in its declared unit.  ``noise`` and ``quantization`` are
+a number in the column's unit, a quantity (``0.5 um``) or an expression of constants.
 
-``rotate_about: coordination`` (needs a ``coordination`` section) means that the sampled
-or interpolated ``(x, y)`` are the world position ``s`` of the coordination sensor's
-centre, about which the courier turns; the platen-sensor pose that every column refers to
-is then ``(x, y) = s + R(theta) (l_x, l_y)``.  The coordination sensor sits under the
-beacon (``c = 0``) when ``s = (o_x, o_y)``.
+Random streams.  ``default_rng(SeedSequence(seed, spawn_key=(run_index, key)))``: key 0
+draws the states of a run, 4 which scatter draws dwell at the ends of their ranges, 5 the
+slips, and the noise of the columns is drawn per ``stream`` (default: the column's own
+name, for a column that declares ``noise``), the streams numbered in the order they first
+appear among the columns as 1, 2, 3, 6, 7, ...; a stream draws its columns' noise
+together, row by row, so a run with fewer samples is a prefix of one with more.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from symcal.base.didyoumean import did_you_mean
-from symcal.base.errors import SpecError, Where
+from symcal.base.errors import SpecError, Where, excerpt
+from symcal.base.units import UnitError, size
+from symcal.language import expr
+from symcal.language.common import ExprSpec, display_unit, parse_expr
 from symcal.language.fields import (
     MAX_SAMPLES,
     check_keys,
     child_where,
+    expect_bool,
     expect_int,
     expect_list,
     expect_map,
     expect_name,
     expect_number,
     expect_str,
+    expect_symbol,
 )
-from symcal.language.overlay import load_with_extends, merge_scenario
-from symcal.language.yamlio import YMap
+from symcal.language.overlay import load_with_extends, merge_scenario, new_list, new_map
+from symcal.language.yamlio import YList, YMap
+from symcal.simulation.graph import TIME, check
 
-SEGMENT_NAMES: tuple[str, ...] = ("s1", "s2", "s3", "s4")
-FOURIER_KEYS: tuple[str, ...] = tuple(f"k{j}" for j in range(9))
-DISTORTION_MODES: tuple[str, ...] = ("true_position", "reading")
-GEOMETRIES: tuple[str, ...] = ("exact", "small_angle")
-PIVOTS: tuple[str, ...] = ("platen", "coordination")
-EFFECT_NAMES: tuple[str, ...] = ("lateral", "angle", "harmonics", "drift", "pitch_variation",
-                                 "count_slips")
-#: The motion parameters of a scatter run that a ``design`` section may let change.
-DESIGN_KEYS: tuple[str, ...] = ("x", "y", "theta_deg", "dwell", "n")
-
-DEFAULT_PITCH = 1.016
-DEFAULT_L_S = 9.7
-DEFAULT_L_O = 4.85
-DEFAULT_NOISE = 1e-4
-DEFAULT_QUANTIZATION = 2e-4
+#: The motions a run may have.
+MOTIONS: tuple[str, ...] = ("scatter", "line", "dwells", "series")
+#: Motions whose ranges ``symcal design`` may change.
+DESIGNABLE: tuple[str, ...] = ("scatter", "dwells")
+#: Names a state may not have (keys of motions and design limits).
+RESERVED_STATES = frozenset({TIME, "n", "dwell", "dwell_at", "from", "to", "jitter", "count",
+                             "samples"})
+#: Stream keys of the states, the dwell draws and the slips; noise streams take the rest.
+POSE_STREAM, DWELL_STREAM, SLIP_STREAM = 0, 4, 5
 DEFAULT_DT = 0.1
+_DOTTED = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)?$")
+_QUANTITY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s+(\S.*?)\s*$")
 
 
 # --------------------------------------------------------------------------- dataclasses
 
 
 @dataclass(frozen=True)
-class Lateral:
-    """Lateral dependence of one segment: ``k9 sin(f q) + k10 cos(f q)`` (mm)."""
+class Value:
+    """A named number as declared: ``value`` in ``unit`` (``""``: internal units)."""
 
-    k9: float = 0.0
-    k10: float = 0.0
+    name: str
+    value: float
+    unit: str = ""
+    doc: str = ""
+    where: Where = field(default=Where("<scenario>"), compare=False)
 
-
-@dataclass(frozen=True)
-class AngleTerm:
-    """Angle dependence of one segment: ``a t + b t sin(f u) + c t cos(f u)`` (mm/rad)."""
-
-    a: float = 0.0
-    b: float = 0.0
-    c: float = 0.0
-
-
-@dataclass(frozen=True)
-class Harmonic:
-    """One extra harmonic of the tooth error: ``sin sin(n f u) + cos cos(n f u)`` (mm)."""
-
-    n: int
-    sin: float = 0.0
-    cos: float = 0.0
+    @property
+    def internal(self) -> float:
+        """The value in internal units (mm, rad, s, ...)."""
+        factor = size(self.unit)
+        return self.value if factor == 1.0 else self.value * factor
 
 
 @dataclass(frozen=True)
-class Drift:
-    """Slow drift of one segment in time: ``rate t + quadratic t^2`` (mm/s, mm/s^2)."""
+class State:
+    """A true quantity that changes over a run (values are kept in internal units)."""
 
-    rate: float = 0.0
-    quadratic: float = 0.0
+    name: str
+    unit: str = ""
+    doc: str = ""
+    default: float | None = None      # held value (internal units) when a run omits it
+    where: Where = field(default=Where("<scenario>"), compare=False)
 
-
-@dataclass(frozen=True)
-class Wave:
-    """One sinusoid of the tooth-pitch variation: ``amplitude sin(2 pi p / wavelength + phase)``."""
-
-    amplitude: float
-    wavelength: float
-    phase: float = 0.0
-
-
-@dataclass(frozen=True)
-class PitchVariation:
-    """Tooth-pitch variation along the platen, per axis: ``w(p) = sum of waves``."""
-
-    x: tuple[Wave, ...] = ()
-    y: tuple[Wave, ...] = ()
+    @property
+    def size(self) -> float:
+        """Internal units per one of the state's unit."""
+        return size(self.unit)
 
 
 @dataclass(frozen=True)
-class CountSlip:
-    """Quadrature count slips of one segment: on a share ``fraction`` of the observations,
-    drawn at random, its reading is off by a quarter pitch (either sign), a glitch of
-    that one observation."""
+class Expression:
+    """A named expression (or an explicit column's reading)."""
 
-    fraction: float = 0.0
-
-
-@dataclass(frozen=True)
-class Effects:
-    """The switchable effects; ``None`` means off, otherwise one entry per segment s1..s4."""
-
-    lateral: tuple[Lateral, ...] | None = None
-    angle: tuple[AngleTerm, ...] | None = None
-    harmonics: tuple[tuple[Harmonic, ...], ...] | None = None
-    drift: tuple[Drift, ...] | None = None
-    pitch_variation: PitchVariation | None = None
-    count_slips: tuple[CountSlip, ...] | None = None
-
-    def active(self) -> tuple[str, ...]:
-        """Names of the effects that are switched on."""
-        return tuple(name for name in EFFECT_NAMES if getattr(self, name) is not None)
+    name: str
+    spec: ExprSpec
+    unit: str = ""
+    doc: str = ""
 
 
 @dataclass(frozen=True)
-class Platen:
-    """The true platen sensor: geometry, eq. (3) coefficients, effects and noise."""
+class Column:
+    """A data column: its reading (``expr``) or the equation it solves (``solve``), its
+    unit and noise (in that unit)."""
 
-    segments: tuple[tuple[float, ...], ...]
-    pitch: float = DEFAULT_PITCH
-    l_s: float = DEFAULT_L_S
-    l_o: float = DEFAULT_L_O
-    distortion_at: str = "true_position"
-    geometry: str = "exact"
-    noise: float = DEFAULT_NOISE
-    quantization: float = DEFAULT_QUANTIZATION
-    effects: Effects = field(default_factory=Effects)
+    name: str
+    expr: ExprSpec | None
+    solve: ExprSpec | None = None
+    start: ExprSpec | None = None
+    unit: str = ""
+    noise: float = 0.0
+    quantization: float = 0.0
+    stream: str = ""          # its noise stream ("": declares no noise)
+    doc: str = ""
+    where: Where = field(default=Where("<scenario>"), compare=False)
+
+    @property
+    def sigma(self) -> float:
+        """Standard deviation of the column's noise (its unit): Gaussian and quantization
+        (uniform error, ``q^2 / 12``)."""
+        return math.sqrt(self.noise**2 + self.quantization**2 / 12.0)
+
+
+@dataclass(frozen=True)
+class Slip:
+    """Glitches of one column: on a share ``fraction`` of the rows (drawn at random) the
+    reading is off by ``+-size`` (its unit)."""
+
+    column: str
+    fraction: float
+    size: float
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A hidden effect: its values, the terms it adds, the slips it causes."""
+
+    name: str
+    values: tuple[Value, ...] = ()
+    add: tuple[tuple[str, ExprSpec], ...] = ()
+    slips: tuple[Slip, ...] = ()
+    on: bool = True
+    doc: str = ""
     where: Where = field(default=Where("<scenario>"), compare=False)
 
 
 @dataclass(frozen=True)
-class AxisNonlinearity:
-    """PSD gain error and nonlinearity of one axis: ``c -> c + g c + n2 c^2 + n3 c^3``
-    (``g`` dimensionless, ``n2`` 1/mm, ``n3`` 1/mm^2)."""
-
-    n2: float = 0.0
-    n3: float = 0.0
-    g: float = 0.0
-
-
-@dataclass(frozen=True)
-class Coordination:
-    """The true coordination sensor and beacon (eq. 10-11)."""
-
-    h: float
-    l_x: float
-    l_y: float
-    o_x: float
-    o_y: float
-    noise: float = 0.0
-    nonlinearity: tuple[AxisNonlinearity, AxisNonlinearity] | None = None
-
-
-@dataclass(frozen=True)
-class Reference:
-    """The interferometer ground truth: Gaussian noise on position (mm) and angle (rad)."""
-
-    position_noise: float = 0.0
-    angle_noise: float = 0.0
-
-
-@dataclass(frozen=True)
 class Scatter:
-    """``n`` poses drawn uniformly over ``x`` x ``y`` x ``theta`` (mm, mm, rad); a share
-    ``dwell`` of them at the two ends of the ``theta`` range instead."""
+    """``n`` draws, each ranged state uniform within its range (internal units); a share
+    ``dwell`` of them holds the ``dwell_at`` states at an end of their ranges instead."""
 
     n: int
-    x: tuple[float, float]
-    y: tuple[float, float]
-    theta: tuple[float, float]
-    rotate_about: str = "platen"
+    ranges: tuple[tuple[str, tuple[float, float]], ...]
+    held: tuple[tuple[str, float], ...] = ()
     dwell: float = 0.0
+    dwell_at: tuple[str, ...] = ()
+    kind: str = "scatter"
+
+    @property
+    def samples(self) -> int:
+        """Observations per draw."""
+        return 1
+
+
+@dataclass(frozen=True)
+class Dwells:
+    """``count`` random points (each ranged state uniform within its range), each held
+    for ``samples`` observations."""
+
+    count: int
+    samples: int
+    ranges: tuple[tuple[str, tuple[float, float]], ...]
+    held: tuple[tuple[str, float], ...] = ()
+    kind: str = "dwells"
+
+    @property
+    def n(self) -> int:
+        """Observations of the run."""
+        return self.count * self.samples
+
+    @property
+    def dwell(self) -> float:
+        """No draw sits at the ends of its ranges."""
+        return 0.0
+
+    @property
+    def dwell_at(self) -> tuple[str, ...]:
+        """No state dwells at its ends."""
+        return ()
 
 
 @dataclass(frozen=True)
 class Line:
-    """``n`` poses evenly spaced from ``start`` to ``end`` at angle ``theta`` (rad)."""
+    """``n`` samples evenly from ``start`` to ``end`` (internal units), with Gaussian
+    ``jitter`` on some states."""
 
     n: int
-    start: tuple[float, float]
-    end: tuple[float, float]
-    theta: float = 0.0
-    theta_jitter: float = 0.0
-    rotate_about: str = "platen"
+    start: tuple[tuple[str, float], ...]
+    end: tuple[tuple[str, float], ...]
+    jitter: tuple[tuple[str, float], ...] = ()
+    kind: str = "line"
+
+
+@dataclass(frozen=True)
+class Series:
+    """``n`` samples, each state an expression of ``t``."""
+
+    n: int
+    exprs: tuple[tuple[str, ExprSpec], ...]
+    kind: str = "series"
+
+
+Motion = Scatter | Dwells | Line | Series
 
 
 @dataclass(frozen=True)
@@ -281,16 +277,18 @@ class Run:
     """One named motion and its clock."""
 
     name: str
-    motion: Scatter | Line
+    motion: Motion
     dt: float = DEFAULT_DT
     t0: float = 0.0
     doc: str = ""
+    where: Where = field(default=Where("<scenario>"), compare=False)
 
 
 @dataclass(frozen=True)
 class DesignSpace:
-    """What ``symcal design`` may change: the motion parameters of one scatter run and
-    their limits (``x``, ``y`` in mm, ``theta_deg`` in degrees, ``dwell``, ``n``)."""
+    """What ``symcal design`` may change: the ranges of some states of one scatter or
+    dwells run, the share that dwells at the range ends, and ``n``, each within limits
+    (in the state's unit; ``dwell`` a share; ``n`` whole observations)."""
 
     run: str
     limits: tuple[tuple[str, tuple[float, float]], ...]
@@ -299,7 +297,7 @@ class DesignSpace:
 
     @property
     def bounds(self) -> dict[str, tuple[float, float]]:
-        """The limits by motion parameter (``DESIGN_KEYS`` order)."""
+        """The limits by key, in file order."""
         return dict(self.limits)
 
     def limit_where(self, key: str) -> Where:
@@ -307,24 +305,47 @@ class DesignSpace:
         return self.where.child("limits").child(key)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Scenario:
-    """A validated courier scenario (see the module docstring for the YAML schema)."""
+    """A validated scenario (see the module docstring for the YAML schema)."""
 
     name: str
-    platen: Platen
+    states: tuple[State, ...]
+    columns: tuple[Column, ...]
     runs: tuple[Run, ...]
-    coordination: Coordination | None = None
-    reference: Reference = field(default_factory=Reference)
+    constants: tuple[Value, ...] = ()
+    truth: tuple[Value, ...] = ()
+    expressions: tuple[Expression, ...] = ()
+    effects: tuple[Effect, ...] = ()
+    design: DesignSpace | None = None
     doc: str = ""
     source: str = "<scenario>"
     runs_where: Where = field(default=Where("<scenario>"), compare=False)
-    design: DesignSpace | None = None
+    document: YMap | None = field(default=None, repr=False)
+    where: Where = field(default=Where("<scenario>"), compare=False)
 
     @property
     def run_names(self) -> tuple[str, ...]:
         """Names of the runs, in file order."""
         return tuple(run.name for run in self.runs)
+
+    @property
+    def column_names(self) -> tuple[str, ...]:
+        """The columns a run writes, in file order."""
+        return tuple(c.name for c in self.columns)
+
+    @property
+    def active_effects(self) -> tuple[Effect, ...]:
+        """The effects that are on."""
+        return tuple(e for e in self.effects if e.on)
+
+    def state(self, name: str) -> State:
+        """The state called ``name``."""
+        return next(s for s in self.states if s.name == name)
+
+    def column(self, name: str) -> Column:
+        """The column called ``name``."""
+        return next(c for c in self.columns if c.name == name)
 
     def run_index(self, name: str) -> int:
         """Position of run ``name`` (it seeds the run's random streams).
@@ -343,343 +364,494 @@ class Scenario:
             f"; runs: {', '.join(self.run_names)}",
         )
 
+    def overlay(self, changes: Mapping[str, Any]) -> Scenario:
+        """This scenario with ``changes`` merged as an ``extends:`` overlay would be
+        (mappings merge at every depth, lists and values replace, ``None`` removes).
 
-# --------------------------------------------------------------------------- field helpers
+        Parameters
+        ----------
+        changes
+            A plain mapping in the file's schema, e.g. ``{"effects": {"drift": None}}``
+            or ``{"columns": {"p1": {"noise": 0.001}}}``.
+
+        Returns
+        -------
+        Scenario
+            The validated new scenario (named as this one unless ``changes`` names it).
+
+        Raises
+        ------
+        SpecError
+            If the merged document is not a valid scenario.
+        """
+        assert self.document is not None, "a scenario built in Python has no document"
+        doc = _to_yaml(dict(changes))
+        base = merge_scenario(_without(self.document, ("scenario",)), doc, Path(self.source))
+        if "scenario" not in base:
+            base["scenario"] = self.name
+        return replace(parse_scenario(base, self.where), source=self.source)
 
 
-def _number(
-    mapping: YMap,
-    where: Where,
-    key: str,
-    default: float | None = None,
-    *,
-    positive: bool = False,
-    nonnegative: bool = False,
-) -> float:
-    """A number at ``mapping[key]`` (``default`` when absent), optionally sign-checked."""
-    if key not in mapping:
-        if default is None:
-            raise SpecError(where, f"missing required key '{key}'")
-        return default
-    kw = child_where(mapping, where, key)
-    value = expect_number(mapping[key], kw)
-    if positive and value <= 0:
-        raise SpecError(kw, f"expected a positive number, found {value:g}")
-    if nonnegative and value < 0:
-        raise SpecError(kw, f"expected a number of at least 0, found {value:g}")
+def _to_yaml(value: Any) -> Any:
+    """A plain value as YAML nodes (for :meth:`Scenario.overlay`; no lines to name)."""
+    if isinstance(value, Mapping):
+        out = new_map(None)
+        for key, item in value.items():
+            out[key] = _to_yaml(item)
+        return out
+    if isinstance(value, (list, tuple)):
+        items = new_list(None)
+        items.extend(_to_yaml(item) for item in value)
+        return items
     return value
 
 
-def _choice(mapping: YMap, where: Where, key: str, choices: tuple[str, ...], default: str) -> str:
-    """One of ``choices`` at ``mapping[key]`` (``default`` when absent)."""
-    if key not in mapping:
-        return default
-    kw = child_where(mapping, where, key)
-    value = mapping[key]
-    if not isinstance(value, str) or value not in choices:
-        raise SpecError(
-            kw,
-            f"expected one of {', '.join(choices)}, found {value!r}"
-            f"{did_you_mean(str(value), choices)}",
-        )
-    return value
-
-
-def _numbers(value: Any, where: Where, count: int, what: str) -> tuple[float, ...]:
-    """A list of exactly ``count`` numbers."""
-    items = expect_list(value, where)
-    if len(items) != count:
-        raise SpecError(where, f"expected {what}, found a list of {len(items)}")
-    return tuple(expect_number(item, child_where(items, where, i)) for i, item in enumerate(items))
-
-
-def _range(mapping: YMap, where: Where, key: str, scale: float = 1.0) -> tuple[float, float]:
-    """A ``[lo, hi]`` range with ``lo <= hi``, multiplied by ``scale``."""
-    kw = child_where(mapping, where, key)
-    lo, hi = _numbers(mapping[key], kw, 2, "a range [lo, hi] of two numbers")
-    if lo > hi:
-        raise SpecError(kw, f"range [lo, hi] must have lo <= hi, found [{lo:g}, {hi:g}]")
-    return lo * scale, hi * scale
-
-
-def _point(mapping: YMap, where: Where, key: str) -> tuple[float, float]:
-    """An ``[x, y]`` point."""
-    kw = child_where(mapping, where, key)
-    x, y = _numbers(mapping[key], kw, 2, "a point [x, y] of two numbers")
-    return x, y
-
-
-# --------------------------------------------------------------------------- platen
-
-
-def _segments(value: Any, where: Where) -> tuple[tuple[float, ...], ...]:
-    mapping = check_keys(value, where, required=SEGMENT_NAMES)
-    out = []
-    for name in SEGMENT_NAMES:
-        sw = child_where(mapping, where, name)
-        seg = check_keys(mapping[name], sw, optional=FOURIER_KEYS)
-        out.append(tuple(_number(seg, sw, key, 0.0) for key in FOURIER_KEYS))
-    return tuple(out)
-
-
-def _per_segment(value: Any, where: Where, parse: Any) -> tuple[Any, ...]:
-    """An effect given for some of s1..s4; unlisted segments get ``parse(None, ...)``."""
-    mapping = check_keys(value, where, optional=SEGMENT_NAMES)
-    if not mapping:
-        raise SpecError(
-            where, "lists no segment (s1..s4); remove the effect to switch it off"
-        )
-    return tuple(
-        parse(mapping.get(name), child_where(mapping, where, name)) for name in SEGMENT_NAMES
-    )
-
-
-def _lateral(value: Any, where: Where) -> Lateral:
-    mapping = check_keys(value, where, optional=("k9", "k10"))
-    return Lateral(_number(mapping, where, "k9", 0.0), _number(mapping, where, "k10", 0.0))
-
-
-def _angle(value: Any, where: Where) -> AngleTerm:
-    mapping = check_keys(value, where, optional=("a", "b", "c"))
-    return AngleTerm(*(_number(mapping, where, key, 0.0) for key in ("a", "b", "c")))
-
-
-def _drift(value: Any, where: Where) -> Drift:
-    mapping = check_keys(value, where, optional=("rate", "quadratic"))
-    return Drift(_number(mapping, where, "rate", 0.0), _number(mapping, where, "quadratic", 0.0))
-
-
-def _harmonic(value: Any, where: Where) -> Harmonic:
-    mapping = check_keys(value, where, required=("n",), optional=("sin", "cos"))
-    n = expect_int(mapping["n"], child_where(mapping, where, "n"), minimum=1)
-    return Harmonic(n, _number(mapping, where, "sin", 0.0), _number(mapping, where, "cos", 0.0))
-
-
-def _harmonics(value: Any, where: Where) -> tuple[Harmonic, ...]:
-    if value is None:
-        return ()
-    items = expect_list(value, where)
-    return tuple(_harmonic(item, child_where(items, where, i)) for i, item in enumerate(items))
-
-
-def _wave(value: Any, where: Where) -> Wave:
-    mapping = check_keys(value, where, required=("amplitude", "wavelength"), optional=("phase",))
-    return Wave(
-        _number(mapping, where, "amplitude"),
-        _number(mapping, where, "wavelength", positive=True),
-        _number(mapping, where, "phase", 0.0),
-    )
-
-
-def _waves(mapping: YMap, where: Where, key: str) -> tuple[Wave, ...]:
-    if key not in mapping:
-        return ()
-    kw = child_where(mapping, where, key)
-    items = expect_list(mapping[key], kw)
-    return tuple(_wave(item, child_where(items, kw, i)) for i, item in enumerate(items))
-
-
-def _pitch_variation(value: Any, where: Where) -> PitchVariation:
-    mapping = check_keys(value, where, optional=("x", "y"))
-    out = PitchVariation(_waves(mapping, where, "x"), _waves(mapping, where, "y"))
-    if not out.x and not out.y:
-        raise SpecError(where, "lists no wave for x or y; remove the effect to switch it off")
+def _without(doc: YMap, keys: tuple[str, ...]) -> YMap:
+    out = new_map(doc.line)
+    for key in doc:
+        if key not in keys:
+            out[key] = doc[key]
+            if key in doc.key_lines:
+                out.key_lines[key] = doc.key_lines[key]
+            if key in getattr(doc, "key_files", {}):
+                out.key_files[key] = doc.key_files[key]
     return out
 
 
-def _count_slip(value: Any, where: Where) -> CountSlip:
-    if value is None:
-        return CountSlip()
-    mapping = check_keys(value, where, required=("fraction",))
-    fraction = _number(mapping, where, "fraction", nonnegative=True)
-    if fraction > 1.0:
-        raise SpecError(child_where(mapping, where, "fraction"),
-                        f"fraction is a share of the observations: expected a number from 0 "
-                        f"to 1, found {fraction:g}")
-    return CountSlip(fraction)
+# --------------------------------------------------------------------------- small parts
 
 
-def _effects(value: Any, where: Where) -> Effects:
-    mapping = check_keys(value, where, optional=EFFECT_NAMES)
-    parsers = {
-        "lateral": lambda v, w: _per_segment(v, w, _lateral),
-        "angle": lambda v, w: _per_segment(v, w, _angle),
-        "harmonics": lambda v, w: _per_segment(v, w, _harmonics),
-        "drift": lambda v, w: _per_segment(v, w, _drift),
-        "pitch_variation": _pitch_variation,
-        "count_slips": lambda v, w: _per_segment(v, w, _count_slip),
-    }
-    found: dict[str, Any] = {
-        name: parsers[name](mapping[name], child_where(mapping, where, name))
-        for name in EFFECT_NAMES
-        if name in mapping
-    }
-    return Effects(**found)
+def _doc(entry: YMap, where: Where) -> str:
+    if entry.get("doc") is None:
+        return ""
+    return " ".join(expect_str(entry["doc"], child_where(entry, where, "doc")).split())
 
 
-def _platen(value: Any, where: Where) -> Platen:
-    optional = ("pitch", "l_s", "l_o", "distortion_at", "geometry", "noise", "quantization",
-                "effects")
-    mapping = check_keys(value, where, required=("segments",), optional=optional)
-    return Platen(
-        segments=_segments(mapping["segments"], child_where(mapping, where, "segments")),
-        pitch=_number(mapping, where, "pitch", DEFAULT_PITCH, positive=True),
-        l_s=_number(mapping, where, "l_s", DEFAULT_L_S, positive=True),
-        l_o=_number(mapping, where, "l_o", DEFAULT_L_O),
-        distortion_at=_choice(mapping, where, "distortion_at", DISTORTION_MODES, "true_position"),
-        geometry=_choice(mapping, where, "geometry", GEOMETRIES, "exact"),
-        noise=_number(mapping, where, "noise", DEFAULT_NOISE, nonnegative=True),
-        quantization=_number(mapping, where, "quantization", DEFAULT_QUANTIZATION,
-                             nonnegative=True),
-        effects=_effects(mapping.get("effects"), child_where(mapping, where, "effects")),
-        where=where,
-    )
+def _unit(entry: YMap, where: Where) -> str:
+    if entry.get("unit") is None:
+        return ""
+    return display_unit(entry["unit"], child_where(entry, where, "unit"))
 
 
-# --------------------------------------------------------------------------- coordination
+def _value(name: str, value: Any, where: Where) -> Value:
+    """``NAME: number`` or ``NAME: {value, unit, doc}``."""
+    if not isinstance(value, dict):
+        return Value(name, expect_number(value, where), "", "", where)
+    entry = check_keys(value, where, required=("value",), optional=("unit", "doc"))
+    return Value(name, expect_number(entry["value"], child_where(entry, where, "value")),
+                 _unit(entry, where), _doc(entry, where), where)
 
 
-def _axis_nonlinearity(value: Any, where: Where) -> AxisNonlinearity:
-    mapping = check_keys(value, where, optional=("g", "n2", "n3"))
-    return AxisNonlinearity(_number(mapping, where, "n2", 0.0), _number(mapping, where, "n3", 0.0),
-                            _number(mapping, where, "g", 0.0))
+def _dotted(key: Any, where: Where, what: str) -> str:
+    if not isinstance(key, str) or not _DOTTED.match(key) or key.split(".")[0] in (
+            expr.RESERVED_NAMES):
+        raise SpecError(where, f"{what} must be a name with at most one dot (s1.k0), found "
+                               f"{excerpt(repr(key))}")
+    return key
 
 
-def _coordination(value: Any, where: Where) -> Coordination:
-    required = ("h", "l_x", "l_y", "o_x", "o_y")
-    mapping = check_keys(value, where, required=required, optional=("noise", "nonlinearity"))
-    nonlinearity = None
-    if "nonlinearity" in mapping:
-        nw = child_where(mapping, where, "nonlinearity")
-        nl = check_keys(mapping["nonlinearity"], nw, optional=("x", "y"))
-        nonlinearity = (
-            _axis_nonlinearity(nl.get("x"), child_where(nl, nw, "x")),
-            _axis_nonlinearity(nl.get("y"), child_where(nl, nw, "y")),
-        )
-    return Coordination(
-        h=_number(mapping, where, "h", positive=True),
-        l_x=_number(mapping, where, "l_x"),
-        l_y=_number(mapping, where, "l_y"),
-        o_x=_number(mapping, where, "o_x"),
-        o_y=_number(mapping, where, "o_y"),
-        noise=_number(mapping, where, "noise", 0.0, nonnegative=True),
-        nonlinearity=nonlinearity,
-    )
+def _values(value: Any, where: Where, what: str) -> tuple[Value, ...]:
+    mapping = expect_map(value, where)
+    return tuple(_value(_dotted(k, child_where(mapping, where, k), what), v,
+                        child_where(mapping, where, k)) for k, v in mapping.items())
 
 
-def _reference(value: Any, where: Where) -> Reference:
-    mapping = check_keys(value, where, optional=("position_noise", "angle_noise"))
-    return Reference(
-        position_noise=_number(mapping, where, "position_noise", 0.0, nonnegative=True),
-        angle_noise=_number(mapping, where, "angle_noise", 0.0, nonnegative=True),
-    )
+def _constants(value: Any, where: Where) -> tuple[Value, ...]:
+    mapping = expect_map(value, where)
+    out = []
+    for key, item in mapping.items():
+        at = child_where(mapping, where, key)
+        out.append(_value(expect_symbol(key, at, "a constant's name"), item, at))
+    return tuple(out)
+
+
+def _states(value: Any, where: Where) -> tuple[State, ...]:
+    mapping = expect_map(value, where)
+    if not mapping:
+        raise SpecError(where, "a scenario needs at least one state (what changes over a run)")
+    out = []
+    for key, item in mapping.items():
+        at = child_where(mapping, where, key)
+        name = expect_symbol(key, at, "a state's name")
+        if name in RESERVED_STATES:
+            why = ("the time of each sample is the built-in state 't'" if name == TIME
+                   else f"'{name}' is a key of runs and design limits")
+            raise SpecError(at, f"'{name}' cannot name a state: {why}")
+        entry = check_keys(item, at, optional=("unit", "doc", "value"))
+        unit = _unit(entry, at)
+        default = None
+        if entry.get("value") is not None:
+            default = expect_number(entry["value"], child_where(entry, at, "value")) * size(unit)
+        out.append(State(name, unit, _doc(entry, at), default, at))
+    return tuple(out)
+
+
+def _expressions(value: Any, where: Where) -> tuple[Expression, ...]:
+    mapping = expect_map(value, where)
+    out = []
+    for key, item in mapping.items():
+        at = child_where(mapping, where, key)
+        name = expect_symbol(key, at, "an expression's name")
+        if isinstance(item, dict):
+            entry = check_keys(item, at, required=("expr",), optional=("unit", "doc"))
+            out.append(Expression(name, parse_expr(entry["expr"], child_where(entry, at, "expr")),
+                                  _unit(entry, at), _doc(entry, at)))
+        else:
+            out.append(Expression(name, parse_expr(item, at)))
+    return tuple(out)
+
+
+def _amount(value: Any, where: Where, unit: str, constants: Mapping[str, float],
+            what: str) -> float:
+    """A non-negative amount in ``unit``: a number in that unit, a quantity with its own
+    unit (``0.5 um``), or an expression of constants (internal units)."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        number = expect_number(value, where)
+    else:
+        text = expect_str(value, where)
+        match = _QUANTITY.match(text)
+        factor = size(unit)
+        if match is not None:
+            try:
+                number = float(match.group(1)) * size(match.group(2)) / factor
+            except UnitError as exc:
+                raise SpecError(where, f"{what}: {exc.message}") from None
+            _check_same_kind(match.group(2), unit, where, f"{what}: '{text.strip()}'")
+        else:
+            spec = parse_expr(text, where)
+            env = dict(constants)
+            try:
+                number = expr.evaluate(spec.node, env) / factor
+            except expr.ExprError as exc:
+                known = ", ".join(constants) or "none"
+                raise SpecError(where, f"{what}: {exc.detail} (a number in the column's unit, "
+                                       f"a quantity such as '0.5 um', or an expression of "
+                                       f"the constants: {known})") from None
+    if not math.isfinite(number) or number < 0:
+        raise SpecError(where, f"{what} must be a number of at least 0, found {number:g}")
+    return number
+
+
+def _check_same_kind(given: str, unit: str, where: Where, what: str) -> None:
+    from symcal.base.units import internal_unit
+
+    if unit and internal_unit(given) != internal_unit(unit):
+        raise SpecError(where, f"{what} is not in a unit of the column, which is in "
+                               f"'{unit}'")
+
+
+COLUMN_KEYS = ("expr", "solve", "start", "unit", "noise", "quantization", "stream", "doc")
+
+
+def _columns(value: Any, where: Where, constants: Mapping[str, float]) -> tuple[Column, ...]:
+    mapping = expect_map(value, where)
+    if not mapping:
+        raise SpecError(where, "a scenario needs at least one column (a reading to write)")
+    out = []
+    for key, item in mapping.items():
+        at = child_where(mapping, where, key)
+        name = expect_symbol(key, at, "a column's name")
+        if not isinstance(item, dict):
+            out.append(Column(name, parse_expr(item, at), where=at))
+            continue
+        entry = check_keys(item, at, optional=COLUMN_KEYS)
+        kinds = [k for k in ("expr", "solve") if entry.get(k) is not None]
+        if len(kinds) != 1:
+            found = " and ".join(f"'{k}'" for k in kinds) or "neither"
+            raise SpecError(at, f"a column needs exactly one of 'expr' (its reading) or "
+                                f"'solve' (an equation its reading makes vanish); found {found}")
+        unit = _unit(entry, at)
+
+        def spec(k: str, entry: YMap = entry, at: Where = at) -> ExprSpec | None:
+            return None if entry.get(k) is None else parse_expr(entry[k],
+                                                                child_where(entry, at, k))
+
+        if entry.get("start") is not None and kinds[0] != "solve":
+            raise SpecError(child_where(entry, at, "start"),
+                            "'start' is the first guess of a 'solve' column; this column "
+                            "has an 'expr'")
+        amounts = {k: 0.0 if entry.get(k) is None else _amount(
+            entry[k], child_where(entry, at, k), unit, constants, k)
+            for k in ("noise", "quantization")}
+        stream = name if entry.get("noise") is not None else ""
+        if entry.get("stream") is not None:
+            stream = expect_name(entry["stream"], child_where(entry, at, "stream"),
+                                 "a stream's name")
+        out.append(Column(name, spec("expr"), spec("solve"), spec("start"), unit,
+                          amounts["noise"], amounts["quantization"], stream,
+                          _doc(entry, at), at))
+    return tuple(out)
+
+
+def _effects(value: Any, where: Where, columns: tuple[Column, ...],
+             constants: Mapping[str, float]) -> tuple[Effect, ...]:
+    mapping = expect_map(value, where)
+    units = {c.name: c.unit for c in columns}
+    out = []
+    for key, item in mapping.items():
+        at = child_where(mapping, where, key)
+        name = expect_name(key, at, "an effect's name")
+        if item is None:
+            continue
+        entry = check_keys(item, at, optional=("doc", "on", "values", "add", "slips"))
+        on = True if entry.get("on") is None else expect_bool(entry["on"],
+                                                              child_where(entry, at, "on"))
+        values = _values(entry.get("values"), child_where(entry, at, "values"),
+                         "an effect's value")
+        add_at = child_where(entry, at, "add")
+        adds = expect_map(entry.get("add"), add_at)
+        add = tuple((expect_name(k, child_where(adds, add_at, k), "a target"),
+                     parse_expr(v, child_where(adds, add_at, k))) for k, v in adds.items())
+        slips_at = child_where(entry, at, "slips")
+        slip_map = expect_map(entry.get("slips"), slips_at)
+        slips = []
+        for col, spec in slip_map.items():
+            sw = child_where(slip_map, slips_at, col)
+            if col not in units:
+                raise SpecError(sw, f"no column '{excerpt(str(col))}'"
+                                    f"{did_you_mean(str(col), units)} to slip; columns: "
+                                    f"{', '.join(units)}")
+            sm = check_keys(spec, sw, required=("fraction", "size"))
+            fw = child_where(sm, sw, "fraction")
+            fraction = expect_number(sm["fraction"], fw)
+            if not 0.0 <= fraction <= 1.0:
+                raise SpecError(fw, f"fraction is a share of the observations: expected a "
+                                    f"number from 0 to 1, found {fraction:g}")
+            slips.append(Slip(col, fraction, _amount(sm["size"], child_where(sm, sw, "size"),
+                                                      units[col], constants, "size")))
+        if not (values or add or slips):
+            raise SpecError(at, "an effect needs 'add' (terms it adds) or 'slips'; remove "
+                                "it with ~ or switch it off with 'on: false'")
+        out.append(Effect(name, values, add, tuple(slips), on, _doc(entry, at), at))
+    return tuple(out)
 
 
 # --------------------------------------------------------------------------- runs
 
 
-def _pivot(mapping: YMap, where: Where, has_coordination: bool) -> str:
-    pivot = _choice(mapping, where, "rotate_about", PIVOTS, "platen")
-    if pivot == "coordination" and not has_coordination:
-        raise SpecError(
-            child_where(mapping, where, "rotate_about"),
-            "rotate_about: coordination needs a 'coordination' section in the scenario",
-        )
-    return pivot
+def _range(value: Any, where: Where, factor: float) -> tuple[float, float]:
+    items = expect_list(value, where)
+    if len(items) != 2:
+        raise SpecError(where, f"expected [lo, hi], a list of 2 numbers, found {len(items)}")
+    lo, hi = (expect_number(v, child_where(items, where, i)) for i, v in enumerate(items))
+    if lo > hi:
+        raise SpecError(where, f"expected lo <= hi, found [{lo:g}, {hi:g}]")
+    return lo * factor, hi * factor
 
 
-def _scatter(value: Any, where: Where, has_coordination: bool) -> Scatter:
-    mapping = check_keys(value, where, required=("n", "x", "y", "theta_deg"),
-                         optional=("rotate_about", "dwell"))
-    dwell = _number(mapping, where, "dwell", 0.0, nonnegative=True)
-    if dwell > 1.0:
-        raise SpecError(child_where(mapping, where, "dwell"),
-                        f"dwell is a share of the poses: expected a number from 0 to 1, "
-                        f"found {dwell:g}")
-    return Scatter(
-        n=expect_int(mapping["n"], child_where(mapping, where, "n"), minimum=1,
-                     maximum=MAX_SAMPLES),
-        x=_range(mapping, where, "x"),
-        y=_range(mapping, where, "y"),
-        theta=_range(mapping, where, "theta_deg", math.pi / 180.0),
-        rotate_about=_pivot(mapping, where, has_coordination),
-        dwell=dwell,
-    )
+def _state_entries(mapping: YMap, where: Where, states: tuple[State, ...], motion_keys:
+                   tuple[str, ...], what: str) -> dict[str, tuple[str, Any, Where]]:
+    """The states a motion names, checked: ``{state: (kind, value, where)}``."""
+    names = {s.name: s for s in states}
+    out: dict[str, tuple[str, Any, Where]] = {}
+    for key, item in mapping.items():
+        if key in motion_keys:
+            continue
+        kw = child_where(mapping, where, key)
+        if key not in names:
+            raise SpecError(kw, f"unknown key '{excerpt(str(key))}'"
+                                f"{did_you_mean(str(key), [*motion_keys, *names])}; {what} "
+                                f"takes {', '.join(motion_keys)} and the states "
+                                f"({', '.join(names)})")
+        out[key] = ("range" if isinstance(item, YList) else "value", item, kw)
+    return out
 
 
-def _line(value: Any, where: Where, has_coordination: bool) -> Line:
-    mapping = check_keys(value, where, required=("n", "from", "to"),
-                         optional=("theta_deg", "theta_jitter_deg", "rotate_about"))
-    deg = math.pi / 180.0
-    return Line(
-        n=expect_int(mapping["n"], child_where(mapping, where, "n"), minimum=1,
-                     maximum=MAX_SAMPLES),
-        start=_point(mapping, where, "from"),
-        end=_point(mapping, where, "to"),
-        theta=_number(mapping, where, "theta_deg", 0.0) * deg,
-        theta_jitter=_number(mapping, where, "theta_jitter_deg", 0.0, nonnegative=True) * deg,
-        rotate_about=_pivot(mapping, where, has_coordination),
-    )
+def _placed(states: tuple[State, ...], given: Mapping[str, tuple[str, Any, Where]],
+            where: Where, ranges_ok: bool = True) -> tuple[tuple[tuple[str, tuple[float, float]],
+                                                              ...], tuple[tuple[str, float], ...]]:
+    ranges, held = [], []
+    for state in states:
+        if state.name in given:
+            kind, item, kw = given[state.name]
+            if kind == "range":
+                if not ranges_ok:
+                    raise SpecError(kw, "expected a number (a held value)")
+                ranges.append((state.name, _range(item, kw, state.size)))
+            else:
+                held.append((state.name, expect_number(item, kw) * state.size))
+        elif state.default is not None:
+            held.append((state.name, state.default))
+        else:
+            raise SpecError(where, f"state '{state.name}' is not given: give a range "
+                                   f"[lo, hi] or a value, or a 'value' in 'states'")
+    return tuple(ranges), tuple(held)
 
 
-def _run(name: str, value: Any, where: Where, has_coordination: bool) -> Run:
-    mapping = check_keys(value, where, optional=("scatter", "line", "dt", "t0", "doc"))
-    motions = [key for key in ("scatter", "line") if key in mapping]
+def _count(mapping: YMap, where: Where, key: str) -> int:
+    return expect_int(mapping[key], child_where(mapping, where, key), minimum=1,
+                      maximum=MAX_SAMPLES)
+
+
+def _scatter(value: Any, where: Where, states: tuple[State, ...]) -> Scatter:
+    mapping = expect_map(value, where)
+    keys = ("n", "dwell", "dwell_at")
+    given = _state_entries(mapping, where, states, keys, "a scatter")
+    if "n" not in mapping:
+        raise SpecError(where, "missing required key 'n'")
+    ranges, held = _placed(states, given, where)
+    dwell = 0.0
+    if mapping.get("dwell") is not None:
+        dw = child_where(mapping, where, "dwell")
+        dwell = expect_number(mapping["dwell"], dw)
+        if not 0.0 <= dwell <= 1.0:
+            raise SpecError(dw, f"dwell is a share of the draws: expected a number from 0 to "
+                                f"1, found {dwell:g}")
+    ranged = [name for name, _ in ranges]
+    dwell_at = tuple(ranged)
+    if mapping.get("dwell_at") is not None:
+        aw = child_where(mapping, where, "dwell_at")
+        items = expect_list(mapping["dwell_at"], aw)
+        dwell_at = ()
+        for i, item in enumerate(items):
+            iw = child_where(items, aw, i)
+            if item not in ranged:
+                raise SpecError(iw, f"'{excerpt(str(item))}' is not a ranged state of this "
+                                    f"scatter{did_you_mean(str(item), ranged)}; ranged: "
+                                    f"{', '.join(ranged) or 'none'}")
+            dwell_at += (str(item),)
+    return Scatter(_count(mapping, where, "n"), ranges, held, dwell,
+                   tuple(s for s in ranged if s in dwell_at))
+
+
+def _dwells(value: Any, where: Where, states: tuple[State, ...]) -> Dwells:
+    mapping = expect_map(value, where)
+    given = _state_entries(mapping, where, states, ("count", "samples"), "dwells")
+    for key in ("count", "samples"):
+        if key not in mapping:
+            raise SpecError(where, f"missing required key '{key}'")
+    ranges, held = _placed(states, given, where)
+    count, samples = _count(mapping, where, "count"), _count(mapping, where, "samples")
+    if count * samples > MAX_SAMPLES:
+        raise SpecError(where, f"count x samples is {count * samples}, more than "
+                               f"{MAX_SAMPLES} observations")
+    return Dwells(count, samples, ranges, held)
+
+
+def _points(mapping: YMap, where: Where, key: str, states: dict[str, State]
+            ) -> dict[str, float]:
+    kw = child_where(mapping, where, key)
+    points = expect_map(mapping[key], kw)
+    out = {}
+    for name, item in points.items():
+        iw = child_where(points, kw, name)
+        if name not in states:
+            raise SpecError(iw, f"no state '{excerpt(str(name))}'"
+                                f"{did_you_mean(str(name), states)}; states: "
+                                f"{', '.join(states)}")
+        out[str(name)] = expect_number(item, iw) * states[name].size
+    return out
+
+
+def _line(value: Any, where: Where, states: tuple[State, ...]) -> Line:
+    mapping = expect_map(value, where)
+    keys = ("n", "from", "to", "jitter")
+    given = _state_entries(mapping, where, states, keys, "a line")
+    for key in ("n", "from", "to"):
+        if key not in mapping:
+            raise SpecError(where, f"missing required key '{key}'")
+    by_name = {s.name: s for s in states}
+    start = _points(mapping, where, "from", by_name)
+    end = _points(mapping, where, "to", by_name)
+    jitter = _points(mapping, where, "jitter", by_name) if mapping.get("jitter") else {}
+    for name, sigma in jitter.items():
+        if sigma < 0:
+            raise SpecError(child_where(mapping, where, "jitter").child(name),
+                            f"a jitter is a standard deviation: expected a number of at "
+                            f"least 0, found {sigma:g}")
+    first, last = [], []
+    for state in states:
+        name = state.name
+        held = given.get(name)
+        if held is not None:
+            if name in start or name in end:
+                raise SpecError(held[2], f"state '{name}' is given both as a held value and "
+                                         "in 'from'/'to'")
+            if held[0] == "range":
+                raise SpecError(held[2], "expected a number (a held value); a line moves "
+                                         "the states given in 'from' and 'to'")
+            a = b = expect_number(held[1], held[2]) * state.size
+        elif name in start or name in end:
+            a = start[name] if name in start else end[name]
+            b = end.get(name, a)
+        elif state.default is not None:
+            a = b = state.default
+        else:
+            raise SpecError(where, f"state '{name}' is not given: give it in 'from' (and "
+                                   f"'to'), a held value, or a 'value' in 'states'")
+        first.append((name, a))
+        last.append((name, b))
+    order = [s.name for s in states]
+    return Line(_count(mapping, where, "n"), tuple(first), tuple(last),
+                tuple((k, jitter[k]) for k in order if k in jitter))
+
+
+def _series(value: Any, where: Where, states: tuple[State, ...]) -> Series:
+    mapping = expect_map(value, where)
+    given = _state_entries(mapping, where, states, ("n",), "a series")
+    if "n" not in mapping:
+        raise SpecError(where, "missing required key 'n'")
+    exprs = []
+    for state in states:
+        if state.name in given:
+            _, item, kw = given[state.name]
+            exprs.append((state.name, parse_expr(item, kw)))
+        elif state.default is not None:
+            exprs.append((state.name, parse_expr(repr(state.default / state.size), where)))
+        else:
+            raise SpecError(where, f"state '{state.name}' is not given: give an expression "
+                                   f"of t, a value, or a 'value' in 'states'")
+    return Series(_count(mapping, where, "n"), tuple(exprs))
+
+
+_PARSERS: dict[str, Callable[[Any, Where, tuple[State, ...]], Motion]] = {
+    "scatter": _scatter, "line": _line, "dwells": _dwells, "series": _series}
+
+
+def _run(name: str, value: Any, where: Where, states: tuple[State, ...]) -> Run:
+    mapping = check_keys(value, where, optional=(*MOTIONS, "dt", "t0", "doc"))
+    motions = [key for key in MOTIONS if mapping.get(key) is not None]
     if len(motions) != 1:
-        found = " and ".join(f"'{m}'" for m in motions) or "neither"
-        raise SpecError(
-            where, f"a run needs exactly one motion, 'scatter' or 'line'; found {found}"
-        )
+        found = " and ".join(f"'{m}'" for m in motions) or "none"
+        raise SpecError(where, f"a run needs exactly one motion, one of "
+                               f"{', '.join(MOTIONS)}; found {found}")
     kind = motions[0]
-    mw = child_where(mapping, where, kind)
-    motion = (_scatter if kind == "scatter" else _line)(mapping[kind], mw, has_coordination)
-    doc = mapping.get("doc")
-    return Run(
-        name=name,
-        motion=motion,
-        dt=_number(mapping, where, "dt", DEFAULT_DT, positive=True),
-        t0=_number(mapping, where, "t0", 0.0),
-        doc="" if doc is None else expect_str(doc, child_where(mapping, where, "doc")),
-    )
+    motion = _PARSERS[kind](mapping[kind], child_where(mapping, where, kind), states)
+    dt = DEFAULT_DT
+    if mapping.get("dt") is not None:
+        dw = child_where(mapping, where, "dt")
+        dt = expect_number(mapping["dt"], dw)
+        if dt <= 0:
+            raise SpecError(dw, f"expected a positive number, found {dt:g}")
+    t0 = 0.0 if mapping.get("t0") is None else expect_number(mapping["t0"],
+                                                             child_where(mapping, where, "t0"))
+    return Run(name, motion, dt, t0, _doc(mapping, where), where)
 
 
-def _runs(value: Any, where: Where, has_coordination: bool) -> tuple[Run, ...]:
+def _runs(value: Any, where: Where, states: tuple[State, ...]) -> tuple[Run, ...]:
     mapping = expect_map(value, where)
     if not mapping:
         raise SpecError(where, "a scenario needs at least one run")
-    out = []
-    for key, run in mapping.items():
-        rw = child_where(mapping, where, key)
-        name = expect_name(key, rw, "a run name")
-        out.append(_run(name, run, rw, has_coordination))
-    return tuple(out)
+    return tuple(_run(expect_name(key, child_where(mapping, where, key), "a run name"), run,
+                      child_where(mapping, where, key), states)
+                 for key, run in mapping.items())
 
 
 # --------------------------------------------------------------------------- design
 
 
-def _limit(mapping: YMap, where: Where, key: str) -> tuple[float, float]:
-    lo, hi = _range(mapping, where, key)
-    kw = child_where(mapping, where, key)
-    if key == "dwell" and not 0.0 <= lo <= hi <= 1.0:
-        raise SpecError(kw, f"dwell is a share of the poses: its limits must lie within "
-                            f"[0, 1], found [{lo:g}, {hi:g}]")
-    if key == "n":
-        if lo != int(lo) or hi != int(hi) or lo < 1 or hi > MAX_SAMPLES:
-            raise SpecError(kw, f"n's limits must be whole numbers from 1 to {MAX_SAMPLES}, "
-                                f"found [{lo:g}, {hi:g}]")
-    return lo, hi
+def design_keys(run: Run) -> tuple[str, ...]:
+    """What a design may change in ``run``: its ranged states, ``dwell`` (a scatter) and
+    ``n``."""
+    motion = run.motion
+    if not isinstance(motion, (Scatter, Dwells)):
+        return ()
+    keys = tuple(name for name, _ in motion.ranges)
+    return (*keys, "dwell", "n") if isinstance(motion, Scatter) else (*keys, "n")
 
 
-def _motion_values(motion: Scatter) -> dict[str, tuple[float, float]]:
-    """The scatter's motion parameters in the units of a design's limits."""
-    deg = 180.0 / math.pi
-    return {"x": motion.x, "y": motion.y,
-            "theta_deg": (motion.theta[0] * deg, motion.theta[1] * deg),
-            "dwell": (motion.dwell, motion.dwell), "n": (float(motion.n), float(motion.n))}
-
-
-def _design(value: Any, where: Where, runs: tuple[Run, ...]) -> DesignSpace:
+def _design(value: Any, where: Where, runs: tuple[Run, ...], states: tuple[State, ...]
+            ) -> DesignSpace:
     mapping = check_keys(value, where, required=("run", "limits"), optional=("doc",))
     rw = child_where(mapping, where, "run")
     name = expect_name(mapping["run"], rw, "a run name")
@@ -687,32 +859,77 @@ def _design(value: Any, where: Where, runs: tuple[Run, ...]) -> DesignSpace:
     if name not in names:
         raise SpecError(rw, f"no run named '{name}'{did_you_mean(name, names)}; runs: "
                             f"{', '.join(names)}")
-    motion = runs[names.index(name)].motion
-    if not isinstance(motion, Scatter):
-        raise SpecError(rw, f"run '{name}' is a line; only a scatter run can be designed")
+    run = runs[names.index(name)]
+    if run.motion.kind not in DESIGNABLE:
+        raise SpecError(rw, f"run '{name}' is a {run.motion.kind}; only a scatter or dwells "
+                            "run can be designed")
+    keys = design_keys(run)
     lw = child_where(mapping, where, "limits")
-    limits_map = check_keys(mapping["limits"], lw, optional=DESIGN_KEYS)
+    limits_map = check_keys(mapping["limits"], lw, optional=keys)
     if not limits_map:
-        raise SpecError(lw, f"lists no motion parameter that may change; list some of "
-                            f"{', '.join(DESIGN_KEYS)}")
-    limits = tuple((key, _limit(limits_map, lw, key)) for key in DESIGN_KEYS
-                   if key in limits_map)
-    current = _motion_values(motion)
-    for key, (lo, hi) in limits:
-        a, b = current[key]
+        raise SpecError(lw, f"lists nothing that may change; list some of {', '.join(keys)}")
+    units = {s.name: s for s in states}
+    limits = []
+    motion = run.motion
+    assert isinstance(motion, (Scatter, Dwells))
+    ranges = dict(motion.ranges)
+    for key in keys:
+        if key not in limits_map:
+            continue
+        kw = child_where(limits_map, lw, key)
+        lo, hi = _range(limits_map[key], kw, 1.0)
+        if key == "dwell" and not 0.0 <= lo <= hi <= 1.0:
+            raise SpecError(kw, f"dwell is a share of the draws: its limits must lie within "
+                                f"[0, 1], found [{lo:g}, {hi:g}]")
+        if key == "n" and (lo != int(lo) or hi != int(hi) or lo < 1 or hi > MAX_SAMPLES):
+            raise SpecError(kw, f"n's limits must be whole numbers from 1 to {MAX_SAMPLES}, "
+                                f"found [{lo:g}, {hi:g}]")
+        if key == "n":
+            a = b = float(motion.n)
+        elif key == "dwell":
+            a = b = motion.dwell
+        else:
+            factor = units[key].size
+            a, b = ranges[key][0] / factor, ranges[key][1] / factor
         if a < lo - 1e-12 * max(1.0, abs(lo)) or b > hi + 1e-12 * max(1.0, abs(hi)):
             shown = f"{a:g}" if a == b else f"[{a:g}, {b:g}]"
-            raise SpecError(child_where(limits_map, lw, key),
-                            f"run '{name}' has {key} {shown}, outside its limits "
-                            f"[{lo:g}, {hi:g}]")
-    doc = mapping.get("doc")
-    return DesignSpace(name, limits,
-                       "" if doc is None else expect_str(doc, child_where(mapping, where,
-                                                                          "doc")).strip(),
-                       where)
+            raise SpecError(kw, f"run '{name}' has {key} {shown}, outside its limits "
+                                f"[{lo:g}, {hi:g}]")
+        limits.append((key, (lo, hi)))
+    return DesignSpace(name, tuple(limits), _doc(mapping, where), where)
 
 
 # --------------------------------------------------------------------------- entry points
+
+
+TOP_KEYS = ("doc", "extends", "constants", "truth", "expressions", "effects", "design")
+
+
+def _unique(scenario: Scenario) -> None:
+    """No name declared twice across constants, truth, effect values, states, the time,
+    expressions and columns (effect values may repeat across effects)."""
+    seen: dict[str, str] = {TIME: "the built-in time state"}
+    groups: list[tuple[str, list[tuple[str, Where]]]] = [
+        ("constants", [(c.name, c.where) for c in scenario.constants]),
+        ("truth", [(v.name, v.where) for v in scenario.truth]),
+        ("states", [(s.name, s.where) for s in scenario.states]),
+        ("expressions", [(e.name, e.spec.where) for e in scenario.expressions]),
+        ("columns", [(c.name, c.where) for c in scenario.columns if c.solve is not None]),
+    ]
+    for section, entries in groups:
+        for name, where in entries:
+            if name in seen:
+                raise SpecError(where, f"'{name}' is already defined in {seen[name]}")
+            seen[name] = section
+    for effect in scenario.effects:
+        for v in effect.values:
+            if v.name in seen:
+                raise SpecError(v.where, f"'{v.name}' is already defined in {seen[v.name]}")
+    expressions = {e.name for e in scenario.expressions}
+    for c in scenario.columns:     # an 'expr' column is a symbol only as an effect's target
+        if c.expr is not None and c.name in expressions:
+            raise SpecError(c.where, f"column '{c.name}' has the name of an expression: an "
+                                     "effect adding to it would be ambiguous; rename one")
 
 
 def parse_scenario(doc: YMap, where: Where) -> Scenario:
@@ -721,44 +938,56 @@ def parse_scenario(doc: YMap, where: Where) -> Scenario:
     Parameters
     ----------
     doc
-        The top-level mapping, as returned by :func:`symcal.language.yamlio.load_yaml`.
+        The top-level mapping (extends already merged).
     where
         Its provenance.
 
     Returns
     -------
     Scenario
-        The frozen scenario.
+        The frozen scenario (its symbols resolved lazily, on the first simulation).
 
     Raises
     ------
     SpecError
-        On any unknown or missing key, wrong type or invalid value, naming file:line
-        and key path.
+        On any unknown or missing key, wrong type or invalid value, naming file:line and
+        key path.
     """
-    check_keys(doc, where, required=("scenario", "platen", "runs"),
-               optional=("doc", "extends", "coordination", "reference", "design"))
+    check_keys(doc, where, required=("scenario", "states", "columns", "runs"),
+               optional=TOP_KEYS)
     name = expect_name(doc["scenario"], child_where(doc, where, "scenario"), "a scenario name")
-    coordination = None
-    if "coordination" in doc:
-        coordination = _coordination(doc["coordination"], child_where(doc, where, "coordination"))
+    constants = _constants(doc.get("constants"), child_where(doc, where, "constants"))
+    numbers = {c.name: c.internal for c in constants}
+    states = _states(doc["states"], child_where(doc, where, "states"))
+    columns = _columns(doc["columns"], child_where(doc, where, "columns"), numbers)
     runs_where = child_where(doc, where, "runs")
-    text = doc.get("doc")
-    runs = _runs(doc["runs"], runs_where, coordination is not None)
+    runs = _runs(doc["runs"], runs_where, states)
     design = None
     if doc.get("design") is not None:
-        design = _design(doc["design"], child_where(doc, where, "design"), runs)
-    return Scenario(
+        design = _design(doc["design"], child_where(doc, where, "design"), runs, states)
+    text = doc.get("doc")
+    scenario = Scenario(
         name=name,
-        platen=_platen(doc["platen"], child_where(doc, where, "platen")),
+        states=states,
+        columns=columns,
         runs=runs,
-        coordination=coordination,
-        reference=_reference(doc.get("reference"), child_where(doc, where, "reference")),
-        doc="" if text is None else expect_str(text, child_where(doc, where, "doc")).strip(),
+        constants=constants,
+        truth=_values(doc.get("truth"), child_where(doc, where, "truth"), "a true value"),
+        expressions=_expressions(doc.get("expressions"), child_where(doc, where,
+                                                                     "expressions")),
+        effects=_effects(doc.get("effects"), child_where(doc, where, "effects"), columns,
+                         numbers),
+        design=design,
+        doc="" if text is None else " ".join(expect_str(text, child_where(doc, where,
+                                                                           "doc")).split()),
         source=where.file,
         runs_where=runs_where,
-        design=design,
+        document=doc,
+        where=where,
     )
+    _unique(scenario)
+    check(scenario)
+    return scenario
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -772,14 +1001,14 @@ def load_scenario(path: str | Path) -> Scenario:
     Returns
     -------
     Scenario
-        A frozen dataclass tree; change it with :func:`dataclasses.replace`.
+        A frozen scenario; change it with :meth:`Scenario.overlay`.
 
     Raises
     ------
     SpecError
         If the file is missing, is not valid YAML, or does not follow the schema; the
-        message names ``file:line``, the key path and, for unknown keys, the nearest
-        valid key.
+        message names ``file:line``, the key path and, for unknown keys or symbols, the
+        nearest valid one.
     """
     doc, where = load_with_extends(path, "scenario", merge_scenario)
     return parse_scenario(doc, where)
