@@ -203,6 +203,29 @@ class Objective:
             return 0.0, np.zeros(n), np.zeros((n, n))
         return float(out[0]), out[1], out[2]
 
+    def linearised(self, theta: np.ndarray, u: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(g, J)`` on a few observations ``u`` (``n_u × m``, columns in the problem's
+        order): the stacked weighted residuals (``m·n_g``) and their Jacobian in the free
+        parameters (``m·n_g × n``), by the passes' own function (its compiled twin when
+        one is cached); None where either is not finite.  Not a pass over the data: for
+        analyses on a sample (:mod:`symcal.analysis.gauges`)."""
+        if self.row_weights is not None:
+            raise SolveError("linearised: an objective with per-row weights has no sample "
+                             "Jacobian")
+        fn = self._mapped("linearised", [self.g, self.jac.T])
+        if jit.mode() != "off":
+            fn = jit.fast(fn, build=False)
+        ng, n = self.g.shape[0], int(self.free.sum())
+        with np.errstate(over="ignore", invalid="ignore"):
+            g, jt = fn(np.ascontiguousarray(theta, dtype=float), u)
+        m = g.shape[0]
+        jac = jt.reshape(m * ng, n)
+        g = g.reshape(m * ng)
+        if not (np.all(np.isfinite(g)) and np.all(np.isfinite(jac))):
+            return None
+        return g, jac
+
     def cost(self, dataset: Source, theta: np.ndarray) -> float:
         """Σ (g/σ)² at ``theta`` (residuals only, no derivatives)."""
         instrument.record_pass("residual", "cost", dataset.n)
