@@ -58,3 +58,57 @@ def test_lm_stops_at_the_rounding_of_the_cost_without_a_train_of_rejections(monk
     for p in fast.parameters:
         if p.se is not None:
             assert abs(p.value - old.params[p.name]) <= 1e-6 * p.se, p.name
+
+
+# ------------------------------------------------------------------ BLAS threads
+
+BLAS_PROBE = """
+import json
+import sys
+
+import numpy as np                         # first, as most scripts do
+import scipy.linalg
+from threadpoolctl import threadpool_info
+
+import symcal
+from symcal.solvers.executor import blas_limit
+from symcal.solvers.instrument import counting
+
+
+def blas():
+    return sorted({d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"})
+
+
+before = blas()
+with blas_limit():
+    inside = blas()
+after = blas()
+during = []
+with counting(on_iteration=lambda *a: during.extend(blas())):
+    result = symcal.solve(sys.argv[1])
+print(json.dumps([before, inside, after, sorted(set(during)), blas(), result.success]))
+"""
+
+
+@pytest.mark.parametrize("threads", [None, "3"])
+def test_blas_is_held_inside_symcals_passes_whatever_the_import_order(threads) -> None:
+    """numpy imported before symcal, no BLAS variable set (OpenBLAS then starts one thread
+    per core): inside symcal's passes and solver steps BLAS has one thread, and the
+    program's own setting is back afterwards; a user's OPENBLAS_NUM_THREADS is obeyed."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    if threads:
+        env["OPENBLAS_NUM_THREADS"] = threads
+    out = subprocess.run([sys.executable, "-c", BLAS_PROBE,
+                          str(ROOT / "tests" / "nist" / "Misra1a.start1.yaml")],
+                         capture_output=True, text=True, env=env, cwd=ROOT, timeout=300)
+    assert out.returncode == 0, out.stderr
+    before, inside, after, during, end, success = json.loads(out.stdout.splitlines()[-1])
+    want = [int(threads)] if threads else [1]
+    assert inside == want and during == want, (before, inside, during)
+    assert after == before and end == before and success

@@ -62,6 +62,7 @@ from symcal.base.linalg import (
 from symcal.base.units import internal_unit
 from symcal.data.dataset import Dataset
 from symcal.problem.compiler import Problem
+from symcal.solvers.executor import blas_limit
 from symcal.solvers.objective import Objective
 
 #: At most this many observations, evenly spread over the dataset, enter the test.
@@ -413,7 +414,8 @@ class GaugeAnalysis:
         key = _digest("confirmed " + repr(self.to_dict()), objective, sample.u, theta, 0)
         known = _remembered(objective.problem, key)
         if known is None:
-            known = self._confirmed(sample, objective, theta)
+            with blas_limit():
+                known = self._confirmed(sample, objective, theta)
             _remember(objective.problem, key, known)
         basis, held = known
         return basis.copy(), held
@@ -555,7 +557,8 @@ def find_gauges(objective: Objective, data: Dataset, theta: np.ndarray, seed: in
     key = _digest("find", objective, sample.u, theta, seed)
     known = _remembered(objective.problem, key)
     if known is None:
-        known = _find(sample, objective, theta, seed)
+        with blas_limit():
+            known = _find(sample, objective, theta, seed)
         _remember(objective.problem, key, known)
     return known   # frozen: shared by every solve that asks the same
 

@@ -25,7 +25,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 
 from symcal.base.numeric import Mapped, chunks
-from symcal.solvers.executor import Executor
+from symcal.solvers.executor import Executor, blas_limit, blas_loaded
 
 Kind = Literal["cost", "terms", "normal", "r", "gram", "residuals"]
 
@@ -42,6 +42,7 @@ class Piece(Protocol):
 #: the GIL (numpy's QR holds it: measured, two threads no faster than one); smaller ones
 #: by numpy, so that a small solve never pays SciPy's 0.12 s import.
 LAPACK_ROWS = 4_096
+_LAPACK_SEEN = False
 
 
 def _qr_r(a: np.ndarray) -> np.ndarray:
@@ -49,8 +50,12 @@ def _qr_r(a: np.ndarray) -> np.ndarray:
     if a.shape[0] < LAPACK_ROWS:
         r: np.ndarray = np.linalg.qr(np.asarray(a, dtype=float), mode="r")  # type: ignore[assignment]
         return r
+    global _LAPACK_SEEN
     from scipy.linalg import lapack
 
+    if not _LAPACK_SEEN:
+        _LAPACK_SEEN = True
+        blas_loaded()
     f = np.asfortranarray(a, dtype=float)
     qr, _, _, info = lapack.dgeqrf(f, overwrite_a=True)
     if info != 0:  # pragma: no cover - LAPACK reports an illegal argument only
@@ -149,13 +154,15 @@ def reduce_two(kind: Kind, a: Any, b: Any) -> Any:
 def run_pass(task: Pass, pieces: Iterable[np.ndarray | Piece], executor: Executor) -> Any:
     """Map ``task`` over ``pieces`` with ``executor``; reduce the results in order.
 
-    ``residuals`` results are concatenated once at the end (not pairwise).
+    ``residuals`` results are concatenated once at the end (not pairwise).  BLAS is held
+    to its threads for symcal (:func:`~symcal.solvers.executor.blas_limit`) meanwhile.
     """
-    if task.kind == "residuals":
-        parts = list(executor.map(task, pieces))
-        ng = task.shape[0]
-        return np.concatenate(parts, axis=0) if parts else np.empty((0, ng))
-    out: Any = None
-    for value in executor.map(task, pieces):
-        out = value if out is None else reduce_two(task.kind, out, value)
-    return out
+    with blas_limit():
+        if task.kind == "residuals":
+            parts = list(executor.map(task, pieces))
+            ng = task.shape[0]
+            return np.concatenate(parts, axis=0) if parts else np.empty((0, ng))
+        out: Any = None
+        for value in executor.map(task, pieces):
+            out = value if out is None else reduce_two(task.kind, out, value)
+        return out

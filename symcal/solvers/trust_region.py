@@ -29,10 +29,11 @@ on the exact Jacobian from CasADi's AD.
   the fit is exact.  The rounding noise is measured by rejected trial steps too small for
   the model's curvature to matter: as soon as two in a row show it (:class:`_Steps`), and
   from then on at every linearisation, a Gauss–Newton promise within it stops the solve,
-  without the train of rejected trials that shrinking the region to nothing would take.  Converged to rounding, the last Gauss–Newton step (from R, finer
-  than the cost) is taken when the cost stays within its noise, so the estimate does not
-  depend on the order the passes reduce in (the residual vanished, or fell
-  below ``EXACT_FIT`` of the starting residual, where rounding dominates).  Divergence,
+  without the train of rejected trials that shrinking the region to nothing would take.
+  Converged to rounding, the last Gauss–Newton step (from R, finer than the cost) is
+  taken when the cost stays within its noise, so the estimate does not depend on the
+  order the passes reduce in (the residual vanished, or fell below ``EXACT_FIT`` of the
+  starting residual, where rounding dominates).  Divergence,
   NaN/inf in the Jacobian, the iteration limit and a stall (the region shrank to nothing
   without the test holding) are failures that say so.
 """
