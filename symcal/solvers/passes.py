@@ -11,7 +11,8 @@ pieces.  The kinds:
 * ``cost``: Σ g²;
 * ``terms``: Σ g_k² per constraint k;
 * ``normal``: ``(Σ g², Jᵀg, JᵀJ)``;
-* ``r``: the R factor of ``[J | g]`` (a TSQR: one QR per chunk, combined in order);
+* ``r``: the R factor of ``[J | g]`` (a TSQR: one blocked QR per chunk, combined in
+  order);
 * ``gram``: ``(gᵀg, observations)``, g as an ``m × n_g`` matrix;
 * ``residuals``: g itself, ``m × n_g`` (in-memory data only: its size grows with N).
 """
@@ -42,11 +43,17 @@ class Piece(Protocol):
 #: the GIL (numpy's QR holds it: measured, two threads no faster than one); smaller ones
 #: by numpy, so that a small solve never pays SciPy's 0.12 s import.
 LAPACK_ROWS = 4_096
+#: Block size of LAPACK's compact-WY QR (``dgeqrt``): its panel updates are matrix-matrix
+#: products, 1.4x faster than ``dgeqrf`` on the 24576 x 50 blocks of a chunk (best of 8,
+#: 16, 32, 50 measured here; the R factors agree to 1e-16 of their size).
+QR_BLOCK = 16
 _LAPACK_SEEN = False
 
 
 def _qr_r(a: np.ndarray) -> np.ndarray:
-    """The R factor of ``a`` (``min(rows, cols) × cols``), by LAPACK's ``geqrf``."""
+    """The R factor of ``a`` (``min(rows, cols) × cols``): LAPACK's blocked ``geqrt`` for
+    a tall piece, numpy's ``geqrf`` for a small one (the choice is by size alone, so the
+    result never depends on what was imported before)."""
     if a.shape[0] < LAPACK_ROWS:
         r: np.ndarray = np.linalg.qr(np.asarray(a, dtype=float), mode="r")  # type: ignore[assignment]
         return r
@@ -57,10 +64,11 @@ def _qr_r(a: np.ndarray) -> np.ndarray:
         _LAPACK_SEEN = True
         blas_loaded()
     f = np.asfortranarray(a, dtype=float)
-    qr, _, _, info = lapack.dgeqrf(f, overwrite_a=True)
+    k = min(f.shape)
+    qr, _, info = lapack.dgeqrt(min(QR_BLOCK, k), f, overwrite_a=True)
     if info != 0:  # pragma: no cover - LAPACK reports an illegal argument only
-        raise ArithmeticError(f"LAPACK dgeqrf failed (info {info})")
-    return np.triu(qr[:min(f.shape)])
+        raise ArithmeticError(f"LAPACK dgeqrt failed (info {info})")
+    return np.triu(qr[:k])
 
 
 @dataclass(frozen=True, eq=False)
