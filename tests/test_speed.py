@@ -193,3 +193,67 @@ def test_blocked_qr_gives_the_same_estimate(monkeypatch) -> None:
         if se is not None:
             i = problem.index[name]
             assert abs(new[i] - old[i]) <= 1e-6 * se, name
+
+
+# ------------------------------------------------------------------ compiled twins
+
+
+@pytest.fixture
+def empty_cache(tmp_path, monkeypatch):
+    from symcal.base import jit
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    monkeypatch.setenv("SYMCAL_JIT", "auto")
+    for name, value in (("_LOADED", {}), ("_FAILED", set()), ("_TWINS", {})):
+        monkeypatch.setattr(jit, name, value)
+    return jit
+
+
+def _function(name: str):
+    import casadi as ca
+
+    from symcal.base.numeric import mapped
+
+    th, u = ca.SX.sym("th", 2), ca.SX.sym("u", 2)
+    g = ca.sin(th[0] * u[0]) * ca.exp(th[1] * u[1]) - u[1]
+    return mapped(th, u, [g, ca.jacobian(g, th).T], name)
+
+
+def test_the_twin_is_built_in_the_background_once_repeated_passes_pay(empty_cache,
+                                                                      monkeypatch):
+    """Passes too small to compile for, repeated (a loop of solves of one structure): the
+    twin is built in the background once their observations add up to JIT_MIN, later
+    passes use it, and every result is the same bit for bit before and after."""
+    jit = empty_cache
+    if jit.compiler() is None:
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(jit, "JIT_MIN", 5_000)
+    fn = _function("loop_twin")
+    rng = np.random.default_rng(0)
+    theta, u = rng.standard_normal(2), rng.standard_normal((2, 1_000))
+    first = [np.copy(a) for a in jit.select(fn, 1_000)(theta, u)]
+    chosen = [jit.select(fn, 1_000) for _ in range(4)]
+    assert all(c is fn for c in chosen)                  # 5000 in all: build started
+    for thread in jit.building():
+        thread.join(timeout=120)
+    twin = jit.select(fn, 1_000)
+    assert isinstance(twin, jit.CompiledMapped)
+    for a, b in zip(first, twin(theta, u), strict=True):
+        np.testing.assert_array_equal(a, b)
+    # a large pass compiles at once; SYMCAL_JIT=off never compiles
+    big = _function("big_twin")
+    assert isinstance(jit.select(big, 5_000), jit.CompiledMapped)
+    monkeypatch.setenv("SYMCAL_JIT", "off")
+    off = _function("off_twin")
+    assert all(jit.select(off, 10_000) is off for _ in range(3)) and not jit.building()
+
+
+def test_a_cached_twin_is_used_from_the_first_pass(empty_cache) -> None:
+    jit = empty_cache
+    if jit.compiler() is None:
+        pytest.skip("no C compiler")
+    fn = _function("cached_twin")
+    jit.fast(fn, build=True)                               # an earlier process built it
+    jit._TWINS.clear()
+    jit._LOADED.clear()
+    assert isinstance(jit.select(fn, 10), jit.CompiledMapped)

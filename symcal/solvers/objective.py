@@ -239,9 +239,7 @@ class Objective:
         :attr:`executor` (serial when None)."""
         fn = (self._mapped("linearised", [self.g, self.jac.T]) if fn_name == "linearised"
               else self._mapped("residual", [self.g]))
-        use, build = jit.wanted(dataset.n)
-        if use:                         # compiled (cached on disk), when a compiler is found
-            fn = jit.fast(fn, build)
+        fn = jit.select(fn, dataset.n)   # its compiled twin when it pays (base/jit.py)
         task = Pass(kind, fn, np.ascontiguousarray(theta, dtype=float),
                     (self.g.shape[0], int(self.free.sum())), tuple(self.problem.columns),
                     transform)
