@@ -257,3 +257,28 @@ def test_a_cached_twin_is_used_from_the_first_pass(empty_cache) -> None:
     jit._TWINS.clear()
     jit._LOADED.clear()
     assert isinstance(jit.select(fn, 10), jit.CompiledMapped)
+
+
+def test_the_r_factor_at_a_point_is_reduced_once(monkeypatch) -> None:
+    """A stage's analysis reduces R at its start, and the solver's first linearisation
+    asks for the same: the second is no pass over the data and gives the same bits; any
+    other point, transform, dataset or per-row weights is a pass."""
+    from symcal.solvers.instrument import counting
+
+    problem, _, data, objective = _dual_objective(2_000)
+    theta = np.array([p.value for p in problem.parameters])
+    first = objective.accumulate_r(data, theta)
+    with counting() as counts:
+        again = objective.accumulate_r(data, theta.copy())
+    assert counts.passes == 0
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a, b)
+    again[0][:] = 0.0                                   # a copy: the memo is not touched
+    assert np.array_equal(objective.accumulate_r(data, theta)[0], first[0])
+    with counting() as counts:
+        objective.accumulate_r(data, theta + 1e-9)
+        objective.accumulate_r(data, theta, np.eye(3))
+        objective.with_row_weights(np.ones((data.n, 3))).accumulate_r(data, theta)
+        _, _, data2, _ = _dual_objective(2_000)
+        objective.accumulate_r(data2, theta)
+    assert counts.by_method == {"accumulate_r": 4}

@@ -93,6 +93,44 @@ def symcal_analysis(problem: str, cols: Columns) -> Method:
     return run
 
 
+def symcal_public(problem: str, cols: Columns) -> Method:
+    """``symcal.solve``, the public API, on the single-stage problem from the common
+    start: the whole solve a user calls (gauges, the solve, the stage's analysis, the
+    result's statistics), with the data given as a ``Dataset``."""
+    import symcal
+    from symcal.data.dataset import make_dataset
+    from symcal.data.loading import needed_columns
+    from symcal.solvers.instrument import counting
+
+    prob = single_stage_problem(problem)
+    data = make_dataset("calibration", "benchmark", cols, needed_columns(prob))
+    names = prob.parameter_names
+
+    def run(theta0: np.ndarray) -> Outcome:
+        with counting() as counts:
+            result = symcal.solve(prob, {"calibration": data},
+                                  initial=dict(zip(names, theta0, strict=True)))
+        stage = result.stages[-1]
+        return Outcome(np.asarray(result.theta), stage.iterations,
+                       f"{stage.method}: {stage.message}", counts.passes,
+                       dict(counts.by_method))
+
+    return run
+
+
+def exact_peer(problem: str, name: str, cols: Columns) -> Method:
+    """An exact-Jacobian peer of ``bench.exact``."""
+    from . import exact
+
+    run_peer = exact.runner(problem, name, cols)
+
+    def run(theta0: np.ndarray) -> Outcome:
+        res = run_peer(theta0)
+        return Outcome(res.theta, res.iterations, res.message, res.evaluations)
+
+    return run
+
+
 def peer(problem: str, method: str, cols: Columns, cap: float) -> Method:
     """A peer of ``bench.peers``: the numpy floor, least_squares or BFGS, stopped at
     ``cap`` seconds."""
@@ -140,4 +178,10 @@ def method(problem: str, name: str, cols: Columns, cap: float) -> Method:
         return symcal_solver(problem, cols, "ipopt")
     if name == "symcal_analysis":
         return symcal_analysis(problem, cols)
+    if name == "symcal_public":
+        return symcal_public(problem, cols)
+    from .config import EXACT_PEERS
+
+    if name in EXACT_PEERS:
+        return exact_peer(problem, name, cols)
     return peer(problem, name, cols, cap)

@@ -35,11 +35,13 @@ Source = Dataset | ShardedDataset
 
 @dataclass(frozen=True)
 class _Built:
-    """What an objective builds: its residual, Jacobian and mapped functions."""
+    """What an objective builds: its residual, Jacobian and mapped functions, and the
+    last R factor it reduced (:meth:`Objective.accumulate_r`)."""
 
     g: ca.SX
     jac: ca.SX
     mapped: dict[str, Mapped]
+    last_r: list[Any] = field(default_factory=list)
 
 
 #: Per problem (while it lives), what its objectives built, by (constraints, free
@@ -82,6 +84,7 @@ class Objective:
     g: ca.SX = field(init=False, repr=False)
     jac: ca.SX = field(init=False, repr=False)
     _cache: dict[str, Mapped] = field(default_factory=dict, init=False, repr=False)
+    _last_r: list[Any] = field(default_factory=list, init=False, repr=False)
 
     def __post_init__(self) -> None:
         free = np.asarray(self.free, dtype=bool)
@@ -99,6 +102,7 @@ class Objective:
         object.__setattr__(self, "g", shared.g)
         object.__setattr__(self, "jac", shared.jac)
         object.__setattr__(self, "_cache", shared.mapped)
+        object.__setattr__(self, "_last_r", shared.last_r)
 
     def with_row_weights(self, row_weights: np.ndarray | None) -> Objective:
         """This objective with other per-row factors (None: none), sharing its built
@@ -159,12 +163,30 @@ class Objective:
             ``‖J δ + g‖² = ‖R δ + c‖² + tail`` for every step δ of the free parameters,
             J and g the weighted Jacobian and residual at ``theta``; ``rows`` counts the
             residual rows.  Accumulated chunk by chunk (TSQR: one QR per chunk, the
-            chunks' R factors combined in order).
+            chunks' R factors combined in order).  The last reduction of an in-memory
+            dataset is kept: asked again for the same data, point and transform (a stage's
+            analysis at its start, then the solver's first linearisation there), it is
+            returned without a pass, the same bits.
         """
-        instrument.record_pass("r", "accumulate_r", dataset.n)
         n = int(self.free.sum())
+        key = None
+        if isinstance(dataset, Dataset) and self.row_weights is None:
+            key = (np.ascontiguousarray(theta, dtype=float).tobytes(),
+                   None if transform is None else np.asarray(transform, float).tobytes())
+            last = self._last_r[0] if self._last_r else None
+            if last is not None and last[0]() is dataset and last[1] == key:
+                r_aug, rows = last[2]
+                return self._split_r(r_aug.copy(), rows, n)
+        instrument.record_pass("r", "accumulate_r", dataset.n)
         out = self._pass("r", "linearised", dataset, theta, transform)
         r_aug, rows = out if out is not None else (np.zeros((0, n + 1)), 0)
+        if key is not None:
+            self._last_r[:] = [(weakref.ref(dataset), key, (r_aug.copy(), rows))]
+        return self._split_r(r_aug, rows, n)
+
+    @staticmethod
+    def _split_r(r_aug: np.ndarray, rows: int, n: int
+                 ) -> tuple[np.ndarray, np.ndarray, float, int]:
         if r_aug.shape[0] < n + 1:
             r_aug = np.vstack([r_aug, np.zeros((n + 1 - r_aug.shape[0], n + 1))])
         return r_aug[:n, :n], r_aug[:n, n], float(r_aug[n, n] ** 2), rows
