@@ -40,8 +40,10 @@ PEERS = {
     "ceres": ("pyceres", "Ceres (pyceres) LM, dense QR, CasADi Jacobian"),
     "optimistix": ("optimistix", "optimistix LevenbergMarquardt (jax.jit)"),
 }
-#: Tolerances: tight enough that every peer reaches the minimum (checked by the harness).
-TOL = 1e-15
+#: Tolerances (ftol, xtol, gtol and their kin): scipy's defaults, what a user leaves.
+#: Every peer reaches the lowest J to 1e-11 with them here (1e-15 only adds iterations:
+#: 4 -> 30 for trf at the dual problem's N = 1e3); the harness checks it (1e-10).
+TOL = 1e-8
 MAX_STEPS = 200
 
 
