@@ -8,8 +8,9 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 DEMO_DIR := build/demo
-# The suite runs with one BLAS thread, symcal's own default (which does not apply in the
-# tests: they import numpy first).  OpenBLAS's threads made it 2.5x slower on 2 busy cores.
+# The suite runs with one BLAS thread, symcal's own default around its passes (held there
+# by threadpoolctl whatever the import order), for the tests' own numpy too.  OpenBLAS's
+# threads made it 2.5x slower on 2 busy cores.
 TEST_ENV := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 
 .PHONY: demo test test-fast lint docs bench clean
@@ -24,6 +25,11 @@ $(VENV)/.installed: pyproject.toml | $(BIN)/python
 
 $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e ".[test]"
+	touch $@ $(VENV)/.installed
+
+# the optional exact-Jacobian peers of `make bench` (JAX, pyceres, optimistix)
+$(VENV)/.installed-bench: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e ".[bench]"
 	touch $@ $(VENV)/.installed
 
 demo: $(VENV)/.installed
@@ -48,7 +54,7 @@ test: lint docs
 test-fast: $(VENV)/.installed-test
 	$(TEST_ENV) $(BIN)/python -m pytest -m "not slow"
 
-bench: $(VENV)/.installed
+bench: $(VENV)/.installed-bench
 	$(BIN)/python benchmarks/run.py
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python benchmarks/nist_strd.py --out benchmarks/NIST.md
 

@@ -22,19 +22,15 @@ The whole product, by public name (imported on first use)::
 In a notebook, a :class:`Result` and a :class:`Diagnosis` display their report.
 """
 
-import os as _os
-import sys as _sys
 from typing import TYPE_CHECKING as _TYPE_CHECKING
 
-# symcal's linear algebra is on tall, skinny matrices, where OpenBLAS's threads cost more
-# than they give (measured on 2 cores: up to 25x slower, benchmarks/RESULTS.md).  Unless
-# the user chose otherwise, use one BLAS thread; this only takes effect if numpy has not
-# been imported yet.
-if "numpy" not in _sys.modules:
-    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        _os.environ.setdefault(_var, "1")
-
-from symcal.base.errors import DataError, SolveError, SpecError, SymcalError  # noqa: E402
+# BLAS threads: symcal's linear algebra is on tall, skinny matrices, where OpenBLAS's
+# threads cost more than they give (on 2 cores: 1.6x to 60x slower, benchmarks/RESULTS.md).
+# symcal holds BLAS to one thread (or the user's OPENBLAS_NUM_THREADS) around its own
+# passes and solver steps only, through threadpoolctl, whatever was imported first
+# (symcal.solvers.executor.blas_limit); nothing is set at import, so a program's own
+# numpy keeps its threads.
+from symcal.base.errors import DataError, SolveError, SpecError, SymcalError
 
 # The rest of the API is imported on first use (PEP 562), so that ``import symcal.cli``
 # (``symcal --help``) does not load CasADi, SciPy, pint or Dask.  Name -> (module, name).

@@ -11,7 +11,7 @@ import pytest
 from conftest import ROOT
 
 JOBS = ("starts", "startup", "assemble", "data", "profile", "blas", "fleet", "hugelog",
-        "solve")
+        "improve", "solve")
 BENCHMARKS = ROOT / "benchmarks"
 
 
@@ -47,8 +47,32 @@ def test_quick_run_prints_every_job() -> None:
         row = re.search(rf"^\| {job} \| (\d+) \| (\d+) \| ", out, re.MULTILINE)
         assert row, (job, out[-2000:])
         assert int(row.group(1)) > 0 and int(row.group(2)) == 0, row.group(0)
-    # one table row per method of each problem (5 linear, 6 dual), none failed or skipped
-    assert len(re.findall(r"^\| 200 \| ", out, re.MULTILINE)) == 11
-    assert "**skipped**" not in out
+    # one table row per method of each problem (11 linear, 12 dual), none failed; the
+    # exact-Jacobian peers are skipped only where the bench extra is not installed
+    assert len(re.findall(r"^\| 200 \| ", out, re.MULTILINE)) == 23
+    skipped = re.findall(r"\*\*skipped\*\*: (.*) \|$", out, re.MULTILINE)
+    assert all(why.startswith("not installed") for why in skipped), skipped
     assert "nothing written" in out
     assert results.stat().st_mtime_ns == before
+
+
+def test_a_partial_run_replaces_only_its_sections() -> None:
+    """--jobs: the sections the run rendered replace theirs, the others stay, the targets
+    are merged and the header says which sections are new."""
+    from bench.report import splice
+
+    _bench_cli()
+    old = ("# symcal benchmarks\n\nProduced by `make bench` on 2026-01-01; it took 10 min.\n\n"
+           "## Machine\n\n- old machine\n\n## Kept\n\nold kept\n\n## Redone: 1e6\n\nold\n\n"
+           "## Targets\n\n| target | measured | verdict |\n|---|---|---|\n| a | 1 | met |\n"
+           "| b | 2 | met |\n\n## Tail\n\nold tail\n")
+    new = ("# symcal benchmarks\n\nProduced by `run.py --jobs x` on 2026-02-02.\n\n"
+           "## Machine\n\n- new machine\n\n## Redone: 1e3\n\nnew\n\n## Added\n\nnew too\n\n"
+           "## Targets\n\n| target | measured | verdict |\n|---|---|---|\n| b | 3 | missed |\n")
+    text = splice(old, new, {"date": "2026-02-02"})
+    assert "old kept" in text and "old tail" in text and "\nold\n" not in text
+    assert "## Redone: 1e3\n\nnew" in text and "new too" in text
+    assert "- new machine" in text and "## Machine of the earlier run" in text
+    assert "| b | 3 | missed |" in text and "| a | 1 | met (earlier run) |" in text
+    assert "| b | 2 |" not in text
+    assert text.index("## Added") < text.index("## Targets")

@@ -72,7 +72,7 @@ def test_closed_form_makes_exactly_one_r_pass(platen) -> None:
 def test_each_objective_method_is_one_pass_of_its_kind(platen) -> None:
     problem, data = platen
     objective = _objective(problem)
-    theta = _theta0(problem)
+    theta = _theta0(problem) + 1e-3   # a point no earlier test reduced an R factor at
     with counting() as counts:
         objective.cost(data, theta)
         objective.residuals(data, theta)

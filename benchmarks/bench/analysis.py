@@ -35,6 +35,8 @@ def exponents(rows: list[Row]) -> dict[tuple[str, str], tuple[float | None, ...]
     for problem, info in PROBLEMS.items():
         for method in info["methods"]:
             got = measured(rows, problem, method, finished=True)
+            if not got:
+                continue
             pts = sorted((n, r["seconds"]) for n, r in got.items())
             per_pass = sorted((n, r["seconds"] / r["evaluations"]) for n, r in got.items()
                               if n >= 10_000 and r.get("evaluations"))
@@ -104,7 +106,7 @@ def _data_targets(report: dict[str, Any], sym: dict[int, Row],
 
 def targets(report: dict[str, Any], settings: Settings) -> list[dict[str, str]]:
     """The issue's targets: measured value, met or missed, and by how much."""
-    rows = report["rows"]
+    rows = report.get("rows", [])
     out: list[dict[str, str]] = []
     sym = measured(rows, "dual", "symcal")
     n0, nb = min(settings.sizes), max(settings.sizes)

@@ -21,7 +21,8 @@ FROM_SETTINGS = "settings"
 
 
 def run_child(job: dict[str, Any], settings: Settings, timeout: float,
-              threads: str | None = FROM_SETTINGS) -> dict[str, Any]:
+              threads: str | None = FROM_SETTINGS,
+              extra_env: dict[str, str] | None = None) -> dict[str, Any]:
     """Run one job in a fresh interpreter.
 
     Parameters
@@ -34,6 +35,8 @@ def run_child(job: dict[str, Any], settings: Settings, timeout: float,
         Seconds after which the child is killed.
     threads
         BLAS threads of the child (None: the library's default).
+    extra_env
+        Variables set in the child besides (e.g. an empty compile cache).
 
     Returns
     -------
@@ -41,6 +44,7 @@ def run_child(job: dict[str, Any], settings: Settings, timeout: float,
         The child's result with its ``wall`` time, or ``{"error": ..., "wall": ...}``.
     """
     env = child_env(settings.blas_threads if threads == FROM_SETTINGS else threads)
+    env.update(extra_env or {})
     cmd = [sys.executable, str(RUN), "--child", json.dumps(job)]
     start = time.perf_counter()
     try:

@@ -21,7 +21,7 @@ from .jobs.base import JobSummary
 from .machine import code_state, load_average, machine
 from .measure import Clock
 from .problems import check_residuals, make_data
-from .report import atomic_write, method_table, render, write_json
+from .report import atomic_write, method_table, render, splice, write_json
 
 DESCRIPTION = """symcal's benchmark harness: symcal against what a user would write instead.
 
@@ -57,6 +57,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", help="where to write the tables (default "
                                       "benchmarks/RESULTS.md; none with --quick)")
     parser.add_argument("--json", help="also write the raw measurements here")
+    parser.add_argument("--jobs", help="comma-separated jobs to run (default: all; "
+                                       f"{', '.join(j.NAME for j in JOBS)}); with --out, "
+                                       "the sections of the jobs that ran replace theirs "
+                                       "in the existing file and the others are kept")
+    parser.add_argument("--methods", help="comma-separated methods of the solve job "
+                                          "(default: all)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     return parser.parse_args(argv)
 
@@ -70,16 +76,27 @@ def settings_from(args: argparse.Namespace) -> Settings:
     if not sizes or min(sizes) < 10:
         raise SystemExit("--sizes: give observation counts of at least 10")
     out = args.out or (None if args.quick else str(HERE / "RESULTS.md"))
+    known = {j.NAME for j in JOBS}
+    jobs = tuple(j.strip() for j in (args.jobs or "").split(",") if j.strip())
+    if set(jobs) - known:
+        raise SystemExit(f"--jobs: unknown {sorted(set(jobs) - known)}; jobs: "
+                         f"{', '.join(sorted(known))}")
+    if jobs and "starts" not in jobs and {"solve", "blas", "profile"} & set(jobs):
+        jobs = ("starts", *jobs)        # the common start every solve needs
+    methods = tuple(m.strip() for m in (args.methods or "").split(",") if m.strip())
+    if set(methods) - set(LABELS):
+        raise SystemExit(f"--methods: unknown {sorted(set(methods) - set(LABELS))}")
     return Settings(sizes, args.repeats or (1 if args.quick else 3),
                     args.cap or (10.0 if args.quick else 120.0), args.repeat_budget,
                     60 * args.budget,
                     None if args.blas_threads == "default" else args.blas_threads,
-                    None if out is None else Path(out), args.quick)
+                    None if out is None else Path(out), args.quick, jobs, methods)
 
 
 def _console_summary(report: dict[str, Any], settings: Settings) -> None:
     say("\n== fitted exponent of time vs N (all sizes; N >= 1e4; time per pass, N >= 1e4):")
-    for (problem, method), (a_all, a_big, a_pass) in exponents(report["rows"]).items():
+    for (problem, method), (a_all, a_big, a_pass) in exponents(
+            report.get("rows", [])).items():
         say(f"  {problem:6s} {LABELS[method]:44s} {show(a_all):>5}  {show(a_big):>5}  "
             f"{show(a_pass):>5}")
     say("\n== targets:")
@@ -101,7 +118,7 @@ def _print_tables(report: dict[str, Any], settings: Settings,
                   summaries: list[JobSummary]) -> None:
     for problem, info in PROBLEMS.items():
         say(f"\n== {info['title']}\n")
-        for line in method_table(report["rows"], problem, settings):
+        for line in method_table(report.get("rows", []), problem, settings):
             say(line)
     say("\n== jobs\n")
     for line in job_table(summaries):
@@ -112,6 +129,8 @@ def run_jobs(ctx: Run) -> list[JobSummary]:
     """Every job of :data:`bench.jobs.JOBS`, in order, timed."""
     summaries = []
     for job in JOBS:
+        if ctx.settings.jobs and job.NAME not in ctx.settings.jobs:
+            continue
         start = time.perf_counter()
         summary = job.run(ctx)
         summary.seconds = time.perf_counter() - start
@@ -164,6 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     if settings.quick:
         _print_tables(report, settings, summaries)
     if settings.out is not None:
+        if settings.jobs and settings.out.exists():
+            text = splice(settings.out.read_text(encoding="utf-8"), text, report)
         atomic_write(settings.out, text)
         say(f"\nwrote {settings.out} ({report['elapsed'] / 60:.1f} min)")
     else:

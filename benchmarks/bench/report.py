@@ -9,6 +9,7 @@ from typing import Any
 
 from .analysis import Row, exponents, targets
 from .config import LABELS, PROBLEMS, SEED, Settings
+from .exactreport import exact_section, exact_targets
 from .fmt import fmt_n, fmt_time, show
 from .why import why_section
 
@@ -44,7 +45,7 @@ def _row_cells(r: Row, ref: float | None, best: float) -> str:
     n = fmt_n(r["n"])
     if "seconds" not in r:
         why = r.get("skipped") or r.get("error", "")
-        return (f"| {n} | {label} | — | — | — | — | — | — | — | — | — | "
+        return (f"| {n} | {label} | — | — | — | — | — | — | — | — | — | — | "
                 f"**skipped**: {why} |")
     stopped = r.get("stopped")
     shown = ("≥ " if stopped else "") + fmt_time(r["seconds"])
@@ -55,16 +56,18 @@ def _row_cells(r: Row, ref: float | None, best: float) -> str:
         note = note[:97] + "..."
     iters = "—" if r.get("iterations") is None else str(r["iterations"])
     passes = "—" if r.get("evaluations") is None else str(r["evaluations"])
-    return (f"| {n} | {label} | {shown} | {len(r['times'])} | {ratio} | "
+    cold = r.get("cold", r.get("first"))
+    cold_text = "—" if cold is None else fmt_time(cold)
+    return (f"| {n} | {label} | {shown} | {cold_text} | {len(r['times'])} | {ratio} | "
             f"{r['peak_mib']:.0f} MiB | {r['peak_mib'] - r['baseline_mib']:.0f} MiB | {iters} | "
             f"{passes} | {r['cost']:.12g} | {rel:.1e} | {note.replace('|', '/')} |")
 
 
 def method_table(rows: list[Row], problem: str, settings: Settings) -> list[str]:
     """The table of one problem: one row per (N, method)."""
-    lines = ["| N | method | time | runs | × symcal | peak RSS | Δ RSS | "
+    lines = ["| N | method | time (warm) | cold | runs | × symcal | peak RSS | Δ RSS | "
              "iterations | passes | final J (mm²) | rel. | note |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for n in settings.sizes:
         here = [r for r in rows if r["problem"] == problem and r["n"] == n]
         ok = [r for r in here if "seconds" in r]
@@ -157,9 +160,11 @@ def _problem_section(report: dict[str, Any], settings: Settings, problem: str,
               "| method | a, all sizes measured | a, N ≥ 1e4 | a of time per pass, "
               "N ≥ 1e4 |", "|---|---|---|---|"]
     for method in info["methods"]:
+        if (problem, method) not in exps:
+            continue
         a_all, a_big, a_pass = exps[(problem, method)]
         lines.append(f"| {LABELS[method]} | {show(a_all)} | {show(a_big)} | {show(a_pass)} |")
-    if problem == "dual":
+    if problem == "dual" and report.get("starts"):
         lines += ["", "The common start (symcal's stages 1–2, closed form, in their own "
                   "process) took " + ", ".join(
                       f"{fmt_time(st['seconds'])} at N = {fmt_n(n)}"
@@ -171,13 +176,16 @@ def _problem_section(report: dict[str, Any], settings: Settings, problem: str,
 def render(report: dict[str, Any], settings: Settings) -> str:
     """The whole of RESULTS.md."""
     lines = _header(report, settings) + _method_notes(report, settings)
-    exps = exponents(report["rows"])
-    for problem in PROBLEMS:
-        lines += _problem_section(report, settings, problem, exps)
+    if "rows" in report:
+        exps = exponents(report["rows"])
+        for problem in PROBLEMS:
+            lines += _problem_section(report, settings, problem, exps)
+        lines += exact_section(report, settings)
     lines += ["## Targets", "", "| target | measured | verdict |", "|---|---|---|"]
     lines += [f"| {t['target']} | {t['measured']} | {t['verdict']} |"
-              for t in targets(report, settings)]
-    lines += ["", *why_section(report, settings), ""]
+              for t in targets(report, settings) + exact_targets(report, settings)]
+    if "rows" in report and "profile" in report:
+        lines += ["", *why_section(report, settings), ""]
     lines += extras_section(report, settings)
     return "\n".join(lines) + "\n"
 
@@ -227,9 +235,12 @@ def _blas_table(report: dict[str, Any]) -> list[str]:
         return []
     lines = ["", "## BLAS threads", "",
              "The same job with OPENBLAS_NUM_THREADS (and OMP_, MKL_) = 1, and with the "
-             "variables unset (OpenBLAS then starts one thread per core).  The harness "
-             "imports numpy before symcal, so a default symcal may set on import does "
-             "not apply here.", "",
+             "variables unset (OpenBLAS then starts one thread per core).  Every child "
+             "imports numpy before symcal, as most scripts do: the *library default* "
+             "column is what such a script gets.  symcal holds BLAS to one thread around "
+             "its own passes, solver steps and analysis through threadpoolctl "
+             "(`symcal.solvers.executor.blas_limit`), whatever was imported first; the "
+             "peers keep the library's threads.", "",
              "| problem | method | N | 1 thread | library default | ratio | iterations "
              "(1 thread / default) |", "|---|---|---|---|---|---|---|"]
     pairs: dict[tuple[str, str, int], dict[str, Any]] = {}
@@ -249,11 +260,14 @@ def extras_section(report: dict[str, Any], settings: Settings) -> list[str]:
     """Load and assemble, data, BLAS threads, and the fleet."""
     from .jobs.fleet import table as fleet_table
     from .jobs.hugelog import table as hugelog_table
+    from .jobs.improve import table as improve_table
     from .jobs.startup import table as startup_table
 
-    return (_assemble_table(report) + _data_table(report, max(settings.sizes))
-            + _blas_table(report) + fleet_table(report) + startup_table(report)
-            + hugelog_table(report))
+    data = _data_table(report, max(settings.sizes)) if (
+        "simulate" in report or "read" in report) else []
+    assemble = _assemble_table(report) if report.get("assemble") else []
+    return (assemble + data + _blas_table(report) + fleet_table(report)
+            + startup_table(report) + hugelog_table(report) + improve_table(report))
 
 
 def plain(obj: Any) -> Any:
@@ -277,3 +291,69 @@ def atomic_write(path: Path, text: str) -> None:
 def write_json(path: Path, report: dict[str, Any]) -> None:
     """The raw measurements as JSON."""
     atomic_write(path, json.dumps(plain(report), indent=1, default=str))
+
+
+def _sections(text: str) -> list[tuple[str, list[str]]]:
+    """A Markdown document as (heading, lines) pairs, split at its ``## `` headings (the
+    first pair is what comes before them, heading "")."""
+    out: list[tuple[str, list[str]]] = [("", [])]
+    for line in text.splitlines():
+        if line.startswith("## "):
+            out.append((line[3:].strip(), [line]))
+        else:
+            out[-1][1].append(line)
+    return out
+
+
+def _title(heading: str) -> str:
+    """A section's name without its sizes (``## One huge log on Dask: 1e7 rows``)."""
+    return heading.split(":")[0].strip()
+
+
+def splice(old: str, new: str, report: dict[str, Any]) -> str:
+    """RESULTS.md after a partial run (``--jobs``): the sections this run rendered
+    replace theirs in ``old``, new ones go before *Targets*, the others are kept as the
+    earlier run left them; the targets are merged (this run's rows first) and the
+    header says which sections come from which run."""
+    old_parts, new_parts = _sections(old), _sections(new)
+    fresh = {_title(h): lines for h, lines in new_parts
+             if h and h not in ("Machine", "How it was measured", "Targets")}
+    earlier = "\n".join(old_parts[0][1]).split("Produced by ", 1)[-1].split(";")[0]
+    out: list[str] = []
+    done: set[str] = set()
+    for heading, lines in old_parts:
+        name = _title(heading)
+        if heading == "":
+            out += [line for line in new_parts[0][1]]
+            out += [f"This file was last written by a partial run (`--jobs`): the sections "
+                    f"{', '.join(f'*{t}*' for t in fresh)} and the targets they measure come "
+                    f"from it ({report['date']}, machine below); every other section comes "
+                    f"from the earlier run (produced by {earlier}), whose machine and load "
+                    "are under *Machine of the earlier run*.", ""]
+        elif heading == "Machine":
+            out += dict(new_parts)["Machine"]
+            out += ["## Machine of the earlier run", *lines[1:]]
+        elif heading == "Targets":
+            for t, lines_new in fresh.items():
+                if t not in done:
+                    out += lines_new
+                    done.add(t)
+            new_rows = [ln for ln in dict(new_parts)["Targets"] if ln.startswith("| ")][1:]
+            seen = {ln.split("|")[1].strip() for ln in new_rows}
+            kept = [ln for ln in lines if ln.startswith("| ")][1:]
+            kept = [ln for ln in kept if ln.split("|")[1].strip() not in seen]
+            out += ["## Targets", "", "| target | measured | verdict |", "|---|---|---|",
+                    *new_rows, *(ln[:-1].rstrip() + " (earlier run) |" if not
+                                 ln.rstrip().endswith("(earlier run) |") else ln
+                                 for ln in kept), ""]
+        elif name in fresh:
+            out += fresh[name]
+            done.add(name)
+        elif heading.startswith("Machine of the earlier run"):
+            continue
+        else:
+            out += lines
+    for t, lines_new in fresh.items():
+        if t not in done:
+            out += lines_new
+    return "\n".join(out).rstrip("\n") + "\n"

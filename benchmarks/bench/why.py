@@ -176,7 +176,7 @@ def _blas(report: dict[str, Any], n0: int) -> list[str]:
             f"with one BLAS thread and {fmt_time(dflt['seconds'])} with OpenBLAS's "
             f"default of one thread per core ({dflt['seconds'] / one['seconds']:.1f}×) "
             "in this run.  symcal reduces every chunk with BLAS on tall, thin matrices "
-            "(`jac.T @ jac` in `Objective.normal_equations`, LAPACK `dgeqrf` in "
+            "(`jac.T @ jac` in `Objective.normal_equations`, LAPACK `dgeqrt` in "
             "`Objective.accumulate_r`).  How much the default threads cost depends on "
             "what else is running on the two cores.  The harness pins every timed "
             "process, peers included, to one BLAS thread; the last table shows both "

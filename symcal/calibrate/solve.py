@@ -34,6 +34,7 @@ from symcal.data.loading import load_datasets
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem, Stage
 from symcal.solvers.base import SolverOutput
+from symcal.solvers.executor import blas_limited
 from symcal.solvers.linear import solve_linear
 from symcal.solvers.objective import Objective, Source
 from symcal.solvers.robust import RowLosses, row_losses, sandwich_meat, solve_robust
@@ -259,6 +260,7 @@ def _check_information(stage: Stage, data: Dataset, rows: int, rank: int,
                         "check that the inputs vary over the calibration")
 
 
+@blas_limited
 def run_stage(
     problem: Problem, stage: Stage, data: Dataset, theta: np.ndarray,
     options: SolveOptions | None = None, progress: Progress = None,
@@ -346,6 +348,7 @@ def run_stage(
     return out.theta, result
 
 
+@blas_limited
 def solve(
     problem: Problem | str | Path,
     data: Mapping[str, Dataset | str | Path] | None = None,

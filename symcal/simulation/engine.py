@@ -164,8 +164,7 @@ def _functions(scenario: Scenario) -> dict[str, Any]:
 def _fast(fns: dict[str, Any], samples: int) -> dict[str, Any]:
     """The functions, compiled for a run of many samples as the solvers' passes are
     (:mod:`symcal.base.jit`: the same IEEE operations, so the same readings)."""
-    use, build = jit.wanted(samples)
-    return {k: jit.fast(f, build) for k, f in fns.items()} if use else fns
+    return {k: jit.select(f, samples) for k, f in fns.items()}
 
 
 def noiseless(scenario: Scenario, t: np.ndarray, states: np.ndarray) -> dict[str, np.ndarray]:

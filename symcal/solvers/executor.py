@@ -8,8 +8,8 @@ therefore the result, is the same whoever ran the tasks.
 * :class:`SerialExecutor`: one after the other, in the calling thread.
 * :class:`ThreadExecutor`: a pool of threads in this process.  CasADi's buffer call and
   numpy's BLAS release the GIL, so the evaluation and the reduction of different chunks
-  run on different cores; BLAS itself keeps its one thread (symcal's policy, see
-  ``symcal/__init__.py``), so threads never multiply.
+  run on different cores; BLAS itself keeps its one thread (:func:`blas_limit`), so
+  threads never multiply.
 * ``DaskExecutor`` (:mod:`symcal.solvers.dask_executor`, which alone imports Dask): tasks
   on a Dask cluster, each reading its own shard and returning a small reduction.
 
@@ -19,6 +19,15 @@ from :data:`THREAD_MIN` observations on, else serial.  The environment variable
 ``with using(executor):`` every pass over a partitioned dataset runs on ``executor`` (and
 every in-memory pass too, unless the executor is remote: in-memory chunks are not shipped
 to other processes).
+
+BLAS threads: symcal reduces tall, thin blocks (``JᵀJ``, QR of ``[J | g]``), where
+OpenBLAS's own threads cost more than they give (on 2 cores: 1.6× to 60× slower, more
+the busier the machine, benchmarks/RESULTS.md), and a pass already runs one thread per
+core.  :func:`blas_limit` holds every BLAS library loaded in the process (numpy's and
+SciPy's OpenBLAS, MKL, ...) to :func:`blas_threads` threads around symcal's passes and
+solver steps, through ``threadpoolctl``: it works whatever was imported first, and
+restores the libraries' own setting afterwards, so a user's own numpy code keeps its
+threads.
 """
 
 from __future__ import annotations
@@ -26,14 +35,17 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import os
+import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Protocol, TypeVar
+from typing import Any, ParamSpec, Protocol, TypeVar
 
 from symcal.base.errors import SymcalError
 
 T = TypeVar("T")
+P = ParamSpec("P")
+R = TypeVar("R")
 
 #: In-memory passes over at least this many observations use threads by default.
 THREAD_MIN = 32_768
@@ -172,3 +184,98 @@ def using(executor: Executor) -> Iterator[Executor]:
 def current() -> Executor | None:
     """The executor of the innermost :func:`using` block, if any."""
     return _AMBIENT.get()
+
+
+#: Environment variables a user sets to choose BLAS's threads (the first one set wins).
+BLAS_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS")
+
+
+def blas_threads() -> int:
+    """BLAS threads inside symcal's passes: the user's ``OPENBLAS_NUM_THREADS`` (or
+    ``MKL_NUM_THREADS``, ``OMP_NUM_THREADS``) when set to a whole number, else 1."""
+    for var in BLAS_VARIABLES:
+        text = os.environ.get(var, "").strip()
+        if text.isdigit() and int(text) >= 1:
+            return int(text)
+    return 1
+
+
+class _BlasLimit:
+    """Process-wide BLAS thread limit held while any thread is inside :func:`blas_limit`
+    (BLAS's thread count is global to each library, so nested and concurrent users share
+    one limit: the first in sets it, the last out restores it)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.depth = 0
+        self.controller: Any = None
+        self.scanned_scipy = False
+        self.active: Any = None
+
+    def _get_controller(self) -> Any:
+        # scan the loaded libraries again once SciPy's LAPACK (its own OpenBLAS) is loaded
+        scipy_loaded = "scipy.linalg" in sys.modules
+        if self.controller is None or (scipy_loaded and not self.scanned_scipy):
+            from threadpoolctl import ThreadpoolController
+
+            self.controller = ThreadpoolController()
+            self.scanned_scipy = scipy_loaded
+        return self.controller
+
+    def enter(self) -> None:
+        with self.lock:
+            self.depth += 1
+            if self.depth == 1:
+                self.active = self._get_controller().limit(limits=blas_threads(),
+                                                           user_api="blas")
+
+    def refresh(self) -> None:
+        """Rescan the loaded libraries (SciPy's LAPACK was just loaded), and hold the new
+        ones too when a limit is in force."""
+        with self.lock:
+            if "scipy.linalg" not in sys.modules or self.scanned_scipy:
+                return
+            if self.active is not None:
+                self.active.restore_original_limits()
+            self.controller = None
+            controller = self._get_controller()
+            if self.depth > 0:
+                self.active = controller.limit(limits=blas_threads(), user_api="blas")
+
+    def exit(self) -> None:
+        with self.lock:
+            self.depth -= 1
+            if self.depth == 0 and self.active is not None:
+                self.active.restore_original_limits()
+                self.active = None
+
+
+_BLAS = _BlasLimit()
+
+
+@contextlib.contextmanager
+def blas_limit() -> Iterator[None]:
+    """Hold BLAS to :func:`blas_threads` threads inside the block (see the module)."""
+    _BLAS.enter()
+    try:
+        yield
+    finally:
+        _BLAS.exit()
+
+
+def blas_loaded() -> None:
+    """Call after loading a library with its own BLAS (SciPy's LAPACK): a limit in force
+    then holds it too."""
+    _BLAS.refresh()
+
+
+def blas_limited(fn: Callable[P, R]) -> Callable[P, R]:
+    """``fn`` run inside :func:`blas_limit` (a decorator for symcal's entry points)."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapped(*args: P.args, **kwargs: P.kwargs) -> R:
+        with blas_limit():
+            return fn(*args, **kwargs)
+
+    return wrapped

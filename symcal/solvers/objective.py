@@ -35,11 +35,13 @@ Source = Dataset | ShardedDataset
 
 @dataclass(frozen=True)
 class _Built:
-    """What an objective builds: its residual, Jacobian and mapped functions."""
+    """What an objective builds: its residual, Jacobian and mapped functions, and the
+    last R factor it reduced (:meth:`Objective.accumulate_r`)."""
 
     g: ca.SX
     jac: ca.SX
     mapped: dict[str, Mapped]
+    last_r: list[Any] = field(default_factory=list)
 
 
 #: Per problem (while it lives), what its objectives built, by (constraints, free
@@ -84,6 +86,7 @@ class Objective:
     g: ca.SX = field(init=False, repr=False)
     jac: ca.SX = field(init=False, repr=False)
     _cache: dict[str, Mapped] = field(default_factory=dict, init=False, repr=False)
+    _last_r: list[Any] = field(default_factory=list, init=False, repr=False)
 
     def __post_init__(self) -> None:
         free = np.asarray(self.free, dtype=bool)
@@ -101,6 +104,7 @@ class Objective:
         object.__setattr__(self, "g", shared.g)
         object.__setattr__(self, "jac", shared.jac)
         object.__setattr__(self, "_cache", shared.mapped)
+        object.__setattr__(self, "_last_r", shared.last_r)
 
     def with_row_weights(self, row_weights: np.ndarray | None) -> Objective:
         """This objective with other per-row factors (None: none), sharing its built
@@ -162,12 +166,30 @@ class Objective:
             ``‖J δ + g‖² = ‖R δ + c‖² + tail`` for every step δ of the free parameters,
             J and g the weighted Jacobian and residual at ``theta``; ``rows`` counts the
             residual rows.  Accumulated chunk by chunk (TSQR: one QR per chunk, the
-            chunks' R factors combined in order).
+            chunks' R factors combined in order).  The last reduction of an in-memory
+            dataset is kept: asked again for the same data, point and transform (a stage's
+            analysis at its start, then the solver's first linearisation there), it is
+            returned without a pass, the same bits.
         """
-        instrument.record_pass("r", "accumulate_r", dataset.n)
         n = int(self.free.sum())
+        key = None
+        if isinstance(dataset, Dataset) and self.row_weights is None:
+            key = (np.ascontiguousarray(theta, dtype=float).tobytes(),
+                   None if transform is None else np.asarray(transform, float).tobytes())
+            last = self._last_r[0] if self._last_r else None
+            if last is not None and last[0]() is dataset and last[1] == key:
+                r_aug, rows = last[2]
+                return self._split_r(r_aug.copy(), rows, n)
+        instrument.record_pass("r", "accumulate_r", dataset.n)
         out = self._pass("r", "linearised", dataset, theta, transform)
         r_aug, rows = out if out is not None else (np.zeros((0, n + 1)), 0)
+        if key is not None:
+            self._last_r[:] = [(weakref.ref(dataset), key, (r_aug.copy(), rows))]
+        return self._split_r(r_aug, rows, n)
+
+    @staticmethod
+    def _split_r(r_aug: np.ndarray, rows: int, n: int
+                 ) -> tuple[np.ndarray, np.ndarray, float, int]:
         if r_aug.shape[0] < n + 1:
             r_aug = np.vstack([r_aug, np.zeros((n + 1 - r_aug.shape[0], n + 1))])
         return r_aug[:n, :n], r_aug[:n, n], float(r_aug[n, n] ** 2), rows
@@ -206,6 +228,29 @@ class Objective:
             return 0.0, np.zeros(n), np.zeros((n, n))
         return float(out[0]), out[1], out[2]
 
+    def linearised(self, theta: np.ndarray, u: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(g, J)`` on a few observations ``u`` (``n_u × m``, columns in the problem's
+        order): the stacked weighted residuals (``m·n_g``) and their Jacobian in the free
+        parameters (``m·n_g × n``), by the passes' own function (its compiled twin when
+        one is cached); None where either is not finite.  Not a pass over the data: for
+        analyses on a sample (:mod:`symcal.analysis.gauges`)."""
+        if self.row_weights is not None:
+            raise SolveError("linearised: an objective with per-row weights has no sample "
+                             "Jacobian")
+        fn = self._mapped("linearised", [self.g, self.jac.T])
+        if jit.mode() != "off":
+            fn = jit.fast(fn, build=False)
+        ng, n = self.g.shape[0], int(self.free.sum())
+        with np.errstate(over="ignore", invalid="ignore"):
+            g, jt = fn(np.ascontiguousarray(theta, dtype=float), u)
+        m = g.shape[0]
+        jac = jt.reshape(m * ng, n)
+        g = g.reshape(m * ng)
+        if not (np.all(np.isfinite(g)) and np.all(np.isfinite(jac))):
+            return None
+        return g, jac
+
     def cost(self, dataset: Source, theta: np.ndarray) -> float:
         """Σ (g/σ)² at ``theta`` (residuals only, no derivatives)."""
         instrument.record_pass("residual", "cost", dataset.n)
@@ -219,9 +264,7 @@ class Objective:
         :attr:`executor` (serial when None)."""
         fn = (self._mapped("linearised", [self.g, self.jac.T]) if fn_name == "linearised"
               else self._mapped("residual", [self.g]))
-        use, build = jit.wanted(dataset.n)
-        if use:                         # compiled (cached on disk), when a compiler is found
-            fn = jit.fast(fn, build)
+        fn = jit.select(fn, dataset.n)   # its compiled twin when it pays (base/jit.py)
         task = Pass(kind, fn, np.ascontiguousarray(theta, dtype=float),
                     (self.g.shape[0], int(self.free.sum())), tuple(self.problem.columns),
                     transform)

@@ -17,6 +17,7 @@ import numpy as np
 from symcal.base.errors import SolveError
 from symcal.base.options import SolveOptions
 from symcal.solvers.base import SolverOutput
+from symcal.solvers.executor import blas_limit
 from symcal.solvers.linear import solve_linear
 from symcal.solvers.nlp import solve_ipopt
 from symcal.solvers.objective import Objective, Source
@@ -79,6 +80,14 @@ def solve_stage(
     SolveError
         If ``linear`` is asked for a stage that is not linear in its free parameters.
     """
+    with blas_limit():
+        return _solve_stage(objective, data, theta, method, progress, label, options)
+
+
+def _solve_stage(
+    objective: Objective, data: Source, theta: np.ndarray, method: str,
+    progress: Progress, label: str, options: SolveOptions,
+) -> tuple[SolverOutput, list[str]]:
     nonlinear = objective.nonlinear()
     notes: list[str] = []
     if method == "linear" and nonlinear:

@@ -26,10 +26,14 @@ on the exact Jacobian from CasADi's AD.
   Gauss–Newton step would lower the cost by less than ``GN_DECREMENT`` of itself (with the
   held bounds: the projected problem), or, once no step lowers the cost, that decrease is
   within the cost's rounding noise or the step is below ``XTOL`` of the parameters, or
-  the fit is exact.  Converged to rounding, the last Gauss–Newton step (from R, finer
-  than the cost) is taken when the cost stays within its noise, so the estimate does not
-  depend on the order the passes reduce in (the residual vanished, or fell
-  below ``EXACT_FIT`` of the starting residual, where rounding dominates).  Divergence,
+  the fit is exact.  The rounding noise is measured by rejected trial steps too small for
+  the model's curvature to matter: as soon as two in a row show it (:class:`_Steps`), and
+  from then on at every linearisation, a Gauss–Newton promise within it stops the solve,
+  without the train of rejected trials that shrinking the region to nothing would take.
+  Converged to rounding, the last Gauss–Newton step (from R, finer than the cost) is
+  taken when the cost stays within its noise, so the estimate does not depend on the
+  order the passes reduce in (the residual vanished, or fell below ``EXACT_FIT`` of the
+  starting residual, where rounding dominates).  Divergence,
   NaN/inf in the Jacobian, the iteration limit and a stall (the region shrank to nothing
   without the test holding) are failures that say so.
 """
@@ -135,17 +139,43 @@ def _multiplier(s: np.ndarray, a: np.ndarray, radius: float) -> float:
 
 
 class _Steps:
-    """Trial steps from one linearisation, and what the rejected ones say about rounding."""
+    """Trial steps from one linearisation, and what the rejected ones say about rounding.
+
+    A rejected trial step of at most :data:`NOISE_STEP` of ‖D x‖ differs from its predicted
+    decrease by curvature the model leaves out, which falls like the square of the step,
+    or by the rounding of the cost, which does not.  Two such trials in a row whose
+    discrepancies do not fall like the square of their steps measure the rounding:
+    ``rounding`` is then the part of the smaller step's discrepancy that curvature cannot
+    explain.  Once the decrease a Gauss–Newton step promises is within
+    :data:`NOISE_FACTOR` times that, no step can lower the cost beyond rounding, and the
+    solve stops (:meth:`settled`) instead of shrinking the region trial after trial.
+    """
 
     def __init__(self, lin: _Linearisation, x: np.ndarray, lower: np.ndarray,
                  upper: np.ndarray, free: np.ndarray, d: np.ndarray, s: np.ndarray,
-                 a: np.ndarray, vt: np.ndarray, decrement: float) -> None:
+                 a: np.ndarray, vt: np.ndarray, decrement: float,
+                 rounding: float = 0.0) -> None:
         self.lin, self.x, self.lower, self.upper = lin, x, lower, upper
         self.free, self.d, self.s, self.a, self.vt = free, d, s, a, vt
         self.decrement = decrement
         self.accepted = False
         self.noise = 0.0
+        self.rounding = rounding
+        self.samples: list[tuple[float, float]] = []   # (size, discrepancy) of small ones
         self.small = NOISE_STEP * max(float(np.linalg.norm(d * x)), 1.0)
+
+    def settled(self) -> bool:
+        """Whether the decrease a Gauss–Newton step promises is within the measured
+        rounding of the cost (see the class)."""
+        return self.rounding > 0 and (self.decrement * self.lin.cost
+                                      <= NOISE_FACTOR * self.rounding)
+
+    def settled_words(self) -> str:
+        """Why :meth:`settled` stopped the solve."""
+        return (f"converged to rounding: a Gauss-Newton step would lower the cost by "
+                f"{self.decrement:.2g} of itself, within the rounding noise of the cost "
+                f"measured by rejected trial steps ({self.rounding / self.lin.cost:.2g} of "
+                "it)")
 
     def trial(self, radius: float) -> tuple[np.ndarray, float, float]:
         """The point of the step within ``radius``, its predicted decrease and its size."""
@@ -165,7 +195,14 @@ class _Steps:
     def rejected(self, cost: float, predicted: float, size: float) -> None:
         """Record a rejected trial: tiny ones measure the rounding noise of the cost."""
         if math.isfinite(cost) and size <= self.small:
-            self.noise = max(self.noise, abs(self.lin.cost - cost - predicted))
+            error = abs(self.lin.cost - cost - predicted)
+            self.noise = max(self.noise, error)
+            if self.samples:
+                before, error_before = self.samples[-1]
+                curvature = (size / before) ** 2 * error_before if size < before else math.inf
+                if error > 2.0 * curvature:
+                    self.rounding = max(self.rounding, error - curvature)
+            self.samples.append((size, error))
 
     def verdict(self) -> tuple[bool, str, str]:
         """Success, status and words once no step lowers the cost any more."""
@@ -267,6 +304,7 @@ def solve_trust_region(
     iterations = 0
     d = np.zeros(len(x))
     radius = 0.0
+    rounding = 0.0          # the rounding of the cost measured so far, relative to it
     while True:
         if not lin.finite:
             status, words = "invalid_number", ("failed: a residual or derivative is NaN or "
@@ -295,7 +333,12 @@ def solve_trust_region(
         if iterations == 0:
             size = float(np.linalg.norm(d * x))
             radius = size if size > 0 else 1.0
-        step_out = _Steps(lin, x, lower, upper, free, d, s, a, vt, decrement)
+        step_out = _Steps(lin, x, lower, upper, free, d, s, a, vt, decrement,
+                          rounding * lin.cost)
+        if iterations > 0 and step_out.settled():
+            ok, status, words = True, "converged_to_rounding", step_out.settled_words()
+            x, lin = _polish(step_out, x, lin, linearise)
+            break
         if iterations > 0 and decrement <= NOISE_FACTOR * ROUNDING_FLOOR * EPS:
             ok, status = True, "converged_to_rounding"
             words = (f"converged to rounding: a Gauss-Newton step would lower the cost by "
@@ -345,6 +388,13 @@ def solve_trust_region(
                     continue
                 radius = 0.25 * min(radius, size)  # J is not finite there: a smaller step
             step_out.rejected(cost, predicted, size)
+            if step_out.settled():
+                ok, status, words = True, "converged_to_rounding", step_out.settled_words()
+                step_out.noise = max(step_out.noise, step_out.rounding)
+                x, lin = _polish(step_out, x, lin, linearise)
+                break
+        rounding = max(rounding, step_out.rounding / step_out.lin.cost
+                       if step_out.lin.cost > 0 else 0.0)
         if not step_out.accepted:
             break
         if float(np.max(np.abs(x))) > DIVERGED:

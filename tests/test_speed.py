@@ -1,0 +1,348 @@
+"""Issue 26: the solve as fast as the solver, without changing what it finds.
+
+The lm path's stop at the rounding of the cost, blocked QR in the TSQR passes, BLAS threads
+limited around symcal's own passes whatever the import order, and the compiled twin built
+when it pays.  Every test compares with an independent computation or with the behaviour
+the change replaced; none asserts a time.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+import symcal
+from symcal.solvers import trust_region
+
+DUAL = ROOT / "problems" / "dual_sensor_calibration.yaml"
+
+
+def _runs(lines: list[str]) -> list[list[float]]:
+    """The ratios of every lm run's trial steps, one list per run (iterations restart)."""
+    runs: list[list[float]] = []
+    for line in lines:
+        m = re.search(r"iteration +(\d+) .* ratio (\S+)$", line)
+        if m is None:
+            continue
+        if int(m.group(1)) == 1:
+            runs.append([])
+        runs[-1].append(float(m.group(2)))
+    return runs
+
+
+def _steps(decrement: float) -> trust_region._Steps:
+    """A linearisation with cost 1 in two parameters at x = (1, 1)."""
+    lin = trust_region._Linearisation(1.0, np.eye(2), np.zeros(2), np.eye(2), 10)
+    one = np.ones(2)
+    return trust_region._Steps(lin, one, -10 * one, 10 * one, np.array([True, True]), one,
+                               one, np.zeros(2), np.eye(2), decrement)
+
+
+def test_rejected_steps_tell_rounding_from_curvature() -> None:
+    """Two small rejected trials whose discrepancies (actual against predicted decrease)
+    fall like the square of the step are the model's curvature: no verdict.  Two whose
+    discrepancies do not are the cost's rounding: a Gauss-Newton promise within it stops
+    the solve.  Trials larger than NOISE_STEP of the parameters never count."""
+    small = trust_region.NOISE_STEP          # ‖D x‖ = √2 here: both sizes below it
+    curvature = _steps(1e-12)
+    curvature.rejected(1.0 - 1e-12 + 1e-12, 1e-12, small)               # error 1e-12
+    curvature.rejected(1.0 + 1e-12 / 16 - 1e-13, 1e-13, small / 4)      # error 1e-12/16
+    assert curvature.rounding == 0 and not curvature.settled()
+    rounding = _steps(1e-12)
+    rounding.rejected(1.0 + 1e-12 - 1e-12, 1e-12, small)                # error 1e-12
+    rounding.rejected(1.0 + 8e-13 - 1e-13, 1e-13, small / 4)            # error 8e-13
+    assert rounding.rounding == pytest.approx(8e-13 - 1e-12 / 16)
+    assert rounding.settled()
+    assert not _steps(1e-9).settled() and _steps(1e-9).rounding == 0
+    promise = _steps(1e-9)                   # the same noise, a promise far above it
+    promise.rejected(1.0, 1e-12, small)
+    promise.rejected(1.0 + 8e-13 - 1e-13, 1e-13, small / 4)
+    assert promise.rounding > 0 and not promise.settled()
+    large = _steps(1e-12)                    # steps too large to measure rounding
+    large.rejected(1.0, 1e-12, 10.0)
+    large.rejected(1.0 + 8e-13, 1e-13, 2.5)
+    assert large.rounding == 0 and large.noise == 0
+
+
+@pytest.mark.slow
+def test_lm_stops_at_the_rounding_of_the_cost_without_a_train_of_rejections(monkeypatch):
+    """The dual problem on 8 simulated calibrations of 1000 poses: its last stage reaches
+    the optimum in a few steps, after which the cost can no longer tell steps apart.
+    Never more than two rejected trials after the last accepted one, never more trials
+    than the stop it replaced (shrink the region until it collapses), fewer in all, and
+    the same estimate to far below its standard errors."""
+    from symcal.data.dataset import make_dataset
+    from symcal.data.loading import needed_columns
+    from symcal.simulation import load_scenario, simulate_run
+
+    problem = symcal.load_problem(DUAL)
+    scenario = load_scenario(ROOT / "problems" / "scenarios" / "courier_dual.yaml")
+    settled = trust_region._Steps.settled
+    totals = {"new": 0, "old": 0}
+    for seed in range(1, 9):
+        data = make_dataset("calibration", "test",
+                            simulate_run(scenario, "calibration", seed=seed, n=1000),
+                            needed_columns(problem))
+        results, trials = {}, {}
+        for rule in ("new", "old"):
+            monkeypatch.setattr(trust_region._Steps, "settled",
+                                settled if rule == "new" else (lambda self: False))
+            lines: list[str] = []
+            results[rule] = symcal.solve(problem, {"calibration": data},
+                                         progress=lines.append)
+            assert results[rule].success, seed
+            full = _runs(lines)[-2:]          # the last stage: equal weights, then whitened
+            trials[rule] = sum(map(len, full))
+            if rule == "new":
+                for ratios in full:
+                    trailing = len(ratios) - max(i + 1 for i, r in enumerate(ratios)
+                                                 if r > trust_region.ACCEPT)
+                    assert trailing <= 2, (seed, ratios)
+        assert trials["new"] <= trials["old"], seed
+        totals["new"] += trials["new"]
+        totals["old"] += trials["old"]
+        for p in results["new"].parameters:
+            if p.se is not None:
+                assert abs(p.value - results["old"].params[p.name]) <= 1e-6 * p.se, p.name
+    assert totals["new"] < totals["old"], totals
+
+
+# ------------------------------------------------------------------ BLAS threads
+
+BLAS_PROBE = """
+import json
+import sys
+
+import numpy as np                         # first, as most scripts do
+import scipy.linalg
+from threadpoolctl import threadpool_info
+
+import symcal
+from symcal.solvers.executor import blas_limit
+from symcal.solvers.instrument import counting
+
+
+def blas():
+    return sorted({d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"})
+
+
+before = blas()
+with blas_limit():
+    inside = blas()
+after = blas()
+during = []
+with counting(on_iteration=lambda *a: during.extend(blas())):
+    result = symcal.solve(sys.argv[1])
+print(json.dumps([before, inside, after, sorted(set(during)), blas(), result.success]))
+"""
+
+
+@pytest.mark.parametrize("threads", [None, "3"])
+def test_blas_is_held_inside_symcals_passes_whatever_the_import_order(threads) -> None:
+    """numpy imported before symcal, no BLAS variable set (OpenBLAS then starts one thread
+    per core): inside symcal's passes and solver steps BLAS has one thread, and the
+    program's own setting is back afterwards; a user's OPENBLAS_NUM_THREADS is obeyed."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    if threads:
+        env["OPENBLAS_NUM_THREADS"] = threads
+    out = subprocess.run([sys.executable, "-c", BLAS_PROBE,
+                          str(ROOT / "tests" / "nist" / "Misra1a.start1.yaml")],
+                         capture_output=True, text=True, env=env, cwd=ROOT, timeout=300)
+    assert out.returncode == 0, out.stderr
+    before, inside, after, during, end, success = json.loads(out.stdout.splitlines()[-1])
+    want = [int(threads)] if threads else [1]
+    assert inside == want and during == want, (before, inside, during)
+    assert after == before and end == before and success
+
+
+# ------------------------------------------------------------------ blocked QR
+
+
+def _dual_objective(n: int):
+    from symcal.data.dataset import make_dataset
+    from symcal.data.loading import needed_columns
+    from symcal.simulation import load_scenario, simulate_run
+    from symcal.solvers.objective import Objective
+
+    problem = symcal.load_problem(DUAL).with_weighting("equal")
+    stage = problem.stages[-1]
+    cols = simulate_run(load_scenario(ROOT / "problems" / "scenarios" / "courier_dual.yaml"),
+                        "calibration", seed=3, n=n)
+    data = make_dataset("calibration", "test", cols, needed_columns(problem))
+    free = np.array([p.name in stage.free for p in problem.parameters])
+    return problem, stage, data, Objective(problem, stage.constraints, free)
+
+
+def _geqrf(a: np.ndarray) -> np.ndarray:
+    """The unblocked LAPACK QR the passes used before (``dgeqrf``)."""
+    from scipy.linalg import lapack
+
+    f = np.asfortranarray(a, dtype=float)
+    return np.triu(lapack.dgeqrf(f)[0][:min(f.shape)])
+
+
+def test_blocked_qr_gives_the_r_factor_of_the_jacobian_to_rounding(monkeypatch) -> None:
+    """The TSQR pass with LAPACK's blocked dgeqrt (pieces of 4096 rows and more) against
+    numpy's QR of the whole Jacobian formed in memory, and against the dgeqrf it
+    replaced: RᵀR = [J|g]ᵀ[J|g] to rounding, and the same R, Jᵀg and ‖g‖² as dgeqrf's."""
+    from symcal.solvers import passes
+
+    problem, _, data, objective = _dual_objective(12_000)   # two chunks of >= 4096 rows
+    rng = np.random.default_rng(5)
+    theta = np.array([p.value + 0.01 * p.scale * rng.standard_normal()
+                      for p in problem.parameters])
+    r, c, tail, rows = objective.accumulate_r(data, theta)
+    g, jac = objective.linearised(theta, data.matrix(problem.columns))
+    aug = np.column_stack([jac, g])
+    gram = aug.T @ aug
+    ours = np.block([[r.T @ r, (r.T @ c)[:, None]],
+                     [(c @ r)[None, :], np.array([[c @ c + tail]])]])
+    assert rows == g.size
+    np.testing.assert_allclose(ours, gram, rtol=0, atol=1e-11 * np.abs(gram).max())
+    reference = np.linalg.qr(aug, mode="r")
+    np.testing.assert_allclose(np.abs(r), np.abs(reference[:-1, :-1]), rtol=0,
+                               atol=1e-11 * np.abs(reference).max())
+    monkeypatch.setattr(passes, "_qr_r", lambda a: (np.linalg.qr(a, mode="r")
+                                                    if a.shape[0] < passes.LAPACK_ROWS
+                                                    else _geqrf(a)))
+    r_old, c_old, tail_old, _ = objective.accumulate_r(data, theta)
+    np.testing.assert_allclose(r, r_old, rtol=0, atol=1e-13 * np.abs(r).max())
+    # c itself is arbitrary in the rows of R's null directions (the problem's gauges):
+    # compare what it determines, Jᵀg and ‖g‖²
+    np.testing.assert_allclose(r.T @ c, r_old.T @ c_old, rtol=0,
+                               atol=1e-12 * np.abs(r_old.T @ c_old).max())
+    assert c @ c + tail == pytest.approx(c_old @ c_old + tail_old, rel=1e-13)
+
+
+def test_blocked_qr_gives_the_same_estimate(monkeypatch) -> None:
+    """The lm solve of the dual problem's last stage on 12000 observations: the same
+    estimate with dgeqrt as with dgeqrf, to far below its standard errors."""
+    from symcal.calibrate.solve import run_stage
+    from symcal.solvers import passes
+
+    problem, stage, data, _ = _dual_objective(12_000)
+    theta0 = np.array([p.value for p in problem.parameters])
+    for earlier in problem.stages[:-1]:
+        theta0, _ = run_stage(problem, earlier, data, theta0)
+    new, result = run_stage(problem, stage, data, theta0)
+    monkeypatch.setattr(passes, "_qr_r", lambda a: (np.linalg.qr(a, mode="r")
+                                                    if a.shape[0] < passes.LAPACK_ROWS
+                                                    else _geqrf(a)))
+    old, _ = run_stage(problem, stage, data, theta0)
+    assert result.success
+    for name, se in result.uncertainty.se.items():
+        if se is not None:
+            i = problem.index[name]
+            assert abs(new[i] - old[i]) <= 1e-6 * se, name
+
+
+# ------------------------------------------------------------------ compiled twins
+
+
+@pytest.fixture
+def empty_cache(tmp_path, monkeypatch):
+    from symcal.base import jit
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    monkeypatch.setenv("SYMCAL_JIT", "auto")
+    for name, value in (("_LOADED", {}), ("_FAILED", set()), ("_TWINS", {})):
+        monkeypatch.setattr(jit, name, value)
+    return jit
+
+
+def _function(name: str):
+    import casadi as ca
+
+    from symcal.base.numeric import mapped
+
+    th, u = ca.SX.sym("th", 2), ca.SX.sym("u", 2)
+    g = ca.sin(th[0] * u[0]) * ca.exp(th[1] * u[1]) - u[1]
+    return mapped(th, u, [g, ca.jacobian(g, th).T], name)
+
+
+def test_the_twin_is_built_in_the_background_once_repeated_passes_pay(empty_cache,
+                                                                      monkeypatch):
+    """Passes too small to compile for, repeated (a loop of solves of one structure): the
+    twin is built in the background once their observations add up to JIT_MIN, later
+    passes use it, and every result is the same bit for bit before and after."""
+    jit = empty_cache
+    if jit.compiler() is None:
+        pytest.skip("no C compiler")
+    monkeypatch.setattr(jit, "JIT_MIN", 5_000)
+    fn = _function("loop_twin")
+    rng = np.random.default_rng(0)
+    theta, u = rng.standard_normal(2), rng.standard_normal((2, 1_000))
+    first = [np.copy(a) for a in jit.select(fn, 1_000)(theta, u)]
+    chosen = [jit.select(fn, 1_000) for _ in range(4)]
+    assert all(c is fn for c in chosen)                  # 5000 in all: build started
+    for thread in jit.building():
+        thread.join(timeout=120)
+    twin = jit.select(fn, 1_000)
+    assert isinstance(twin, jit.CompiledMapped)
+    for a, b in zip(first, twin(theta, u), strict=True):
+        np.testing.assert_array_equal(a, b)
+    # a large pass compiles at once; SYMCAL_JIT=off never compiles
+    big = _function("big_twin")
+    assert isinstance(jit.select(big, 5_000), jit.CompiledMapped)
+    monkeypatch.setenv("SYMCAL_JIT", "off")
+    off = _function("off_twin")
+    assert all(jit.select(off, 10_000) is off for _ in range(3)) and not jit.building()
+
+
+def test_a_cached_twin_is_used_from_the_first_pass(empty_cache) -> None:
+    jit = empty_cache
+    if jit.compiler() is None:
+        pytest.skip("no C compiler")
+    fn = _function("cached_twin")
+    jit.fast(fn, build=True)                               # an earlier process built it
+    jit._TWINS.clear()
+    jit._LOADED.clear()
+    assert isinstance(jit.select(fn, 10), jit.CompiledMapped)
+
+
+def test_the_r_factor_at_a_point_is_reduced_once(monkeypatch) -> None:
+    """A stage's analysis reduces R at its start, and the solver's first linearisation
+    asks for the same: the second is no pass over the data and gives the same bits; any
+    other point, transform, dataset or per-row weights is a pass."""
+    from symcal.solvers.instrument import counting
+
+    problem, _, data, objective = _dual_objective(2_000)
+    theta = np.array([p.value for p in problem.parameters])
+    first = objective.accumulate_r(data, theta)
+    with counting() as counts:
+        again = objective.accumulate_r(data, theta.copy())
+    assert counts.passes == 0
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a, b)
+    again[0][:] = 0.0                                   # a copy: the memo is not touched
+    assert np.array_equal(objective.accumulate_r(data, theta)[0], first[0])
+    with counting() as counts:
+        objective.accumulate_r(data, theta + 1e-9)
+        objective.accumulate_r(data, theta, np.eye(3))
+        objective.with_row_weights(np.ones((data.n, 3))).accumulate_r(data, theta)
+        _, _, data2, _ = _dual_objective(2_000)
+        objective.accumulate_r(data2, theta)
+    assert counts.by_method == {"accumulate_r": 4}
+
+
+@pytest.mark.parametrize("rows", [30, 5_000])
+def test_qr_of_a_block_with_nan_is_not_finite_and_does_not_raise(rows) -> None:
+    """A residual that is NaN at a trial point: its R factor is not finite (the solver
+    steps back), whichever LAPACK factors it (LAPACKE refuses NaN: numpy's QR then)."""
+    from symcal.solvers import passes
+
+    block = np.random.default_rng(2).standard_normal((rows, 6))
+    r = passes._qr_r(block)
+    np.testing.assert_allclose(np.abs(r), np.abs(np.linalg.qr(block, mode="r")),
+                               atol=1e-12 * np.abs(r).max())
+    block[rows // 2, 3] = np.nan
+    assert not np.all(np.isfinite(passes._qr_r(block)))
