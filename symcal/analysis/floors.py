@@ -486,7 +486,7 @@ def floor_tests(problem: Problem, datasets: Mapping[str, Dataset], theta: np.nda
     return out, tuple(tests)
 
 
-def _time_ordered(problem: Problem, ds: Dataset) -> bool:
+def time_ordered(problem: Problem, ds: Dataset) -> bool:
     """Whether the rows of ``ds`` are in time order (a time column that never decreases)."""
     time = next((c for c, spec in problem.column_specs.items()
                  if spec.role == "time" and c in ds.columns), None)
@@ -528,11 +528,11 @@ def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
             dof += float(np.einsum("mab,mba->", pinv, expect[sub]))
         for k, s in enumerate(sums):
             _accumulate(s, k, r, c, expect, jac, x, share if use_share else None)
-    time_ordered = _time_ordered(problem, ds)
+    ordered = time_ordered(problem, ds)
     found = {}
     for k, name in enumerate(entries.names):
         found[name] = _entry_test(sums[k], entries.declared[k], entries.centred[k],
-                                  time_ordered, share if use_share else None)
+                                  ordered, share if use_share else None)
     if joint_ok and dof > 0:
         joint = DatasetTest(ds.name, tuple(entries.names[k] for k in cons), PROPAGATED,
                             chi2, dof, chi2_band(dof))

@@ -26,6 +26,7 @@ from symcal.analysis.gauges import GaugeAnalysis
 from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
 from symcal.analysis.implicit import ImplicitCheck
 from symcal.analysis.outliers import Outliers
+from symcal.analysis.serial import SerialCorrelation
 from symcal.base.errors import SymcalError
 from symcal.base.files import atomic_write_text, json_text
 from symcal.base.numeric import mapped
@@ -180,7 +181,9 @@ class ConstraintCost:
 @dataclass(frozen=True, eq=False)
 class StageResult:
     """The outcome of one stage of a calibration; ``outliers`` are the observations its
-    fit treats as outliers (None where its residuals were not finite)."""
+    fit treats as outliers (None where its residuals were not finite); ``serial`` is the
+    serial correlation of its residuals on time-ordered rows (None: rows not in time
+    order), and when detected the standard errors allow for it."""
 
     name: str
     doc: str
@@ -201,6 +204,7 @@ class StageResult:
     notes: tuple[str, ...] = ()
     outliers: Outliers | None = None
     gauges: GaugeAnalysis | None = None  # the stage's gauges, found before its solve
+    serial: SerialCorrelation | None = None
 
     @property
     def cost_before(self) -> float:
@@ -228,6 +232,7 @@ class StageResult:
             "notes": list(self.notes),
             "outliers": None if self.outliers is None else self.outliers.to_dict(),
             "gauges": None if self.gauges is None else self.gauges.to_dict(),
+            "serial_correlation": None if self.serial is None else self.serial.to_dict(),
         }
 
     @classmethod
@@ -244,7 +249,9 @@ class StageResult:
                    None if doc.get("outliers") is None
                    else Outliers.from_dict(doc["outliers"]),
                    None if doc.get("gauges") is None
-                   else GaugeAnalysis.from_dict(doc["gauges"]))
+                   else GaugeAnalysis.from_dict(doc["gauges"]),
+                   None if doc.get("serial_correlation") is None
+                   else SerialCorrelation.from_dict(doc["serial_correlation"]))
 
 
 def file_hashes(problem: Problem) -> dict[str, str]:

@@ -360,6 +360,9 @@ def verdict_lines(result: Result,
         more = (f" and {len(above) - VERDICT_REGRESSIONS} more"
                 if len(above) > VERDICT_REGRESSIONS else "")
         lines.append(f"against the reference, above the noise floor: {shown}{more}")
+    serial = result.stages[-1].serial if result.stages else None
+    if serial is not None and serial.detected:
+        lines.append(serial.text)
     found = result.regressions
     if found:
         lines += _regression_lines(found, "")
@@ -426,6 +429,8 @@ def _stage_lines(result: Result) -> list[str]:
             lines.append(f"     did not move: {_names(st.unmoved)}")
         if st.at_bound:
             lines.append(f"     at a bound: {_names(st.at_bound)}")
+        if st.serial is not None:
+            lines.append(f"     {st.serial.text}")
         lines += [f"     note: {n}" for n in st.notes]
     return lines
 
@@ -518,8 +523,11 @@ def text_report(result: Result) -> str:
                   f"beyond {THRESHOLD:g} robust standard deviations)"]
         lines += _outlier_lines(result.outliers)
     robust = result.outliers is not None and not result.outliers.squared
+    serial = result.stages[-1].serial
     lines += ["", "Parameters (standard errors from the Jacobian at the estimate, "
               + ("the robust sandwich with the final weights)" if robust else
+                 f"the Newey-West sandwich over {serial.lags} lags: the rows are serially "
+                 "correlated)" if serial is not None and serial.detected else
                  "scaled by the residual variance)")]
     lines += _parameter_lines(result)
     lines += ["", "Strongly correlated estimates"]
