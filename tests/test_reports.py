@@ -305,8 +305,8 @@ def test_diagnosis_verdict_before_and_after_uncalibratable(gain: symcal.Result) 
     new = _fake_diagnosis(gain, uncalibratable=(_candidate("s1.p_hat += harmonic 1 of s4.p"),))
     assert diagnosis_verdict(new)[-2:] == [
         "what to add: no candidate effect passes the test, yet the residuals are above the "
-        "noise floor: structure remains that no candidate explains (see what is left, "
-        "below)",
+        "noise floor: structure remains that no candidate explains (or the readings are "
+        "noisier than declared)",
         "what cannot be calibrated: s1.p_hat += harmonic 1 of s4.p (real, but these "
         "constraints cannot determine it); 3 parameter direction(s) the data cannot "
         "determine"]

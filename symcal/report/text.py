@@ -132,7 +132,8 @@ def outcome_text(improvement: Any) -> str:
             return ("the diagnosis is not quiet: below the noise floor (overfitting, or noise "
                     "declared larger than the sensors')")
         return ("the diagnosis is not quiet: structure remains that no candidate explains "
-                "(above the noise floor, and no candidate of the library is significant)")
+                "(above the noise floor, and no candidate of the library is significant; "
+                "or the readings are noisier than declared)")
     return "the diagnosis is not quiet (nothing else pays)"
 
 
@@ -590,6 +591,31 @@ def _floor_note(value: float, floor: float | None, unit: str, test: Any = None) 
     return f" (noise floor {_spread_text(shown, unit)}; {value / shown:.2f} ×{chi2})"
 
 
+def references_apart(diag: Any) -> list[str]:
+    """The comparisons with a reference above their noise floor on a dataset whose
+    constraints are at theirs: real, but not calibratable by these constraints; each with
+    the variable it follows most (binned, η²) and, where one exists, the problem that can
+    determine it (:attr:`Diagnosis.pointer <symcal.revise.diagnose.Diagnosis.pointer>`)."""
+    result = diag.result
+    at = {t.dataset for t in result.floor_tests if t.verdict == "at"}
+    skip = self_referential(result)
+    views = {(v.dataset, v.name): v for v in getattr(diag, "residuals", ())}
+    pointer = str(getattr(diag, "pointer", "") or "")
+    out = []
+    for s in references_above(result):
+        if s.dataset not in at:
+            continue
+        assert s.noise is not None
+        text = f"{s.dataset} {s.name} vs reference, {s.noise.ratio:.2f}× its noise floor"
+        view = views.get((s.dataset, s.name))
+        found = [] if view is None else _findings(view.binned,
+                                                  skip.get(s.name, frozenset({s.name})))
+        if found:
+            text += f", varies with {found[0].variable} (η² = {found[0].eta2:.2f})"
+        out.append(text + (f"; {pointer}" if pointer else ""))
+    return out
+
+
 def outliers_dominate(diag: Diagnosis) -> bool:
     """Whether outliers dominate the diagnosed fit (then they come before any missing
     effect)."""
@@ -659,7 +685,7 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     elif any(t.verdict == "above" for t in tests):
         lines.append("what to add: no candidate effect passes the test, yet the residuals are "
                      "above the noise floor: structure remains that no candidate explains "
-                     "(see what is left, below)")
+                     "(or the readings are noisier than declared)")
     else:
         lines.append("what to add: nothing significant (no candidate effect passes the test)")
     cannot = []
@@ -668,6 +694,11 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
         shown = ", ".join(c.label for c in uncalibratable[:3])
         more = f" and {len(uncalibratable) - 3} more" if len(uncalibratable) > 3 else ""
         cannot.append(f"{shown}{more} (real, but these constraints cannot determine it)")
+    apart = references_apart(diag)
+    if apart:
+        cannot.append(f"{apart[0]} (real, not calibratable by these constraints: they are "
+                      "at their floor)" + (f"; and {len(apart) - 1} more against the "
+                                           "reference" if len(apart) > 1 else ""))
     if result.identifiability.deficiency:
         cannot.append(f"{result.identifiability.deficiency} parameter direction(s) the data "
                       "cannot determine")
@@ -769,6 +800,11 @@ def diagnosis_report(diag: Diagnosis) -> str:
         if diag.yaml.get(c.label):
             lines += ["     To add it:"] + [f"       {ln}" if ln else ""
                                             for ln in diag.yaml[c.label].splitlines()]
+    apart = references_apart(diag)
+    if apart:
+        lines += ["", "Against the reference, above the noise floor where the constraints "
+                  "are at theirs (real, not calibratable by these constraints):"]
+        lines += [f"  {ln}" for ln in apart]
     uncalibratable = tuple(getattr(diag, "uncalibratable", ()) or ())
     if uncalibratable:
         lines += ["", "Real, but these constraints cannot determine them (a reference or "
@@ -837,6 +873,7 @@ def diagnosis_document(diag: Diagnosis, series: bool = False) -> dict[str, Any]:
     doc.setdefault("statistics", [s.to_dict() for s in result.statistics])
     doc.setdefault("floor_tests", [t.to_dict() for t in result.floor_tests])
     doc.setdefault("at_floor", result.at_floor)
+    doc.setdefault("references_apart", references_apart(diag))
     tests = {(s.dataset, s.name): s.chi2_dof for s in result.statistics}
     for row in doc.get("residuals") or []:
         name = str(row.get("name"))

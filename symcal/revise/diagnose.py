@@ -92,6 +92,8 @@ class Diagnosis:
     reference reveal but these constraints cannot determine, each with ``needs[label]``
     saying what would (the reference, another constraint, a problem that has one).
     ``variant`` is the implicit variant tested as the model's own approximation.
+    ``pointer`` names, when a comparison with a reference is above its noise floor, a
+    problem beside this one with more constraints on the same sensors (or "").
     """
 
     result: Result
@@ -104,6 +106,7 @@ class Diagnosis:
     needs: dict[str, str] = field(default_factory=dict)
     variant: Variant | None = None
     own: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    pointer: str = ""
 
     @property
     def outliers(self) -> Outliers | None:
@@ -535,8 +538,11 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
             for c in leads}
     own_inputs = {name: (*(f"{name}.{k}" for k in inst.bindings), *inst.bindings.values())
                   for name, inst in problem.instances.items()}
+    above = any(s.kind == "comparison" and s.noise is not None and s.noise.verdict == "above"
+                for s in result.statistics)
     return Diagnosis(result, tuple(_views(blocks)), tuple(ranked), yaml, alpha,
-                     len(candidates), tuple(uncal), needs, variant, own_inputs)
+                     len(candidates), tuple(uncal), needs, variant, own_inputs,
+                     _better_problem(problem) if above else "")
 
 
 def _library_regressors(hp: Problem, blocks: list[_Block], keep: set[str]
