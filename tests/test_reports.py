@@ -349,6 +349,19 @@ def test_diagnosis_document(gain: symcal.Result, gain_diagnosis) -> None:
             for t in gain.statistics]
     assert rows[("flyby", "position_y")]["contains"] == ["p_y", "position_y"]
     assert rows[("flyby", "theta_x")]["contains"] == ["theta_x"]
+    # what is left above the floor, shown whether or not a candidate explains it
+    assert doc["left"] and doc["left"][0].startswith("calibration g_p: ")
+    assert all(row["left"] for row in doc["residuals"]
+               if gain.stat(row["name"], row["dataset"]).noise.verdict == "above")
+    text = diagnosis_report(gain_diagnosis)
+    section = text.split("What is left above the noise floor")[1].split("\n\n")[0]
+    assert [ln.strip() for ln in section.splitlines()[1:]] == doc["left"]
+    assert "<h2>What is left above the noise floor</h2>" in html_report(doc, text)
+    # each candidate's minimal detectable effect, in the unit of the residuals (µm)
+    assert all(c["mde"] > 0 and c["mde_unit"] == "mm" for c in doc["candidates"]
+               if c["label"] != "the model's approximation: errors evaluated at the raw "
+               "readings")
+    assert "detectable from" in text.split("Which effect is missing")[1].splitlines()[1]
     units = {b["variable"]: b["unit"] for r in doc["residuals"] for b in r["binned"]}
     assert units.get("theta_x", "mrad") == "mrad"
     assert all(u == "mm" for v, u in units.items() if v.startswith("phase of s"))

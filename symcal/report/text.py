@@ -616,6 +616,48 @@ def references_apart(diag: Any) -> list[str]:
     return out
 
 
+def _own(variable: str, skip: frozenset[str] | set[str]) -> bool:
+    return variable in skip or any(variable.startswith(f"phase of {n} (") for n in skip)
+
+
+def left_lines(diag: Any) -> list[str]:
+    """What is left above the floor, for each residual above it: the variables and pairs
+    its excess lies along (binned means), strongest first, with their share of the excess;
+    variables a residual contains whole are left out."""
+    skip = self_referential(diag.result)
+    out = []
+    for v in getattr(diag, "residuals", ()):
+        own = skip.get(v.name, frozenset({v.name}))
+        left = [a for a in getattr(v, "left", ()) if not any(_own(n, own) for n in a.variables)]
+        if left:
+            out.append(f"{v.dataset} {_what(v)}: " + "; ".join(a.text for a in left))
+    return out
+
+
+def _strongest_left(diag: Any) -> str:
+    lines = left_lines(diag)
+    return f"; what is left: {lines[0]}" if lines else ""
+
+
+def output_unit(result: Result, output: str) -> str:
+    """The unit a term on a sensor output is shown in: that of the first constraint of its
+    dimension (the residuals' scale, e.g. µm), else the output's declared unit."""
+    from symcal.base.units import internal_unit
+
+    unit = next((s.unit for s in result.problem.signals if s.name == output), "")
+    return next((c.unit for c in result.problem.constraints
+                 if internal_unit(c.unit) == internal_unit(unit)), unit)
+
+
+def detectable_text(result: Result, cand: Any) -> str:
+    """A candidate's minimal detectable effect in its output's unit (``—`` unknown)."""
+    mde = getattr(cand, "mde", None)
+    if mde is None:
+        return "—"
+    unit = output_unit(result, cand.output)
+    return _spread_text(mde / DISPLAY_UNITS[unit], unit)
+
+
 def outliers_dominate(diag: Diagnosis) -> bool:
     """Whether outliers dominate the diagnosed fit (then they come before any missing
     effect)."""
@@ -685,7 +727,7 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     elif any(t.verdict == "above" for t in tests):
         lines.append("what to add: no candidate effect passes the test, yet the residuals are "
                      "above the noise floor: structure remains that no candidate explains "
-                     "(or the readings are noisier than declared)")
+                     "(or the readings are noisier than declared)" + _strongest_left(diag))
     else:
         lines.append("what to add: nothing significant (no candidate effect passes the test)")
     cannot = []
@@ -764,6 +806,13 @@ def diagnosis_report(diag: Diagnosis) -> str:
         if v.periodogram is not None and float(np.max(v.periodogram.power)) > 0.1:
             lines.append(f"      dominant frequency: {v.periodogram.peak_text} "
                          f"(power {float(np.max(v.periodogram.power)):.2f})")
+    left = left_lines(diag)
+    if left:
+        lines += ["", "What is left above the noise floor (binned means of each residual "
+                  "along every variable and the strongest pairs, beyond what bins explain by "
+                  "chance, as a share of its excess over the floor; shown whether or not a "
+                  "candidate explains it)"]
+        lines += [f"  {ln}" for ln in left]
     if result.regressions:
         lines += ["", f"Worse after calibration (a spread more than {REGRESSION_TOLERANCE:.0%} "
                   "larger with the estimate than with the initial parameters)"]
@@ -788,13 +837,16 @@ def diagnosis_report(diag: Diagnosis) -> str:
     elif not diag.significant:
         lines.append("  no candidate effect is significant: the residuals look like noise to "
                      "this library of effects")
-    rows = [["rank", "candidate", "removes", "F", "p", "significant"]]
+    rows = [["rank", "candidate", "removes", "F", "p", "significant", "detectable from"]]
     for i, c in enumerate(ranked[:10], start=1):
         group = f" (+{len(c.indistinguishable)} alike)" if c.indistinguishable else ""
         rows.append([str(i), c.label + group, f"{c.share:.1%}", f"{c.f_stat:.3g}",
-                     f"{c.p_value:.2g}", "yes" if c.significant else "no"])
+                     f"{c.p_value:.2g}", "yes" if c.significant else "no",
+                     detectable_text(result, c)])
     if len(rows) > 1:
-        lines += _table(rows, "rlrrrl")
+        lines += _table(rows, "rlrrrlr")
+        lines.append("  detectable from: the smallest such term (its RMS over the calibration "
+                     "data, in the worst phase) the test finds with power 80 % at its level")
     for i, c in enumerate(diag.significant[:3], start=1):
         lines += ["", f"  {i}. {c.label}", "     " + diag.candidate_text(c)]
         if diag.yaml.get(c.label):
@@ -874,6 +926,7 @@ def diagnosis_document(diag: Diagnosis, series: bool = False) -> dict[str, Any]:
     doc.setdefault("floor_tests", [t.to_dict() for t in result.floor_tests])
     doc.setdefault("at_floor", result.at_floor)
     doc.setdefault("references_apart", references_apart(diag))
+    doc.setdefault("left", left_lines(diag))
     tests = {(s.dataset, s.name): s.chi2_dof for s in result.statistics}
     for row in doc.get("residuals") or []:
         name = str(row.get("name"))
