@@ -123,9 +123,12 @@ def regressions(statistics: tuple[SeriesStats, ...],
                 tolerance: float = REGRESSION_TOLERANCE) -> tuple[Regression, ...]:
     """The residuals and comparisons whose spread calibration made worse.
 
-    A spread counts as worse when it grew by more than ``tolerance`` (relative) from the
-    initial parameters to the estimate; the spread is the standard deviation for a
-    comparison whose mean carries no information (``remove_mean``), the RMS otherwise.
+    Where a residual's noise floor is known (propagated from declared noise), by test: it
+    is above its floor and its χ²/dof grew from the initial parameters by more than noise
+    moves a χ²/dof at the floor (:attr:`~symcal.analysis.floors.FloorTest.worse`).
+    Elsewhere a spread counts as worse when it grew by more than ``tolerance``
+    (relative).  The spread shown is the standard deviation for a comparison whose mean
+    carries no information (``remove_mean``), the RMS otherwise.
 
     Parameters
     ----------
@@ -145,7 +148,9 @@ def regressions(statistics: tuple[SeriesStats, ...],
         measure = "std" if s.remove_mean else "rms"
         before = getattr(s.shown("before"), measure)
         after = getattr(s.shown("after"), measure)
-        if after > (1.0 + tolerance) * before and after > 0:
+        test = s.noise if s.noise is not None and s.noise.chi2_before is not None else None
+        worse = test.worse if test is not None else after > (1.0 + tolerance) * before
+        if worse and after > 0:
             out.append(Regression(s.dataset, s.name, s.kind, measure, before, after, s.unit))
     return tuple(out)
 

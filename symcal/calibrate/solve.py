@@ -468,7 +468,8 @@ def _result(problem: Problem, datasets: dict[str, Dataset],
         for i, p in enumerate(problem.parameters)
     )
     stats, skipped = series_statistics(problem, datasets, theta0, theta)
-    found, tests = floor_tests(problem, datasets, theta, _fit(problem, datasets, theta, last))
+    found, tests = floor_tests(problem, datasets, theta, _fit(problem, datasets, theta, last),
+                               theta0)
     stats = tuple(replace(s, noise=found.get((s.dataset, s.name))) for s in stats)
     checks = implicit_checks(problem, datasets, theta)
     notes = list(skipped) + [

@@ -368,8 +368,9 @@ def verdict_lines(result: Result,
     if found:
         lines += _regression_lines(found, "")
     else:
-        lines.append(f"no residual or comparison is worse after calibration (by more than "
-                     f"{REGRESSION_TOLERANCE:.0%})")
+        lines.append(f"no residual or comparison is worse after calibration by more than its "
+                     f"noise allows (by more than {REGRESSION_TOLERANCE:.0%} where its floor "
+                     "is unknown)")
     lines.append(_null_space_text(result))
     gauges = _gauges(result)
     if gauges:
@@ -814,8 +815,9 @@ def diagnosis_report(diag: Diagnosis) -> str:
                   "candidate explains it)"]
         lines += [f"  {ln}" for ln in left]
     if result.regressions:
-        lines += ["", f"Worse after calibration (a spread more than {REGRESSION_TOLERANCE:.0%} "
-                  "larger with the estimate than with the initial parameters)"]
+        lines += ["", "Worse after calibration (above its noise floor, χ²/dof grown from the "
+                  "initial parameters by more than noise moves it; where the floor is "
+                  f"unknown, a spread more than {REGRESSION_TOLERANCE:.0%} larger)"]
         lines += [f"  {_regression_text(r)} ({r.ratio:.2f} ×)" for r in result.regressions]
     ranked = list(diag.leads)
     outliers = getattr(diag, "outliers", None)
