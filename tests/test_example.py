@@ -27,6 +27,10 @@ def test_walkthrough(capsys, tmp_path, monkeypatch) -> None:
     out = _run(capsys, "solve", "examples/hidden_effect/problem.yaml")
     g_p = float(re.search(r"calibration  g_p +\S+ +(\S+)", out).group(1))
     assert 1.7 < g_p < 2.2
+    # the verdict states each dataset against its noise floor, as the README shows
+    for line in ("  calibration: 1.94× the noise floor (χ²/dof 3.76, band 0.91–1.09)",
+                 "  flyby: 1.97× the noise floor (χ²/dof 3.88, band 0.87–1.14)"):
+        assert line in out.split("\n\n")[1].splitlines() and line in readme
     # 2. the diagnosis names the effect first, with the YAML the example ships
     plots = tmp_path / "plots"
     out = _run(capsys, "diagnose", "examples/hidden_effect/problem.yaml", "--quiet",
@@ -54,9 +58,14 @@ def test_walkthrough(capsys, tmp_path, monkeypatch) -> None:
     fly_basic, fly_revised = map(float, rows["flyby g_p std"])
     assert fly_revised < 0.6 * fly_basic
     assert float(rows["BIC"][1]) < float(rows["BIC"][0]) - 100
-    for line in ("calibration g_p std (µm)               1.926                0.9606",
-                 "flyby g_p std (µm)                     2.081                 1.033"):
+    for line in ("calibration g_p std (µm)               1.928                0.9606",
+                 "flyby g_p std (µm)                     2.083                 1.033"):
         assert line in out and line in readme
     # and nothing significant is left
     out = _run(capsys, "diagnose", "examples/hidden_effect/problem_revised.yaml", "--quiet")
     assert "no candidate effect is significant" in out
+    assert ("where it fails: nowhere: every dataset is at its noise floor (calibration "
+            "χ²/dof 0.93, band 0.91–1.09; flyby χ²/dof 0.958, band 0.87–1.14)") in out
+    for text in ("at the noise floor (χ²/dof 0.93, band 0.91–1.09)",
+                 "at the noise floor (χ²/dof 0.958, band 0.87–1.14)"):
+        assert text in readme

@@ -7,6 +7,7 @@ determine is reported apart; every printed suggestion loads as written."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import shutil
@@ -21,7 +22,7 @@ import symcal
 import symcal.simulation
 from symcal.base.numeric import mapped
 from symcal.cli import main
-from symcal.data.dataset import make_dataset
+from symcal.data.dataset import make_dataset, write_table
 from symcal.revise.diagnose import diagnose
 from symcal.revise.improve import improve
 from symcal.simulation import load_scenario, simulate_run
@@ -51,6 +52,40 @@ def _scenario(*effects: dict):
 def _data(scenario, seed: int) -> dict[str, symcal.Dataset]:
     return {name: make_dataset(name, "simulated", simulate_run(scenario, name, seed), [])
             for name in ("calibration", "flyby")}
+
+
+@pytest.mark.slow
+def test_above_the_floor_with_no_candidate_left_is_not_quiet(tmp_path, capsys) -> None:
+    """Readings twice as noisy as declared (1 µm, the model says 0.503 µm): no candidate
+    is significant, the residuals are twice the floor; improve keeps nothing, ends not
+    quiet with exit 1 and says that structure remains that no candidate explains (or the
+    noise is larger than declared), never quiet at exit 0."""
+    sc = load_scenario(PROBLEMS / "scenarios" / "courier_platen_clean.yaml")
+    noisy = dataclasses.replace(sc, columns=tuple(
+        dataclasses.replace(c, noise=1e-3) if c.name in ("p1", "p2", "p3", "p4") else c
+        for c in sc.columns))
+    paths = {}
+    for name in ("calibration", "flyby"):
+        paths[name] = tmp_path / f"{name}.csv"
+        write_table(paths[name], simulate_run(noisy, name, 4))
+    argv = ["improve", str(IMPLICIT), "--data", f"calibration={paths['calibration']}",
+            "--data", f"flyby={paths['flyby']}", "--out", str(tmp_path / "out"), "--quiet"]
+    assert main([*argv, "--json"]) == 1
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["quiet"] is False and doc["at_floor"] is False
+    assert [r["added"] for r in doc["rounds"]] == [None]
+    assert doc["rounds"][0]["significant"] == 0
+    for entry in doc["rounds"][0]["statistics"]:
+        assert set(entry) >= {"floor", "chi2_dof"}
+        if entry["kind"] == "constraint":
+            assert entry["chi2_dof"] > 3 and 1.0 < entry["floor"] < 1.1   # µm
+    assert main(argv) == 1
+    out = capsys.readouterr().out
+    assert out.splitlines()[0] == (
+        "symcal improve: 0 round(s) kept; the diagnosis is not quiet: structure remains that "
+        "no candidate explains (above the noise floor, and no candidate of the library is "
+        "significant; or the readings are noisier than declared)")
+    assert out.splitlines()[2].startswith("  calibration: 2.")
 
 
 def _realized_floor(seed: int) -> float:
@@ -146,9 +181,13 @@ def test_one_hidden_effect_is_named_and_fixed(case, start, seed, tmp_path) -> No
     else:   # the approximation first, then the effect
         assert _named(first, symcal.revise.diagnose.APPROXIMATION)
     result = improve(problem, tmp_path / "out", data)
-    assert result.quiet, [r.added for r in result.rounds]
+    assert not result.candidates_left, [r.added for r in result.rounds]
     assert len(result.rounds) - 1 <= (3 if start == "explicit" else 2)
     final = result.rounds[-1].result
+    # quiet only at the floor, by the global test of each dataset at 95 %: with two
+    # datasets an exact model is off a band in about 1 run of 10 (seed 71's angle gain
+    # ends with the fly-by's χ²/dof at 1.149 over a band ending at 1.14: not quiet)
+    assert result.quiet == (final.at_floor is True)
     assert _ratio(final, scenario, "calibration", seed) < 1.10
     assert _ratio(final, scenario, "flyby", seed) < 1.10
     value, se, true = _fitted(final, case, scenario, seed)

@@ -11,6 +11,13 @@ significance (the F-test's log p-value: a one-column term that removes a little 
 a two-column one can still be the stronger evidence), and grouped with the candidates
 whose projected regressors it cannot be told apart from; a group is led by its simplest
 member (a term in the sensor's own input first, lower order before higher).
+
+Each tested candidate also gets its *minimal detectable effect*: the smallest term (its
+RMS over the calibration data, in the output's internal unit) that the same F-test would
+find at its Bonferroni level with power :data:`POWER`, in the direction of its columns
+the data see worst: ``sqrt(λ*) σ / sqrt(min eig(X̃ᵀX̃))``, λ* the non-centrality of
+χ²_m that gives that power, σ² the residual variance per whitened row, X̃ the projected
+regressor with each column scaled to a term of RMS one unit (:attr:`Basis.scales`).
 """
 
 from __future__ import annotations
@@ -25,6 +32,8 @@ import scipy.stats
 from symcal.base.linalg import range_basis
 
 ABSORBED = 1e-3         # projected norm below this share of the raw norm: absorbed
+POWER = 0.8             # the power at which a minimal detectable effect is stated
+TERM = 1e-3             # the RMS of a term whose scaled coefficients are 1 (Basis.scales)
 INDISTINGUISHABLE = 0.98  # canonical correlation above which candidates are one group
 EQUAL = 0.95              # a simpler member leads a group if it explains this much as well
 
@@ -77,6 +86,7 @@ class Candidate:
     coefficient_se: tuple[float, ...] = ()
     indistinguishable: list[str] = field(default_factory=list)
     q: np.ndarray | None = field(default=None, repr=False)
+    mde: float | None = None     # the minimal detectable term's RMS, internal units
 
     @property
     def label(self) -> str:
@@ -143,10 +153,39 @@ def test_candidates(
         cand.log_p = float(scipy.stats.f.logsf(cand.f_stat, m, max(dof - m, 1)))
         cand.significant = cand.p_value < level
         cand.reduction = _reduction(design, r, r - q @ proj)
+        cand.mde = _detectable(xp, cand.basis.scales, m, level, denom)
     ranked = sorted([c for c in candidates if not c.absorbed],
                     key=lambda c: (c.log_p, -c.delta_rss))
     _group(ranked, local)
     return ranked + [c for c in candidates if c.absorbed]
+
+
+_NONCENTRALITY: dict[tuple[int, float], float] = {}
+
+
+def noncentrality(m: int, level: float, power: float = POWER) -> float:
+    """The non-centrality λ at which χ²_m(λ) exceeds its level-``level`` critical value
+    with probability ``power``."""
+    key = (m, level)
+    if key not in _NONCENTRALITY:
+        from scipy.optimize import brentq
+
+        crit = float(scipy.stats.chi2.isf(level, m))
+        _NONCENTRALITY[key] = float(brentq(
+            lambda lam: float(scipy.stats.ncx2.sf(crit, m, lam)) - power, 1e-9, 1e4))
+    return _NONCENTRALITY[key]
+
+
+def _detectable(xp: np.ndarray, scales: tuple[float, ...], m: int, level: float,
+                variance: float) -> float | None:
+    """The minimal detectable term of a candidate (RMS, internal units), or None."""
+    if len(scales) != xp.shape[1] or not np.isfinite(variance) or variance <= 0:
+        return None
+    scaled = xp * np.asarray(scales)[None, :]
+    low = float(np.linalg.eigvalsh(scaled.T @ scaled)[0])
+    if low <= 0:
+        return None
+    return TERM * float(np.sqrt(noncentrality(m, level) * variance / low))
 
 
 def _reduction(design: Design, before: np.ndarray, after: np.ndarray

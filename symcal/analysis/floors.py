@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from statistics import NormalDist
 from typing import Any
 
@@ -140,6 +140,8 @@ class FloorTest:
         The central 95 % interval of ``chi2 / dof`` when at the floor.
     sd
         The relative standard deviation of ``chi2 / dof`` (to combine tests).
+    chi2_before
+        The same statistic with the initial parameters (same weights), when known.
     """
 
     floor: float | None
@@ -148,6 +150,18 @@ class FloorTest:
     dof: float | None = None
     band: tuple[float, float] | None = None
     sd: float | None = None
+    chi2_before: float | None = None
+
+    @property
+    def worse(self) -> bool:
+        """Whether calibration made the residual worse by more than its noise allows: it
+        is above its floor, and its χ²/dof grew from the initial parameters by more than
+        noise moves a χ²/dof at the floor (its band's upper half-width)."""
+        value = self.chi2_dof
+        if value is None or self.chi2_before is None or self.band is None or not self.dof:
+            return False
+        return (self.verdict == "above"
+                and value - self.chi2_before / self.dof > self.band[1] - 1.0)
 
     @property
     def chi2_dof(self) -> float | None:
@@ -171,7 +185,8 @@ class FloorTest:
         """Plain data, the floor in a unit of size ``scale``."""
         return {"floor": None if self.floor is None else self.floor / scale,
                 "method": self.method, "chi2": self.chi2, "dof": self.dof,
-                "band": None if self.band is None else list(self.band), "sd": self.sd}
+                "band": None if self.band is None else list(self.band), "sd": self.sd,
+                "chi2_before": self.chi2_before, "worse": self.worse}
 
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any], scale: float = 1.0) -> FloorTest:
@@ -180,7 +195,8 @@ class FloorTest:
         band = doc.get("band")
         return cls(None if floor is None else float(floor) * scale, str(doc["method"]),
                    doc.get("chi2"), doc.get("dof"),
-                   None if band is None else (float(band[0]), float(band[1])), doc.get("sd"))
+                   None if band is None else (float(band[0]), float(band[1])), doc.get("sd"),
+                   doc.get("chi2_before"))
 
 
 def verdict_of(value: float | None, band: tuple[float, float] | None) -> str | None:
@@ -343,6 +359,12 @@ class _Propagation:
             yield (part, r, lt.reshape(m, self.n_e, self.n_eps),
                    jt.reshape(m, self.n_e, self.n_p))
 
+    def residuals(self, ds: Dataset, theta: np.ndarray, part: slice) -> np.ndarray:
+        """The residuals of the observations ``part`` at ``theta`` (m × n_e)."""
+        block = ds.matrix(self.columns)[:, part]
+        ext = np.vstack([block, np.zeros((self.n_eps, block.shape[1]))])
+        return self.fn.chunk(theta, ext)[0]
+
 
 def _pinv_rows(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per row, the pseudo-inverse of a covariance (m × n × n) and its rank."""
@@ -453,7 +475,8 @@ class _Sums:
 
 
 def floor_tests(problem: Problem, datasets: Mapping[str, Dataset], theta: np.ndarray,
-                fit: Fit) -> tuple[dict[tuple[str, str], FloorTest], tuple[DatasetTest, ...]]:
+                fit: Fit, theta0: np.ndarray | None = None
+                ) -> tuple[dict[tuple[str, str], FloorTest], tuple[DatasetTest, ...]]:
     """The floor and test of every residual and comparison on every dataset, and the
     global test of each dataset (the module's theory).
 
@@ -468,6 +491,8 @@ def floor_tests(problem: Problem, datasets: Mapping[str, Dataset], theta: np.nda
         The estimate.
     fit
         How the estimate was fitted (:class:`Fit`).
+    theta0
+        The initial parameters: each test then also has ``chi2_before`` (same weights).
 
     Returns
     -------
@@ -480,13 +505,13 @@ def floor_tests(problem: Problem, datasets: Mapping[str, Dataset], theta: np.nda
     out: dict[tuple[str, str], FloorTest] = {}
     tests = []
     for ds in datasets.values():
-        found, joint = _dataset_tests(problem, ds, theta, fit, share)
+        found, joint = _dataset_tests(problem, ds, theta, fit, share, theta0)
         out.update({(ds.name, k): v for k, v in found.items()})
         tests.append(joint)
     return out, tuple(tests)
 
 
-def _time_ordered(problem: Problem, ds: Dataset) -> bool:
+def time_ordered(problem: Problem, ds: Dataset) -> bool:
     """Whether the rows of ``ds`` are in time order (a time column that never decreases)."""
     time = next((c for c, spec in problem.column_specs.items()
                  if spec.role == "time" and c in ds.columns), None)
@@ -497,7 +522,8 @@ def _time_ordered(problem: Problem, ds: Dataset) -> bool:
 
 
 def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
-                   share: _Estimate | None) -> tuple[dict[str, FloorTest], DatasetTest]:
+                   share: _Estimate | None, theta0: np.ndarray | None = None
+                   ) -> tuple[dict[str, FloorTest], DatasetTest]:
     entries = _entries(problem, ds)
     prop = _Propagation(problem, entries.exprs, fit.free)
     fitted = [entries.names.index(n) for n in fit.constraints] \
@@ -508,8 +534,13 @@ def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
     chi2, dof = 0.0, 0.0
     sigma_f = np.array([problem.constraint(entries.names[k]).sigma for k in fitted])
     use_share = share is not None and prop.n_p > 0
-    for _, r, lmat, jac in prop.rows(ds, theta):
+    before = [_Sums() for _ in entries.names]
+    for part, r, lmat, jac in prop.rows(ds, theta):
         c = np.einsum("mae,mbe->mab", lmat, lmat)
+        if theta0 is not None:
+            r0 = prop.residuals(ds, theta0, part)
+            for k, s in enumerate(before):
+                _accumulate(s, k, r0, c, c, jac, None, None)
         expect = c.copy()
         x = None
         if use_share:
@@ -528,11 +559,15 @@ def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
             dof += float(np.einsum("mab,mba->", pinv, expect[sub]))
         for k, s in enumerate(sums):
             _accumulate(s, k, r, c, expect, jac, x, share if use_share else None)
-    time_ordered = _time_ordered(problem, ds)
+    ordered = time_ordered(problem, ds)
     found = {}
     for k, name in enumerate(entries.names):
         found[name] = _entry_test(sums[k], entries.declared[k], entries.centred[k],
-                                  time_ordered, share if use_share else None)
+                                  ordered, share if use_share else None)
+        if theta0 is not None and found[name].method == PROPAGATED and found[name].chi2 \
+                is not None:
+            found[name] = replace(found[name],
+                                  chi2_before=_chi2(before[k], entries.centred[k]))
     if joint_ok and dof > 0:
         joint = DatasetTest(ds.name, tuple(entries.names[k] for k in cons), PROPAGATED,
                             chi2, dof, chi2_band(dof))
@@ -608,6 +643,14 @@ def _entry_test(s: _Sums, declared: bool, centred: bool, time_ordered: bool,
         sd = math.sqrt((n - 2) / (n * n - 1.0))
         return FloorTest(floor, DIFFERENCES, chi2, expected, normal_band(sd), sd)
     return FloorTest(None, UNKNOWN)
+
+
+def _chi2(s: _Sums, centred: bool) -> float:
+    """Σ w r² of an entry's accumulators, about its mean when ``centred``."""
+    if not centred or not s.n:
+        return s.wr2
+    mean = s.r / s.n
+    return s.wr2 - 2.0 * mean * s.wr + mean * mean * s.w
 
 
 def _wd_plain(s: _Sums) -> float:

@@ -99,6 +99,90 @@ def binned(r: np.ndarray, v: np.ndarray, name: str, bins: int = 20) -> Binned | 
     return Binned(name, centers[keep], mean[keep], sem[keep], eta2)
 
 
+@dataclass(frozen=True)
+class Left:
+    """What a residual above its noise floor does along one variable or a pair of them:
+    the variance its binned means explain beyond what bins explain by chance
+    (``explained``, internal units²), as a share of the residual's excess over its floor
+    (``share``), and its correlation ratio ``eta2``."""
+
+    variables: tuple[str, ...]
+    explained: float
+    share: float
+    eta2: float
+
+    @property
+    def text(self) -> str:
+        """E.g. ``62 % along phase of s2.p (mod 1.016 mm)`` or ``18 % along (p2, t)``."""
+        where = self.variables[0] if len(self.variables) == 1 else \
+            f"({', '.join(self.variables)}) together"
+        return f"{self.share:.0%} along {where}"
+
+    def to_dict(self, scale: float = 1.0) -> dict:
+        """Plain data; the explained standard deviation in a unit of size ``scale``."""
+        return {"variables": list(self.variables), "share": self.share, "eta2": self.eta2,
+                "explained_std": float(np.sqrt(max(self.explained, 0.0))) / scale}
+
+
+def _cells(r: np.ndarray, index: np.ndarray, cells: int) -> tuple[float, int]:
+    """Variance of ``r`` its cell means explain (weighted by count), and the cells used."""
+    count = np.bincount(index, minlength=cells).astype(float)
+    total = np.bincount(index, weights=r, minlength=cells)
+    used = count > 0
+    mean = total[used] / count[used]
+    return float(np.sum(count[used] * (mean - r.mean()) ** 2) / len(r)), int(np.sum(used))
+
+
+def _bin_index(v: np.ndarray, bins: int) -> np.ndarray | None:
+    """Equal-count bin of each value (None: too few distinct values)."""
+    edges = np.unique(np.quantile(v, np.linspace(0, 1, bins + 1)))
+    if len(edges) < 3:
+        return None
+    return np.clip(np.searchsorted(edges, v, side="right") - 1, 0, len(edges) - 2)
+
+
+def what_is_left(r: np.ndarray, variables: list[Variable], floor_variance: float,
+                 top: int = 3, bins: int = 20, pair_bins: int = 6,
+                 pairs_of: int = 6) -> list[Left]:
+    """The variables and pairs of variables along which a residual's excess over its noise
+    floor lies, non-parametrically: the variance of its binned means (equal-count bins,
+    ``bins`` along one variable, ``pair_bins`` × ``pair_bins`` along a pair of the
+    ``pairs_of`` strongest variables) less what as many bins explain by chance
+    (``(bins - 1)/N`` of its variance), as a share of ``var(r) - floor_variance``; best
+    first.  Empty when the residual is not above its floor."""
+    n = len(r)
+    spread = float(np.var(r))
+    excess = spread - floor_variance
+    if n < 4 * bins or excess <= 0 or spread <= 0:
+        return []
+    singles: list[tuple[Left, np.ndarray]] = []
+    for var in variables:
+        for cand in [var] + ([phase_variable(var)] if var.period else []):
+            index = _bin_index(cand.values, bins)
+            if index is None:
+                continue
+            explained, used = _cells(r, index, bins)
+            beyond = explained - (used - 1) / n * spread
+            singles.append((Left((cand.name,), beyond, beyond / excess, explained / spread),
+                            cand.values))
+    singles.sort(key=lambda item: -item[0].share)
+    found = [left for left, _ in singles]
+    strongest = singles[:pairs_of]
+    for i, (a, va) in enumerate(strongest):
+        ia = _bin_index(va, pair_bins)
+        for b, vb in strongest[i + 1:]:
+            ib = _bin_index(vb, pair_bins)
+            if ia is None or ib is None:
+                continue
+            explained, used = _cells(r, ia * pair_bins + ib, pair_bins * pair_bins)
+            beyond = explained - (used - 1) / n * spread
+            found.append(Left((*a.variables, *b.variables), beyond, beyond / excess,
+                              explained / spread))
+    found = [f for f in found if f.share > 0]
+    found.sort(key=lambda f: -f.share)
+    return found[:top]
+
+
 def phase_variable(var: Variable) -> Variable:
     """The phase ``v mod period`` of a periodic variable."""
     assert var.period is not None

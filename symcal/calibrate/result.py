@@ -26,6 +26,7 @@ from symcal.analysis.gauges import GaugeAnalysis
 from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
 from symcal.analysis.implicit import ImplicitCheck
 from symcal.analysis.outliers import Outliers
+from symcal.analysis.serial import SerialCorrelation
 from symcal.base.errors import SymcalError, excerpt
 from symcal.base.files import atomic_write_text, check_set, json_text
 from symcal.base.numeric import mapped
@@ -141,9 +142,12 @@ def regressions(statistics: tuple[SeriesStats, ...],
                 tolerance: float = REGRESSION_TOLERANCE) -> tuple[Regression, ...]:
     """The residuals and comparisons whose spread calibration made worse.
 
-    A spread counts as worse when it grew by more than ``tolerance`` (relative) from the
-    initial parameters to the estimate; the spread is the standard deviation for a
-    comparison whose mean carries no information (``remove_mean``), the RMS otherwise.
+    Where a residual's noise floor is known (propagated from declared noise), by test: it
+    is above its floor and its χ²/dof grew from the initial parameters by more than noise
+    moves a χ²/dof at the floor (:attr:`~symcal.analysis.floors.FloorTest.worse`).
+    Elsewhere a spread counts as worse when it grew by more than ``tolerance``
+    (relative).  The spread shown is the standard deviation for a comparison whose mean
+    carries no information (``remove_mean``), the RMS otherwise.
 
     Parameters
     ----------
@@ -163,7 +167,9 @@ def regressions(statistics: tuple[SeriesStats, ...],
         measure = "std" if s.remove_mean else "rms"
         before = getattr(s.shown("before"), measure)
         after = getattr(s.shown("after"), measure)
-        if after > (1.0 + tolerance) * before and after > 0:
+        test = s.noise if s.noise is not None and s.noise.chi2_before is not None else None
+        worse = test.worse if test is not None else after > (1.0 + tolerance) * before
+        if worse and after > 0:
             out.append(Regression(s.dataset, s.name, s.kind, measure, before, after, s.unit))
     return tuple(out)
 
@@ -250,7 +256,9 @@ class ConstraintCost:
 @dataclass(frozen=True, eq=False)
 class StageResult:
     """The outcome of one stage of a calibration; ``outliers`` are the observations its
-    fit treats as outliers (None where its residuals were not finite)."""
+    fit treats as outliers (None where its residuals were not finite); ``serial`` is the
+    serial correlation of its residuals on time-ordered rows (None: rows not in time
+    order), and when detected the standard errors allow for it."""
 
     name: str
     doc: str
@@ -271,6 +279,7 @@ class StageResult:
     notes: tuple[str, ...] = ()
     outliers: Outliers | None = None
     gauges: GaugeAnalysis | None = None  # the stage's gauges, found before its solve
+    serial: SerialCorrelation | None = None
 
     @property
     def cost_before(self) -> float:
@@ -298,6 +307,7 @@ class StageResult:
             "notes": list(self.notes),
             "outliers": None if self.outliers is None else self.outliers.to_dict(),
             "gauges": None if self.gauges is None else self.gauges.to_dict(),
+            "serial_correlation": None if self.serial is None else self.serial.to_dict(),
         }
 
     @classmethod
@@ -314,7 +324,9 @@ class StageResult:
                    None if doc.get("outliers") is None
                    else Outliers.from_dict(doc["outliers"]),
                    None if doc.get("gauges") is None
-                   else GaugeAnalysis.from_dict(doc["gauges"]))
+                   else GaugeAnalysis.from_dict(doc["gauges"]),
+                   None if doc.get("serial_correlation") is None
+                   else SerialCorrelation.from_dict(doc["serial_correlation"]))
 
 
 def file_hashes(problem: Problem) -> dict[str, str]:

@@ -10,11 +10,18 @@ from pathlib import Path
 import numpy as np
 
 from symcal.analysis.fit import series_statistics
-from symcal.analysis.floors import Fit, floor_tests, inverse_sqrt_rows, row_covariances
+from symcal.analysis.floors import (
+    Fit,
+    floor_tests,
+    inverse_sqrt_rows,
+    row_covariances,
+    time_ordered,
+)
 from symcal.analysis.gauges import find_gauges
 from symcal.analysis.identifiability import Uncertainty, analyse, conditioning
 from symcal.analysis.implicit import implicit_checks
 from symcal.analysis.outliers import Outliers, find_outliers
+from symcal.analysis.serial import SerialCorrelation, bandwidth, detect, hac_meat
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, SolveError, SymcalError
 from symcal.base.linalg import is_singular, numerical_rank, sqrt_psd, whitening
@@ -169,6 +176,11 @@ def _propagated_weights(objective: Objective, data: Dataset, theta: np.ndarray
     return t, ""
 
 
+#: Propagated weights that change by at most this fraction (per observation) when taken
+#: again at the estimate are converged: the stage is not solved again.
+REWEIGHT = 1e-2
+
+
 def _propagated(
     plain: Objective, data: Dataset, theta: np.ndarray, method: str, progress: Progress,
     label: str, options: SolveOptions,
@@ -184,16 +196,32 @@ def _propagated(
     first, notes = solve_stage(weighted, data, theta, method, progress, label, options)
     if not first.success:
         return weighted, first, notes
-    weights, why = _propagated_weights(plain, data, first.theta)
-    if weights is None:
+    again, why = _propagated_weights(plain, data, first.theta)
+    if again is None:
         return weighted, first, [*notes, why]
-    weighted = plain.with_row_weights(weights)
-    second, _ = solve_stage(weighted, data, first.theta, method, progress, label, options)
+    change = float(np.max(np.linalg.norm(again - weights, axis=(1, 2))
+                          / np.maximum(np.linalg.norm(weights, axis=(1, 2)), 1e-300)))
+    when = "at the start and again at that estimate"
+    if change <= REWEIGHT:    # the weights have converged: solving again moves nothing
+        second, when = first, (f"at the start (at that estimate they differ by "
+                               f"{change:.1g} at most)")
+    else:
+        reweighted = plain.with_row_weights(again)
+        second, _ = solve_stage(reweighted, data, first.theta, method, progress, label,
+                                options)
+        if second.success:
+            weighted = reweighted
+        else:   # from a converged point: keep it, weighted as at the start
+            notes.append(f"weighting: solving again with the weights at the estimate did "
+                         f"not succeed ({second.message}); kept the estimate weighted at "
+                         "the start")
+            second, when = first, "at the start"
     merged = SolverOutput(
         second.theta, second.free, second.method, second.success, second.status,
         second.message + "; weighted by the covariance propagated from the readings' noise",
-        second.r_factor, second.rows, second.rss, first.iterations + second.iterations,
-        first.seconds + second.seconds)
+        second.r_factor, second.rows, second.rss,
+        first.iterations + (second.iterations if second is not first else 0),
+        first.seconds + (second.seconds if second is not first else 0.0))
     problem = plain.problem
     floor = np.sqrt(np.mean(np.diagonal(row_covariances(problem, plain.constraints, data,
                                                         second.theta), axis1=1, axis2=2),
@@ -204,8 +232,8 @@ def _propagated(
         sizes.append(f"{name} {floor[k] * q.sigma / DISPLAY_UNITS[q.unit]:.3g} "
                      f"{symbol(q.unit)}")
     note = ("weighting: each observation's constraints whitened by their covariance "
-            "propagated from the readings' declared noise, at the start and again at that "
-            f"estimate (noise floor {', '.join(sizes)})")
+            f"propagated from the readings' declared noise, {when} (noise floor "
+            f"{', '.join(sizes)})")
     return weighted, merged, [*notes, note]
 
 
@@ -318,6 +346,11 @@ def run_stage(
         rank = numerical_rank(out.r_factor, out.rows, scales)
         cov_g = objective.residual_covariance(data, out.theta, rank)
         meat = objective.accumulate_r(data, out.theta, sqrt_psd(cov_g).T)[0]
+    serial = None
+    if weights is None and out.success and time_ordered(problem, data):
+        serial, hac = _serial(objective, data, out)
+        if hac is not None:
+            meat = hac
     exact_null, held = gauges.confirmed(plain, data, out.theta)
     if len(held.gauges) < len(gauges.gauges):
         gone = [g.text.split(":")[0] + " of " + ", ".join(g.parameters)
@@ -343,9 +376,24 @@ def run_stage(
         conditioning(out.r_factor, out.rows, names, scales, gauges=exact_null), ident, unc,
         tuple(notes), _outliers(plain, data, out.theta, weights, losses, lambda weighted:
                                 solve_stage(weighted, data, out.theta, method, None,
-                                            stage.name, options)[0]), gauges,
+                                            stage.name, options)[0]), gauges, serial,
     )
     return out.theta, result
+
+
+def _serial(objective: Objective, data: Dataset, out: SolverOutput
+            ) -> tuple[SerialCorrelation, np.ndarray | None]:
+    """Serial correlation of the stage's weighted residuals on time-ordered rows, and
+    where it is found the HAC meat (``M`` with ``MᵀM`` the Newey-West sum of the scores,
+    scaled by rows/(rows - rank)) for its standard errors."""
+    found = detect(objective.constraints, objective.residuals(data, out.theta))
+    if not found.detected:
+        return found, None
+    lags = bandwidth(max(found.rho, key=abs), data.n)
+    rank = numerical_rank(out.r_factor, out.rows, objective.scales)
+    meat = hac_meat(objective.score_chunks(data, out.theta), lags, len(objective.index))
+    meat *= out.rows / max(out.rows - rank, 1)
+    return replace(found, lags=lags), sqrt_psd(meat).T
 
 
 @blas_limited
@@ -447,7 +495,8 @@ def _result(problem: Problem, datasets: dict[str, Dataset],
         for i, p in enumerate(problem.parameters)
     )
     stats, skipped = series_statistics(problem, datasets, theta0, theta)
-    found, tests = floor_tests(problem, datasets, theta, _fit(problem, datasets, theta, last))
+    found, tests = floor_tests(problem, datasets, theta, _fit(problem, datasets, theta, last),
+                               theta0)
     stats = tuple(replace(s, noise=found.get((s.dataset, s.name))) for s in stats)
     checks = implicit_checks(problem, datasets, theta)
     notes = list(skipped) + [

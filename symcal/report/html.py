@@ -87,6 +87,7 @@ def html_report(doc: Doc, text_report: str, title: str | None = None,
         *_meta(doc, problem),
         *_verdict(_verdict_lines(doc, text_report, verdict)),
         *_residual_table(doc),
+        *_left(doc),
         *_candidates(doc),
         *_figures(doc),
         "<h2>Text report</h2>",
@@ -233,6 +234,15 @@ def _residual_table(doc: Doc) -> list[str]:
         out.append(('<tr class="worse">' if bad else "<tr>") + "".join(cells) + "</tr>")
     out.append("</table>")
     return out
+
+
+def _left(doc: Doc) -> list[str]:
+    """What is left above the noise floor, per residual (the document's ``left``)."""
+    lines = [str(x) for x in doc.get("left") or []]
+    if not lines:
+        return []
+    return ["<h2>What is left above the noise floor</h2>", "<ul>",
+            *(f"<li>{escape(x)}</li>" for x in lines), "</ul>"]
 
 
 def _units(doc: Doc) -> dict[str, str]:

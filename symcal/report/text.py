@@ -132,7 +132,8 @@ def outcome_text(improvement: Any) -> str:
             return ("the diagnosis is not quiet: below the noise floor (overfitting, or noise "
                     "declared larger than the sensors')")
         return ("the diagnosis is not quiet: structure remains that no candidate explains "
-                "(above the noise floor, and no candidate of the library is significant)")
+                "(above the noise floor, and no candidate of the library is significant; "
+                "or the readings are noisier than declared)")
     return "the diagnosis is not quiet (nothing else pays)"
 
 
@@ -368,12 +369,16 @@ def verdict_lines(result: Result,
         more = (f" and {len(above) - VERDICT_REGRESSIONS} more"
                 if len(above) > VERDICT_REGRESSIONS else "")
         lines.append(f"against the reference, above the noise floor: {shown}{more}")
+    serial = result.stages[-1].serial if result.stages else None
+    if serial is not None and serial.detected:
+        lines.append(serial.text)
     found = result.regressions
     if found:
         lines += _regression_lines(found, "")
     else:
-        lines.append(f"no residual or comparison is worse after calibration (by more than "
-                     f"{REGRESSION_TOLERANCE:.0%})")
+        lines.append(f"no residual or comparison is worse after calibration by more than its "
+                     f"noise allows (by more than {REGRESSION_TOLERANCE:.0%} where its floor "
+                     "is unknown)")
     lines.append(_null_space_text(result))
     gauges = _gauges(result)
     if gauges:
@@ -434,6 +439,8 @@ def _stage_lines(result: Result) -> list[str]:
             lines.append(f"     did not move: {_names(st.unmoved)}")
         if st.at_bound:
             lines.append(f"     at a bound: {_names(st.at_bound)}")
+        if st.serial is not None:
+            lines.append(f"     {st.serial.text}")
         lines += [f"     note: {n}" for n in st.notes]
     return lines
 
@@ -526,8 +533,11 @@ def text_report(result: Result) -> str:
                   f"beyond {THRESHOLD:g} robust standard deviations)"]
         lines += _outlier_lines(result.outliers)
     robust = result.outliers is not None and not result.outliers.squared
+    serial = result.stages[-1].serial
     lines += ["", "Parameters (standard errors from the Jacobian at the estimate, "
               + ("the robust sandwich with the final weights)" if robust else
+                 f"the Newey-West sandwich over {serial.lags} lags: the rows are serially "
+                 "correlated)" if serial is not None and serial.detected else
                  "scaled by the residual variance)")]
     lines += _parameter_lines(result)
     lines += ["", "Strongly correlated estimates"]
@@ -588,6 +598,73 @@ def _floor_note(value: float, floor: float | None, unit: str, test: Any = None) 
     shown = floor / DISPLAY_UNITS[unit]
     chi2 = "" if test is None or test.chi2_dof is None else f"; {_chi2_text(test)}"
     return f" (noise floor {_spread_text(shown, unit)}; {value / shown:.2f} ×{chi2})"
+
+
+def references_apart(diag: Any) -> list[str]:
+    """The comparisons with a reference above their noise floor on a dataset whose
+    constraints are at theirs: real, but not calibratable by these constraints; each with
+    the variable it follows most (binned, η²) and, where one exists, the problem that can
+    determine it (:attr:`Diagnosis.pointer <symcal.revise.diagnose.Diagnosis.pointer>`)."""
+    result = diag.result
+    at = {t.dataset for t in result.floor_tests if t.verdict == "at"}
+    skip = self_referential(result)
+    views = {(v.dataset, v.name): v for v in getattr(diag, "residuals", ())}
+    pointer = str(getattr(diag, "pointer", "") or "")
+    out = []
+    for s in references_above(result):
+        if s.dataset not in at:
+            continue
+        assert s.noise is not None
+        text = f"{s.dataset} {s.name} vs reference, {s.noise.ratio:.2f}× its noise floor"
+        view = views.get((s.dataset, s.name))
+        found = [] if view is None else _findings(view.binned,
+                                                  skip.get(s.name, frozenset({s.name})))
+        if found:
+            text += f", varies with {found[0].variable} (η² = {found[0].eta2:.2f})"
+        out.append(text + (f"; {pointer}" if pointer else ""))
+    return out
+
+
+def _own(variable: str, skip: frozenset[str] | set[str]) -> bool:
+    return variable in skip or any(variable.startswith(f"phase of {n} (") for n in skip)
+
+
+def left_lines(diag: Any) -> list[str]:
+    """What is left above the floor, for each residual above it: the variables and pairs
+    its excess lies along (binned means), strongest first, with their share of the excess;
+    variables a residual contains whole are left out."""
+    skip = self_referential(diag.result)
+    out = []
+    for v in getattr(diag, "residuals", ()):
+        own = skip.get(v.name, frozenset({v.name}))
+        left = [a for a in getattr(v, "left", ()) if not any(_own(n, own) for n in a.variables)]
+        if left:
+            out.append(f"{v.dataset} {_what(v)}: " + "; ".join(a.text for a in left))
+    return out
+
+
+def _strongest_left(diag: Any) -> str:
+    lines = left_lines(diag)
+    return f"; what is left: {lines[0]}" if lines else ""
+
+
+def output_unit(result: Result, output: str) -> str:
+    """The unit a term on a sensor output is shown in: that of the first constraint of its
+    dimension (the residuals' scale, e.g. µm), else the output's declared unit."""
+    from symcal.base.units import internal_unit
+
+    unit = next((s.unit for s in result.problem.signals if s.name == output), "")
+    return next((c.unit for c in result.problem.constraints
+                 if internal_unit(c.unit) == internal_unit(unit)), unit)
+
+
+def detectable_text(result: Result, cand: Any) -> str:
+    """A candidate's minimal detectable effect in its output's unit (``—`` unknown)."""
+    mde = getattr(cand, "mde", None)
+    if mde is None:
+        return "—"
+    unit = output_unit(result, cand.output)
+    return _spread_text(mde / DISPLAY_UNITS[unit], unit)
 
 
 def outliers_dominate(diag: Diagnosis) -> bool:
@@ -659,7 +736,7 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     elif any(t.verdict == "above" for t in tests):
         lines.append("what to add: no candidate effect passes the test, yet the residuals are "
                      "above the noise floor: structure remains that no candidate explains "
-                     "(see what is left, below)")
+                     "(or the readings are noisier than declared)" + _strongest_left(diag))
     else:
         lines.append("what to add: nothing significant (no candidate effect passes the test)")
     cannot = []
@@ -668,6 +745,11 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
         shown = ", ".join(c.label for c in uncalibratable[:3])
         more = f" and {len(uncalibratable) - 3} more" if len(uncalibratable) > 3 else ""
         cannot.append(f"{shown}{more} (real, but these constraints cannot determine it)")
+    apart = references_apart(diag)
+    if apart:
+        cannot.append(f"{apart[0]} (real, not calibratable by these constraints: they are "
+                      "at their floor)" + (f"; and {len(apart) - 1} more against the "
+                                           "reference" if len(apart) > 1 else ""))
     if result.identifiability.deficiency:
         cannot.append(f"{result.identifiability.deficiency} parameter direction(s) the data "
                       "cannot determine")
@@ -733,9 +815,17 @@ def diagnosis_report(diag: Diagnosis) -> str:
         if v.periodogram is not None and float(np.max(v.periodogram.power)) > 0.1:
             lines.append(f"      dominant frequency: {v.periodogram.peak_text} "
                          f"(power {float(np.max(v.periodogram.power)):.2f})")
+    left = left_lines(diag)
+    if left:
+        lines += ["", "What is left above the noise floor (binned means of each residual "
+                  "along every variable and the strongest pairs, beyond what bins explain by "
+                  "chance, as a share of its excess over the floor; shown whether or not a "
+                  "candidate explains it)"]
+        lines += [f"  {ln}" for ln in left]
     if result.regressions:
-        lines += ["", f"Worse after calibration (a spread more than {REGRESSION_TOLERANCE:.0%} "
-                  "larger with the estimate than with the initial parameters)"]
+        lines += ["", "Worse after calibration (above its noise floor, χ²/dof grown from the "
+                  "initial parameters by more than noise moves it; where the floor is "
+                  f"unknown, a spread more than {REGRESSION_TOLERANCE:.0%} larger)"]
         lines += [f"  {_regression_text(r)} ({r.ratio:.2f} ×)" for r in result.regressions]
     ranked = list(diag.leads)
     outliers = getattr(diag, "outliers", None)
@@ -757,18 +847,26 @@ def diagnosis_report(diag: Diagnosis) -> str:
     elif not diag.significant:
         lines.append("  no candidate effect is significant: the residuals look like noise to "
                      "this library of effects")
-    rows = [["rank", "candidate", "removes", "F", "p", "significant"]]
+    rows = [["rank", "candidate", "removes", "F", "p", "significant", "detectable from"]]
     for i, c in enumerate(ranked[:10], start=1):
         group = f" (+{len(c.indistinguishable)} alike)" if c.indistinguishable else ""
         rows.append([str(i), c.label + group, f"{c.share:.1%}", f"{c.f_stat:.3g}",
-                     f"{c.p_value:.2g}", "yes" if c.significant else "no"])
+                     f"{c.p_value:.2g}", "yes" if c.significant else "no",
+                     detectable_text(result, c)])
     if len(rows) > 1:
-        lines += _table(rows, "rlrrrl")
+        lines += _table(rows, "rlrrrlr")
+        lines.append("  detectable from: the smallest such term (its RMS over the calibration "
+                     "data, in the worst phase) the test finds with power 80 % at its level")
     for i, c in enumerate(diag.significant[:3], start=1):
         lines += ["", f"  {i}. {c.label}", "     " + diag.candidate_text(c)]
         if diag.yaml.get(c.label):
             lines += ["     To add it:"] + [f"       {ln}" if ln else ""
                                             for ln in diag.yaml[c.label].splitlines()]
+    apart = references_apart(diag)
+    if apart:
+        lines += ["", "Against the reference, above the noise floor where the constraints "
+                  "are at theirs (real, not calibratable by these constraints):"]
+        lines += [f"  {ln}" for ln in apart]
     uncalibratable = tuple(getattr(diag, "uncalibratable", ()) or ())
     if uncalibratable:
         lines += ["", "Real, but these constraints cannot determine them (a reference or "
@@ -837,6 +935,8 @@ def diagnosis_document(diag: Diagnosis, series: bool = False) -> dict[str, Any]:
     doc.setdefault("statistics", [s.to_dict() for s in result.statistics])
     doc.setdefault("floor_tests", [t.to_dict() for t in result.floor_tests])
     doc.setdefault("at_floor", result.at_floor)
+    doc.setdefault("references_apart", references_apart(diag))
+    doc.setdefault("left", left_lines(diag))
     tests = {(s.dataset, s.name): s.chi2_dof for s in result.statistics}
     for row in doc.get("residuals") or []:
         name = str(row.get("name"))

@@ -31,7 +31,15 @@ import numpy as np
 
 from symcal.analysis.discovery import Basis, Candidate, Design, test_candidates
 from symcal.analysis.outliers import Outliers, remedy_yaml
-from symcal.analysis.residuals import Binned, Periodogram, Variable, periodogram, structure
+from symcal.analysis.residuals import (
+    Binned,
+    Left,
+    Periodogram,
+    Variable,
+    periodogram,
+    structure,
+    what_is_left,
+)
 from symcal.base.linalg import range_basis, whitening
 from symcal.base.numeric import mapped
 from symcal.base.units import ANGLE_UNITS, DISPLAY_UNITS
@@ -62,6 +70,7 @@ class ResidualView:
     x: np.ndarray
     binned: tuple[Binned, ...]
     periodogram: Periodogram | None
+    left: tuple[Left, ...] = ()
 
     @property
     def scale(self) -> float:
@@ -75,7 +84,8 @@ class ResidualView:
                "std_before": float(np.std(self.before)) / self.scale,
                "std_after": float(np.std(self.after)) / self.scale,
                "binned": [b.to_dict(self.scale) for b in self.binned],
-               "periodogram": self.periodogram.to_dict() if self.periodogram else None}
+               "periodogram": self.periodogram.to_dict() if self.periodogram else None,
+               "left": [a.to_dict(self.scale) for a in self.left]}
         if series:
             doc["series"] = {"x": {"name": self.x_name, "values": self.x.tolist()},
                              "before": (self.before / self.scale).tolist(),
@@ -92,6 +102,8 @@ class Diagnosis:
     reference reveal but these constraints cannot determine, each with ``needs[label]``
     saying what would (the reference, another constraint, a problem that has one).
     ``variant`` is the implicit variant tested as the model's own approximation.
+    ``pointer`` names, when a comparison with a reference is above its noise floor, a
+    problem beside this one with more constraints on the same sensors (or "").
     """
 
     result: Result
@@ -104,6 +116,7 @@ class Diagnosis:
     needs: dict[str, str] = field(default_factory=dict)
     variant: Variant | None = None
     own: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    pointer: str = ""
 
     @property
     def outliers(self) -> Outliers | None:
@@ -132,6 +145,10 @@ class Diagnosis:
             return _uncalibratable_words(cand, self.needs.get(cand.label, ""), self.own)
         return _words(cand, self.alpha, self.tested, self.variant, self.own)
 
+    def _unit(self, cand: Candidate) -> str:
+        """The declared unit of a candidate's output."""
+        return next((s.unit for s in self.result.problem.signals if s.name == cand.output), "")
+
     def to_dict(self, series: bool = False) -> dict:
         """Plain data (``--json``; with ``series`` the plotting contract)."""
         ranked = list(self.leads)
@@ -148,6 +165,8 @@ class Diagnosis:
                  "reduction": {k: list(v) for k, v in c.reduction.items()},
                  "predicted": {k: v[1] for k, v in c.reduction.items()},
                  "indistinguishable": list(c.indistinguishable),
+                 "mde": None if c.mde is None else c.mde / DISPLAY_UNITS[self._unit(c)],
+                 "mde_unit": self._unit(c) or "(internal)",
                  "text": self.candidate_text(c), "yaml": self.yaml.get(c.label, "")}
                 for i, c in enumerate(ranked[:20])],
             "uncalibratable": [
@@ -488,7 +507,7 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
     blocks = [_evaluate(hp, ds, result.theta0, result.theta, free) for ds in data.values()]
     if result.outliers is not None and result.outliers.dominate:
         # outliers first: F-tests for missing effects mean nothing while they dominate
-        return Diagnosis(result, tuple(_views(blocks)), (), {}, alpha, 0)
+        return Diagnosis(result, tuple(_views(blocks, result)), (), {}, alpha, 0)
     cal = list(data).index(result.problem.fit_dataset)
     own_names = [c.name for c in result.stages[-1].costs]
     own_cols = [blocks[cal].names.index(n) for n in own_names]
@@ -535,8 +554,11 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
             for c in leads}
     own_inputs = {name: (*(f"{name}.{k}" for k in inst.bindings), *inst.bindings.values())
                   for name, inst in problem.instances.items()}
-    return Diagnosis(result, tuple(_views(blocks)), tuple(ranked), yaml, alpha,
-                     len(candidates), tuple(uncal), needs, variant, own_inputs)
+    above = any(s.kind == "comparison" and s.noise is not None and s.noise.verdict == "above"
+                for s in result.statistics)
+    return Diagnosis(result, tuple(_views(blocks, result)), tuple(ranked), yaml, alpha,
+                     len(candidates), tuple(uncal), needs, variant, own_inputs,
+                     _better_problem(problem) if above else "")
 
 
 def _library_regressors(hp: Problem, blocks: list[_Block], keep: set[str]
@@ -744,7 +766,19 @@ def _axis(block: _Block) -> Variable | None:
     return next((v for v in block.variables if v.role == "time"), None)
 
 
-def _views(blocks: list[_Block]) -> list[ResidualView]:
+def _floor_variance(result: Result, dataset: str, name: str) -> float | None:
+    """The variance a residual has at its noise floor (its floor², times its expected χ²
+    over its observations: the fit's degrees of freedom and the estimate's share), None
+    when it is not above its floor."""
+    stats = next((s for s in result.statistics if (s.dataset, s.name) == (dataset, name)),
+                 None)
+    test = None if stats is None else stats.noise
+    if test is None or test.verdict != "above" or test.floor is None or not test.dof:
+        return None
+    return test.floor**2 * test.dof / max(stats.n, 1)     # type: ignore[union-attr]
+
+
+def _views(blocks: list[_Block], result: Result) -> list[ResidualView]:
     views = []
     for b in blocks:
         variables = _distinct(b.variables)
@@ -757,8 +791,11 @@ def _views(blocks: list[_Block]) -> list[ResidualView]:
                                  for v in periodic) if g is not None]
             best = max(grams, key=lambda g: float(np.max(g.power)), default=None)
             x = moving.values if moving is not None else np.arange(len(after), dtype=float)
+            floor = _floor_variance(result, b.dataset.name, name)
+            left = () if floor is None else tuple(what_is_left(
+                after, [v for v in variables if v.name not in (name,)], floor))
             views.append(ResidualView(
                 b.dataset.name, name, b.kinds[k], b.units[k], before, after,
                 moving.name if moving is not None else "index", x,
-                tuple(structure(after, variables)), best))
+                tuple(structure(after, variables)), best, left))
     return views

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import copy
 import weakref
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -201,6 +201,25 @@ class Objective:
         gram, count = self._pass("gram", "residual", dataset, theta)
         rows = count * self.g.shape[0]
         return gram / count * rows / max(rows - rank, 1)
+
+    def score_chunks(self, dataset: Dataset, theta: np.ndarray) -> Iterator[np.ndarray]:
+        """Per-row scores ``J_iᵀ g_i`` of the weighted residual at ``theta``, chunk by
+        chunk in row order (``m × n_free`` each; in-memory data only), for standard
+        errors that allow for correlated rows (:mod:`symcal.analysis.serial`)."""
+        instrument.record_pass("linearised", "score_chunks", dataset.n)
+        fn = self._mapped("linearised", [self.g, self.jac.T])
+        ng, n = self.g.shape[0], int(self.free.sum())
+        u = dataset.matrix(self.problem.columns)
+        for part in chunks(dataset.n):
+            g, jt = (np.array(x) for x in fn.evaluate(theta, u[:, part]))
+            m = g.shape[0]
+            jac = jt.reshape(m, ng, n)
+            w = self.row_weights[part] if self.row_weights is not None else None
+            if w is not None and w.ndim == 3:
+                g, jac = np.einsum("mab,mb->ma", w, g), np.einsum("mab,mbn->man", w, jac)
+            elif w is not None:
+                g, jac = g * w, jac * w[:, :, None]
+            yield np.einsum("ma,man->mn", g, jac)
 
     def residuals(self, dataset: Dataset, theta: np.ndarray) -> np.ndarray:
         """Weighted residuals at ``theta``, ``N × n_g`` (in-memory data only)."""

@@ -1,0 +1,138 @@
+"""Serial correlation of a fit's residuals on time-ordered rows, and standard errors that
+allow for it.
+
+Consecutive samples of a slow recording, or a drift, make the residuals of neighbouring
+rows alike: the rows are then not independent, and standard errors computed as if they
+were are too small (two halves of one recording disagree by several of them).
+
+- **detection.** On time-ordered rows (a ``role: time`` column that never decreases),
+  the lag-1 autocorrelation ρ̂ of each weighted residual; under independence √N·ρ̂ is
+  standard normal, so the residuals are serially correlated when some
+  ``|√N·ρ̂| > z`` at level :data:`ALPHA` (Bonferroni over the constraints).
+- **standard errors.** Then the covariance is the heteroscedasticity-and-autocorrelation
+  consistent sandwich ``A⁺ M A⁺`` of Newey and West: ``M = Σ_{|l|≤L} (1 − |l|/(L+1)) Γ_l``,
+  ``Γ_l = Σ_i s_i s_{i+l}ᵀ`` of the per-row scores ``s_i = J_iᵀ g_i`` (weighted), scaled by
+  ``N/(N − rank)``; the bandwidth L is Andrews' for an AR(1) residual,
+  ``1.1447 (α N)^⅓`` with ``α = 4ρ²/((1 − ρ)²(1 + ρ)²)`` (ρ the largest lag-1
+  autocorrelation, at most 0.97; L at most N/4).  The scores are made chunk by chunk in
+  row order, the last L kept between chunks.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from symcal.analysis.floors import normal_quantile
+
+#: Family-wise level of the detection (over a stage's constraints).
+ALPHA = 0.01
+#: The largest lag-1 autocorrelation the bandwidth rule takes.
+RHO_MAX = 0.97
+
+
+@dataclass(frozen=True)
+class SerialCorrelation:
+    """What the detection found on a stage's residuals (time-ordered rows only).
+
+    Attributes
+    ----------
+    constraints
+        The stage's constraints, in the order of ``rho``.
+    rho
+        Lag-1 autocorrelation of each weighted residual.
+    threshold
+        ``|√N·ρ|`` above which a residual is serially correlated (level :data:`ALPHA`).
+    rows
+        Observations.
+    lags
+        The bandwidth L of the HAC standard errors (0: not used).
+    """
+
+    constraints: tuple[str, ...]
+    rho: tuple[float, ...]
+    threshold: float
+    rows: int
+    lags: int = 0
+
+    @property
+    def detected(self) -> bool:
+        """Whether some residual is serially correlated."""
+        root = math.sqrt(self.rows)
+        return any(abs(r) * root > self.threshold for r in self.rho)
+
+    @property
+    def text(self) -> str:
+        """In words, for the report."""
+        worst = max(range(len(self.rho)), key=lambda k: abs(self.rho[k]))
+        where = (f"lag-1 autocorrelation {self.rho[worst]:+.2f} of {self.constraints[worst]} "
+                 f"on {self.rows} time-ordered rows (independent rows: |ρ| < "
+                 f"{self.threshold / math.sqrt(self.rows):.2g})")
+        if not self.detected:
+            return f"no serial correlation: {where}"
+        return (f"the residuals are serially correlated ({where}): standard errors by a "
+                f"heteroscedasticity-and-autocorrelation-consistent sandwich (Newey-West, "
+                f"{self.lags} lags), not as if the rows were independent")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data (a stage's ``serial_correlation``)."""
+        return {"constraints": list(self.constraints), "rho": list(self.rho),
+                "threshold": self.threshold, "rows": self.rows, "lags": self.lags,
+                "detected": self.detected}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> SerialCorrelation:
+        """Inverse of :meth:`to_dict`."""
+        return cls(tuple(doc["constraints"]), tuple(float(r) for r in doc["rho"]),
+                   float(doc["threshold"]), int(doc["rows"]), int(doc.get("lags", 0)))
+
+
+def lag_one(residuals: np.ndarray) -> tuple[float, ...]:
+    """Lag-1 autocorrelation of each column of ``residuals`` (N × n_g), about its mean."""
+    out = []
+    for col in residuals.T:
+        c = col - col.mean()
+        denom = float(c @ c)
+        out.append(float(c[1:] @ c[:-1]) / denom if denom > 0 else 0.0)
+    return tuple(out)
+
+
+def detect(constraints: tuple[str, ...], residuals: np.ndarray) -> SerialCorrelation:
+    """Serial correlation of a fit's weighted residuals (rows in time order)."""
+    n_g = max(residuals.shape[1], 1)
+    threshold = normal_quantile(1.0 - ALPHA / (2.0 * n_g))
+    return SerialCorrelation(constraints, lag_one(residuals), threshold, residuals.shape[0])
+
+
+def bandwidth(rho: float, rows: int) -> int:
+    """Andrews' Bartlett bandwidth for an AR(1) of coefficient ``rho``."""
+    r = min(abs(rho), RHO_MAX)
+    alpha = 4.0 * r * r / ((1.0 - r) ** 2 * (1.0 + r) ** 2)
+    lags = int(math.ceil(1.1447 * (alpha * rows) ** (1.0 / 3.0)))
+    return max(1, min(lags, rows // 4))
+
+
+def hac_meat(scores: Iterator[np.ndarray], lags: int, n_free: int) -> np.ndarray:
+    """``Σ_{|l|≤L} (1 − |l|/(L+1)) Γ_l`` of per-row scores given chunk by chunk in row
+    order (each chunk ``m × n_free``)."""
+    meat = np.zeros((n_free, n_free))
+    tail = np.zeros((0, n_free))
+    for chunk in scores:
+        rows = np.vstack([tail, chunk])
+        start = tail.shape[0]
+        new = rows[start:]
+        meat += new.T @ new
+        for lag in range(1, lags + 1):
+            weight = 1.0 - lag / (lags + 1.0)
+            # pairs (i - lag, i) with i among the new rows and i - lag among all rows held
+            first = max(start, lag)
+            if first >= rows.shape[0]:
+                break
+            cross = rows[first - lag:rows.shape[0] - lag].T @ rows[first:]
+            meat += weight * (cross + cross.T)
+        tail = rows[-lags:] if lags else tail
+    return meat

@@ -1,0 +1,193 @@
+"""Verdicts against the noise floor on data the code was not tuned on (issue 22 item 8):
+the false-alarm rate of "above the floor" on clean data at its nominal level over 100
+seeds; new seeds and new effects, one of which no library term represents; every verdict
+on the bundled examples stated against its floor."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+import symcal
+from symcal.analysis.floors import LEVEL
+from symcal.data.dataset import make_dataset
+from symcal.report.text import verdict_lines
+from symcal.simulation import load_scenario, simulate_run
+
+PROBLEMS = ROOT / "problems"
+SCENARIOS = PROBLEMS / "scenarios"
+EXAMPLES = ROOT / "examples"
+
+
+def _data(scenario, seed: int) -> dict[str, symcal.Dataset]:
+    return {run: make_dataset(run, "simulated", simulate_run(scenario, run, seed), [])
+            for run in ("calibration", "flyby")}
+
+
+@pytest.mark.slow
+def test_false_alarm_rate_of_above_the_floor_is_its_nominal_level() -> None:
+    """The implicit platen model on the clean courier (exact but for the readings' noise)
+    over 100 new seeds (5000-5099): each dataset is above its 95 % band with probability
+    2.5 %, so a seed's verdict says "above the floor" somewhere with probability
+    1 - 0.975² = 4.9 %.  Measured: 6 seeds of 100 above (the calibration scatter 1, the
+    fly-by 5), 3 below (all on the fly-by); mean χ²/dof 1.008 and 1.003, spread 0.035 and
+    0.076 (√(2/ν): 0.045 and 0.070).  The bound is the binomial's 99.8 % point (11 of
+    100), for below-the-floor calls alike."""
+    problem = symcal.load_problem(PROBLEMS / "platen_self_calibration_implicit.yaml")
+    scenario = load_scenario(SCENARIOS / "courier_platen_clean.yaml")
+    above = below = 0
+    ratios = []
+    for seed in range(5000, 5100):
+        result = symcal.solve(problem, _data(scenario, seed))
+        verdicts = [t.verdict for t in result.floor_tests]
+        above += "above" in verdicts
+        below += "below" in verdicts
+        ratios += [t.chi2_dof for t in result.floor_tests]
+    nominal = 1 - (1 - (1 - LEVEL) / 2) ** 2
+    assert nominal == pytest.approx(0.0494, abs=1e-4)
+    assert above <= 11 and below <= 11, (above, below)
+    # and the statistic is centred where the theory puts it
+    assert abs(float(np.mean(ratios)) - 1) < 0.02, np.mean(ratios)
+
+
+@pytest.mark.slow
+def test_an_effect_no_library_term_represents_is_above_the_floor() -> None:
+    """A tooth pitch 1 % longer than the models' (no candidate of the library is that
+    effect), new seeds: calibrated with the implicit (otherwise exact) model, every
+    dataset is far above its floor, and the verdict says so in the issue's words (the
+    old verdict called such a model quiet when no candidate was significant)."""
+    scenario = load_scenario(SCENARIOS / "courier_platen_clean.yaml")
+    longer = scenario.overlay({"constants": {"rho": 1.016 * 1.01}})
+    problem = symcal.load_problem(PROBLEMS / "platen_self_calibration_implicit.yaml")
+    for seed in (901, 902):
+        result = symcal.solve(problem, _data(longer, seed))
+        assert result.at_floor is False
+        lines = verdict_lines(result)
+        for test in result.floor_tests:
+            assert test.verdict == "above" and test.ratio > 3
+            assert f"{test.dataset}: {test.ratio:.3g}× the noise floor (χ²/dof" in "\n".join(
+                lines)
+
+
+@pytest.mark.slow
+def test_new_seeds_of_a_harmonic_leave_and_reach_the_floor() -> None:
+    """The example's hidden 3rd harmonic on new seeds: the basic model is above the floor
+    on both datasets, the revised model (the term added) at it, by the global test."""
+    scenario = load_scenario(EXAMPLES / "hidden_effect" / "scenario.yaml")
+    basic = symcal.load_problem(EXAMPLES / "hidden_effect" / "problem.yaml")
+    revised = symcal.load_problem(EXAMPLES / "hidden_effect" / "problem_revised.yaml")
+    at = []
+    for seed in (811, 812, 813):
+        data = _data(scenario, seed)
+        assert [t.verdict for t in symcal.solve(basic, data).floor_tests] == ["above"] * 2
+        at += [t.verdict for t in symcal.solve(revised, data).floor_tests]
+    assert at.count("at") >= 5, at       # 6 datasets, each inside its band with p = 0.95
+
+
+@pytest.mark.parametrize("path", [
+    PROBLEMS / "platen_self_calibration.yaml",
+    PROBLEMS / "platen_self_calibration_implicit.yaml",
+    PROBLEMS / "dual_sensor_calibration.yaml",
+    PROBLEMS / "dual_sensor_calibration_implicit.yaml",
+    EXAMPLES / "hidden_effect" / "problem.yaml",
+    EXAMPLES / "hidden_effect" / "problem_revised.yaml",
+    EXAMPLES / "planar_arm" / "problem_fixed.yaml",
+])
+def test_every_bundled_verdict_is_stated_against_its_floor(path) -> None:
+    """Every bundled problem and example declares its readings' noise: its verdict gives
+    each dataset against its floor (never "unknown")."""
+    result = symcal.solve(path)
+    assert result.problem.weighting == "propagated"
+    lines = verdict_lines(result)
+    for test in result.floor_tests:
+        assert test.method == "propagated" and test.verdict is not None
+        line = next(ln for ln in lines if ln.startswith(f"{test.dataset}: "))
+        assert "noise floor (χ²/dof" in line and "unknown" not in line
+    assert all(s.floor is not None for s in result.statistics)
+
+
+@pytest.mark.slow
+def test_a_reference_only_effect_is_reported_apart() -> None:
+    """The interferometer reads 1e-4 long (a common scale error: the platen's angles still
+    agree, so g_p is at its floor): the fly-by position against it is above its floor
+    (3× measured), following the position; the diagnosis reports it apart as real, not
+    calibratable by these constraints, and names the problem that adds constraints."""
+    from symcal.report.text import diagnosis_document, diagnosis_verdict, references_apart
+    from symcal.revise.diagnose import diagnose
+
+    scenario = load_scenario(SCENARIOS / "courier_platen_clean.yaml")
+    data = {}
+    for run in ("calibration", "flyby"):
+        cols = simulate_run(scenario, run, 21)
+        cols["y_ref"] = cols["y_ref"] * 1.0001
+        data[run] = make_dataset(run, "simulated", cols, [])
+    result = symcal.solve(PROBLEMS / "platen_self_calibration_implicit.yaml", data)
+    assert [t.verdict for t in result.floor_tests] == ["at", "at"]
+    diag = diagnose(result)
+    (apart,) = references_apart(diag)
+    assert apart.startswith("flyby position_y vs reference, ")
+    assert "varies with p2 (η² = 0.9" in apart or "varies with p4 (η² = 0.9" in apart
+    assert apart.endswith("dual_sensor_calibration.yaml in the same folder adds the "
+                          "constraints g_x, g_y on the same sensors and can determine it")
+    cannot = next(ln for ln in diagnosis_verdict(diag) if ln.startswith("what cannot"))
+    assert f"{apart} (real, not calibratable by these constraints: they are at their " \
+           "floor)" in cannot
+    assert diagnosis_document(diag)["references_apart"] == [apart]
+
+
+def test_what_is_left_finds_a_variable_and_an_interaction() -> None:
+    """Non-parametric: a sinusoid along x over noise at its floor is 100 % of the excess
+    along x (within the binning's resolution); a pure interaction (sign(x)·sign(y), no
+    structure along either alone) is found along the pair, not along x or y."""
+    from symcal.analysis.residuals import Variable, what_is_left
+
+    rng = np.random.default_rng(5)
+    n, sigma = 4000, 1.0
+    x, y, z = rng.uniform(0, 1, n), rng.uniform(0, 1, n), rng.uniform(0, 1, n)
+    variables = [Variable("x", x), Variable("y", y), Variable("z", z)]
+    r = sigma * rng.standard_normal(n) + 2.0 * np.sin(2 * np.pi * x)
+    (top, *_) = what_is_left(r, variables, sigma**2)
+    assert top.variables == ("x",) and 0.9 < top.share < 1.1
+    r = sigma * rng.standard_normal(n) + 1.5 * np.sign(x - 0.5) * np.sign(y - 0.5)
+    found = what_is_left(r, variables, sigma**2, top=10)
+    assert set(found[0].variables) == {"x", "y"} and 0.85 < found[0].share < 1.1
+    assert all(f.share < 0.05 for f in found if len(f.variables) == 1)
+    # at the floor nothing is left to show
+    assert what_is_left(sigma * rng.standard_normal(n), variables, sigma**2) == []
+
+
+@pytest.mark.slow
+def test_minimal_detectable_effect_is_detected_with_its_power() -> None:
+    """A term of exactly the stated minimal detectable size, in the direction the data see
+    worst, injected into 400 noise draws: the candidates' own F-test at its Bonferroni
+    level finds it 80 % of the time (binomial 99 % interval ±5 %)."""
+    from symcal.analysis.discovery import Basis, Candidate, Design, test_candidates
+
+    rng = np.random.default_rng(7)
+    n, k = 600, 40                                # k candidates share the level
+    nuisance = np.column_stack([np.ones(n), rng.normal(size=n)])
+    x = np.column_stack([np.sin(np.linspace(0, 20, n)), np.cos(np.linspace(0, 20, n))])
+    scales = (0.5e-3, 2e-3)
+    others = [rng.normal(size=(n, 1)) for _ in range(k - 1)]
+    basis = Basis("harmonic", "v", "h", ("a", "b"), ("", ""), scales=scales)
+    filler = Basis("linear", "w", "l", ("c",), ("",), scales=(1e-3,))
+
+    def run(r: np.ndarray) -> list[Candidate]:
+        cands = [Candidate("y", basis)] + [Candidate(f"y{i}", filler) for i in range(k - 1)]
+        design = Design(r, nuisance, ("o", "s"), ())
+        return test_candidates(design, cands, [x, *others], 0.01)
+
+    noise = rng.normal(size=n)
+    cand = next(c for c in run(noise) if c.output == "y")
+    assert cand.mde is not None
+    # the worst direction of the scaled regressor, projected as the test projects it
+    q = np.linalg.qr(nuisance)[0]
+    xs = (x - q @ (q.T @ x)) * np.asarray(scales)
+    w, v = np.linalg.eigh(xs.T @ xs)
+    coefficient = v[:, 0] * cand.mde / 1e-3 * np.asarray(scales)
+    found = 0
+    for _ in range(400):
+        r = rng.normal(size=n) + x @ coefficient
+        found += next(c for c in run(r) if c.output == "y").significant
+    assert 0.75 <= found / 400 <= 0.85, found / 400
