@@ -65,9 +65,10 @@ def test_a_partial_run_replaces_only_its_sections() -> None:
     old = ("# symcal benchmarks\n\nProduced by `make bench` on 2026-01-01; it took 10 min.\n\n"
            "## Machine\n\n- old machine\n\n## Kept\n\nold kept\n\n## Redone: 1e6\n\nold\n\n"
            "## Targets\n\n| target | measured | verdict |\n|---|---|---|\n| a | 1 | met |\n"
-           "| b | 2 | met |\n\n## Tail\n\nold tail\n")
+           "| b | 2 | met |\n\n## Tail\n\nold tail\n\n## Late: x\n\nold late\n")
     new = ("# symcal benchmarks\n\nProduced by `run.py --jobs x` on 2026-02-02.\n\n"
            "## Machine\n\n- new machine\n\n## Redone: 1e3\n\nnew\n\n## Added\n\nnew too\n\n"
+           "## Late: y\n\nnew late\n\n"
            "## Targets\n\n| target | measured | verdict |\n|---|---|---|\n| b | 3 | missed |\n")
     text = splice(old, new, {"date": "2026-02-02"})
     assert "old kept" in text and "old tail" in text and "\nold\n" not in text
@@ -76,3 +77,6 @@ def test_a_partial_run_replaces_only_its_sections() -> None:
     assert "| b | 3 | missed |" in text and "| a | 1 | met (earlier run) |" in text
     assert "| b | 2 |" not in text
     assert text.index("## Added") < text.index("## Targets")
+    # a section after the targets in the old file is replaced where it was, once
+    assert text.count("## Late") == 1 and text.index("## Late: y") > text.index("old tail")
+    assert "old late" not in text

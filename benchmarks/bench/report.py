@@ -334,8 +334,10 @@ def splice(old: str, new: str, report: dict[str, Any]) -> str:
             out += dict(new_parts)["Machine"]
             out += ["## Machine of the earlier run", *lines[1:]]
         elif heading == "Targets":
+            # new sections (none of that name in the old file) go before the targets
+            later = {_title(h) for h, _ in old_parts}
             for t, lines_new in fresh.items():
-                if t not in done:
+                if t not in done and t not in later:
                     out += lines_new
                     done.add(t)
             new_rows = [ln for ln in dict(new_parts)["Targets"] if ln.startswith("| ")][1:]

@@ -100,4 +100,4 @@ def table(report: dict[str, Any]) -> list[str]:
         lines.append(f"| `{problem}` | {r['total']:.1f} s | {r['kept']} "
                      f"({', '.join(map(str, r['added'])) or 'none'}) | "
                      f"{'yes' if r['quiet'] else 'no'} | {per} | {slowest:.1f} s |")
-    return lines
+    return [*lines, ""]
