@@ -110,7 +110,10 @@ def test_a_partitioned_solve_equals_the_in_memory_solve(tmp_path) -> None:
     for other in (local, full):
         np.testing.assert_allclose(sharded.theta / scales, other.theta / scales, rtol=0,
                                    atol=1e-10)
-        for name, p in full.params.items():
+    # the standard errors of the partitioned path (in memory too; solve's own allow for
+    # the serial correlation it finds on time-ordered rows, which shards do not examine)
+    for other in (local,):
+        for name, p in other.params.items():
             q = sharded.params[name]
             assert (q.se is None) == (p.se is None), name
             if p.se is not None:
@@ -126,7 +129,7 @@ def test_a_partitioned_solve_equals_the_in_memory_solve(tmp_path) -> None:
             assert a.std == pytest.approx(b.std, rel=1e-7)
     np.testing.assert_allclose(sharded.value("g_p", unit="mm"), full.value("g_p", unit="mm"),
                                rtol=0, atol=1e-12)
-    assert any("outliers are not looked for" in n for n in sharded.stages[0].notes)
+    assert any("are not looked for on the partitioned log" in n for n in sharded.stages[0].notes)
     # saved and loaded: the log is found again by its manifest, and refused once it changed
     sharded.save(tmp_path / "r.json")
     loaded = symcal.Result.load(tmp_path / "r.json")

@@ -360,7 +360,7 @@ def test_diagnosis_document(gain: symcal.Result, gain_diagnosis) -> None:
     # what is left above the floor, shown whether or not a candidate explains it
     assert doc["left"] and doc["left"][0].startswith("calibration g_p: ")
     assert all(row["left"] for row in doc["residuals"]
-               if gain.stat(row["name"], row["dataset"]).noise.verdict == "above")
+               if _series(gain, row["name"], row["dataset"]).noise.verdict == "above")
     text = diagnosis_report(gain_diagnosis)
     section = text.split("What is left above the noise floor")[1].split("\n\n")[0]
     assert [ln.strip() for ln in section.splitlines()[1:]] == doc["left"]
@@ -504,11 +504,11 @@ def test_worse_is_judged_by_test_where_the_floor_is_known(gain: symcal.Result,
     """The gain fixture's fly-by position: std 8.1 → 18.8 µm, above its floor and its
     χ²/dof grown far beyond what noise moves it: worse by test.  The fly-by θx grows 14 %
     (0.073 → 0.083 mrad) but stays at its floor: not worse."""
-    position, theta = gain.stat("position_y", "flyby"), gain.stat("theta_x", "flyby")
+    position, theta = _series(gain, "position_y", "flyby"), _series(gain, "theta_x", "flyby")
     assert position.noise.worse and position.noise.verdict == "above"
     grown = position.chi2_dof - position.noise.chi2_before / position.noise.dof
     assert grown > position.noise.band[1] - 1
     assert not theta.noise.worse and theta.noise.verdict == "at"
     assert 1.1 < theta.after.std / theta.before.std < 1.2
     loaded = symcal.Result.load(gain.save(tmp_path / "result.json"))
-    assert loaded.stat("position_y", "flyby").noise == position.noise
+    assert _series(loaded, "position_y", "flyby").noise == position.noise

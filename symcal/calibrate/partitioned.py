@@ -150,8 +150,9 @@ def _run_stage(problem: Problem, stage: Stage, data: Source, sample: Dataset,
     at_bound = [p.name for p in (problem.parameters[i] for i in idx)
                 if min(abs(out.theta[problem.index[p.name]] - b) for b in (p.lower, p.upper))
                 <= 1e-7 * p.scale]
-    notes.append(f"the outliers are not looked for on the partitioned log '{data.name}' "
-                 "(they need every row's residual at once)")
+    notes.append(f"the outliers and the serial correlation of the residuals are not looked "
+                 f"for on the partitioned log '{data.name}' (they need every row's residual "
+                 "at once)")
     result = StageResult(
         stage.name, stage.doc, out.method, out.success, out.status, out.message,
         out.iterations, out.seconds, names, _constraint_costs(plain, data, theta, out.theta),
