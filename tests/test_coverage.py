@@ -51,7 +51,7 @@ def _coverage(name: str, scenario_name: str, at_reading: bool
         if not result.success:      # counted apart (see the test)
             failed += 1
             continue
-        for p in result.parameters:
+        for p in result.params.values():
             if p.se is not None and p.name in true:
                 total += 1
                 inside += abs(p.value - true[p.name]) <= Z95 * p.se

@@ -80,7 +80,7 @@ def _halves(problem: symcal.Problem, cols: dict[str, np.ndarray]) -> list[symcal
 def _z(results: list[symcal.Result]) -> list[float]:
     out = []
     for name in ("s.c", "s.k"):
-        one, two = (next(p for p in r.parameters if p.name == name) for r in results)
+        one, two = (r.params[name] for r in results)
         out.append((one.value - two.value) / float(np.hypot(one.se, two.se)))
     return out
 

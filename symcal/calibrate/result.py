@@ -616,7 +616,14 @@ class Result:
         }
 
     def save(self, path: str | Path) -> Path:
-        """Write ``result.json`` (the document of :meth:`to_dict`) atomically to ``path``."""
+        """Write ``result.json`` (the document of :meth:`to_dict`) atomically to ``path``.
+
+        Over a file a symcal command wrote (``--out DIR``), the file is recorded again as
+        symcal's own, a set of its own, so that readers do not take it for a mixed set."""
+        from symcal.base.files import write_output, written_by_symcal
+
+        if written_by_symcal(path):
+            return write_output(path, json_text(self.to_dict()))
         return atomic_write_text(path, json_text(self.to_dict()))
 
     @classmethod
