@@ -273,6 +273,7 @@ def _check_example(case: Case, outdir: Path, theta: np.ndarray, baked: bool) -> 
 
 
 @needs_cc
+@pytest.mark.slow
 def test_dual_baked_matches_python_and_example_runs(dual, tmp_path) -> None:
     out = tmp_path / "c"
     written = codegen.generate(dual.problem, out, dual.result_path)

@@ -176,6 +176,7 @@ def test_linear_problem_same_estimate_through_both_paths() -> None:
     assert ipopt.stages[0].cost_after == pytest.approx(linear.stages[0].cost_after, rel=1e-9)
 
 
+@pytest.mark.slow
 def test_failed_solve_is_marked_with_last_iterate(capsys) -> None:
     scenario = _paper_scenario()
     data = _data(scenario, seed=8)
@@ -212,6 +213,7 @@ def test_cli_progress_on_stderr_and_json_on_stdout(capsys) -> None:
     assert set(doc["uncertainty"]["correlation"]["names"]) >= {"cs.h", "l_x"}
 
 
+@pytest.mark.slow
 def test_parameter_at_bound_is_reported(tmp_path) -> None:
     text = DUAL.read_text().replace("parameters: {h: {value: 52.5}}",
                                     "parameters: {h: {value: 48, upper: 49.5}}")

@@ -89,7 +89,7 @@ def test_new_seeds_of_a_harmonic_leave_and_reach_the_floor() -> None:
     PROBLEMS / "platen_self_calibration.yaml",
     PROBLEMS / "platen_self_calibration_implicit.yaml",
     PROBLEMS / "dual_sensor_calibration.yaml",
-    PROBLEMS / "dual_sensor_calibration_implicit.yaml",
+    pytest.param(PROBLEMS / "dual_sensor_calibration_implicit.yaml", marks=pytest.mark.slow),
     EXAMPLES / "hidden_effect" / "problem.yaml",
     EXAMPLES / "hidden_effect" / "problem_revised.yaml",
     EXAMPLES / "planar_arm" / "problem_fixed.yaml",

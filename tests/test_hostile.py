@@ -69,7 +69,8 @@ def _symcal(*args: str, cwd: Path, timeout: float = 120, **kw: object
 
 # ----------------------------------------------------------------- non-regular inputs
 
-@pytest.mark.parametrize("role", ["problem", "model", "data", "scenario", "result"])
+@pytest.mark.parametrize("role", ["problem", "data", *(pytest.param(r, marks=pytest.mark.slow)
+                                                 for r in ("model", "scenario", "result"))])
 def test_a_fifo_is_refused_without_blocking(toy: Path, role: str) -> None:
     fifo = toy / "pipe"
     os.mkfifo(fifo)
@@ -194,6 +195,7 @@ def test_dataset_columns_are_read_only_without_a_copy(toy: Path) -> None:
 
 # ----------------------------------------------------------------- outputs
 
+@pytest.mark.slow
 def test_every_output_gets_the_mode_of_an_ordinary_file(toy: Path, capsys) -> None:
     old = os.umask(0o022)
     try:
@@ -313,6 +315,7 @@ def test_leftovers_of_a_killed_run_are_cleaned_or_finished(toy: Path, capsys) ->
 
 
 @pytest.mark.skipif(not hasattr(resource, "RLIMIT_FSIZE"), reason="no RLIMIT_FSIZE")
+@pytest.mark.slow
 def test_a_full_disk_keeps_the_earlier_results(toy: Path) -> None:
     assert _symcal("solve", "prob.yaml", "--out", "res", "--quiet", cwd=toy).returncode == 0
     before = _tree(toy / "res")
@@ -994,7 +997,7 @@ def _fleet(folder: Path, units: int = 2) -> None:
         shutil.copy(folder / "data.csv", folder / "units" / f"u{i}" / "calibration.csv")
 
 
-@pytest.mark.parametrize("server", ["silent", "http"])
+@pytest.mark.parametrize("server", ["silent", pytest.param("http", marks=pytest.mark.slow)])
 def test_a_scheduler_address_that_does_not_speak_dask_is_refused(toy: Path,
                                                                  server: str) -> None:
     """Something listens on 127.0.0.1 but never answers Dask's handshake: refused after

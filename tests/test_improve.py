@@ -194,6 +194,7 @@ def test_one_hidden_effect_is_named_and_fixed(case, start, seed, tmp_path) -> No
     assert np.all(np.abs(value - true) < 3 * se), (value, se, true)
 
 
+@pytest.mark.slow
 def test_lateral_dependence_is_not_calibratable_from_g_p() -> None:
     """A lateral term of s1 is absorbed by s4's own harmonics in g_p: reported apart, with
     the dual problem (which has g_x, g_y on the same sensors) as what can determine it,
@@ -215,8 +216,9 @@ def test_lateral_dependence_is_not_calibratable_from_g_p() -> None:
     assert any(truth in (u["label"], *u["indistinguishable"]) for u in doc["uncalibratable"])
 
 
-@pytest.mark.parametrize(("case", "start"), [("harmonic", IMPLICIT), ("drift", IMPLICIT),
-                                             ("clean", EXPLICIT)])
+@pytest.mark.parametrize(("case", "start"), [
+    ("harmonic", IMPLICIT), pytest.param("drift", IMPLICIT, marks=pytest.mark.slow),
+    pytest.param("clean", EXPLICIT, marks=pytest.mark.slow)])
 def test_predictions_are_what_solving_again_gives(case, start, tmp_path) -> None:
     """For the candidate the loop applies, the predicted spreads on every dataset,
     held-out ones included, are within 20 % of what solving again with it gives (for the

@@ -140,6 +140,7 @@ def test_ipopt_iterations_and_hook_match_the_solver(platen) -> None:
     assert counts.observations == counts.passes * N
 
 
+@pytest.mark.slow
 def test_staged_solve_counts_every_ipopt_stage() -> None:
     """The dual problem's stages, all through IPOPT: the iterations counted are those the
     result reports, and every stage reaches the hook."""

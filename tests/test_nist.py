@@ -140,6 +140,7 @@ def test_bounds_are_respected(tmp_path) -> None:
     assert bounded.params["b2"].value == pytest.approx(fixed.params["b2"].value, rel=1e-9)
 
 
+@pytest.mark.slow
 def test_command_line_exit_codes(tmp_path) -> None:
     """``symcal solve --method lm``: 0 on success, 1 (not 2) when stopped early."""
     def run(*args: str) -> int:

@@ -6,6 +6,7 @@ import json
 import os
 from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -199,6 +200,7 @@ def csv_tables(draw: st.DrawFn) -> bytes:
     return (",".join(header) + newline + newline.join(",".join(r) for r in rows)).encode()
 
 
+@pytest.mark.slow
 @CLI_SETTINGS
 @given(table=csv_tables(), pick=st.integers(0, 3))
 def test_random_csv_through_every_command(capsys, table: bytes, pick: int) -> None:
@@ -231,6 +233,7 @@ def npz_files(draw: st.DrawFn) -> bytes:
     return buf.getvalue()
 
 
+@pytest.mark.slow
 @CLI_SETTINGS
 @given(data=npz_files(), pick=st.integers(0, 1))
 def test_random_npz_through_every_command(capsys, data: bytes, pick: int) -> None:

@@ -340,6 +340,7 @@ def test_diagnosis_report_flags_the_regression(gain: symcal.Result, gain_diagnos
     assert not ASCII_MICRO.search(text)
 
 
+@pytest.mark.slow
 def test_diagnosis_document(gain: symcal.Result, gain_diagnosis) -> None:
     doc = diagnosis_document(gain_diagnosis, series=True)
     json.dumps(doc)
@@ -376,6 +377,7 @@ def test_diagnosis_document(gain: symcal.Result, gain_diagnosis) -> None:
     assert rows[("flyby", "g_p")]["series"]["x"]["unit"] == "mm"
 
 
+@pytest.mark.slow
 def test_self_referential_finding_absent() -> None:
     """On the bundled problem the fly-by's θx error is binned against θx itself (its
     estimate ≈ a constant plus the error): no report or figure may say it varies with it."""

@@ -143,7 +143,7 @@ print(json.dumps([before, inside, after, sorted(set(during)), blas(), result.suc
 """
 
 
-@pytest.mark.parametrize("threads", [None, "3"])
+@pytest.mark.parametrize("threads", [None, pytest.param("3", marks=pytest.mark.slow)])
 def test_blas_is_held_inside_symcals_passes_whatever_the_import_order(threads) -> None:
     """numpy imported before symcal, no BLAS variable set (OpenBLAS then starts one thread
     per core): inside symcal's passes and solver steps BLAS has one thread, and the
@@ -226,6 +226,7 @@ def test_blocked_qr_gives_the_r_factor_of_the_jacobian_to_rounding(monkeypatch) 
     assert c @ c + tail == pytest.approx(c_old @ c_old + tail_old, rel=1e-13)
 
 
+@pytest.mark.slow
 def test_blocked_qr_gives_the_same_estimate(monkeypatch) -> None:
     """The lm solve of the dual problem's last stage on 12000 observations: the same
     estimate with dgeqrt as with dgeqrf, to far below its standard errors."""
