@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from symcal.analysis.fit import SeriesStats, Spread
-from symcal.analysis.floors import DatasetTest, at_floor
+from symcal.analysis.floors import DatasetTest, at_floor, family_document
 from symcal.analysis.gauges import GaugeAnalysis
 from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
 from symcal.analysis.implicit import ImplicitCheck
@@ -480,8 +480,10 @@ class Result:
 
     @property
     def at_floor(self) -> bool | None:
-        """Whether every dataset is at its noise floor (:attr:`floor_tests`): False when
-        one is above or below it, None when one's floor is unknown and none is off it."""
+        """Whether every dataset is at its noise floor (:attr:`floor_tests`), one decision
+        at 95 % for the datasets together (each dataset's band at the Šidák level,
+        :func:`~symcal.analysis.floors.at_floor`): False when one is above or below it, None
+        when one's floor is unknown and none is off it."""
         return at_floor(self.floor_tests)
 
     @property
@@ -610,6 +612,7 @@ class Result:
             "implicit": [c.to_dict() for c in self.implicit],
             "floor_tests": [t.to_dict() for t in self.floor_tests],
             "at_floor": self.at_floor,
+            "at_floor_test": family_document(self.floor_tests),
             "information_criteria": {"aic": self.aic, "bic": self.bic, "rows": self.rows,
                                      "rss": self.rss},
             "notes": list(self.notes),

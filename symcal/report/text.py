@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 import casadi as ca
 import numpy as np
 
+from symcal.analysis.floors import family_bands, family_verdicts
 from symcal.analysis.outliers import THRESHOLD, Outliers, remedy, remedy_yaml
 from symcal.base.files import json_text as plain_json
 from symcal.base.units import DISPLAY_UNITS, symbol
@@ -137,11 +138,25 @@ def outcome_text(improvement: Any) -> str:
     return "the diagnosis is not quiet (nothing else pays)"
 
 
+def family_note(tests: Any, index: int) -> str:
+    """Where a dataset is off its own band but inside its band in the family-wise test of
+    ``at_floor`` (all datasets together at 95 %, Šidák), that note; else ``""``."""
+    test = tests[index]
+    band = family_bands(tuple(tests))[index]
+    if band is None or test.verdict not in ("above", "below") or \
+            family_verdicts(tuple(tests))[index] != "at":
+        return ""
+    known = sum(t.verdict is not None for t in tests)
+    return (f"; at the floor as one of {known} datasets tested together (family-wise band "
+            f"{band[0]:.2f}–{band[1]:.2f}, 95 % for all of them, Šidák)")
+
+
 def floor_lines(result: Result) -> list[str]:
-    """One verdict line per dataset: its constraints' global test against the floor."""
+    """One verdict line per dataset: its constraints' global test against the floor (and
+    where the family-wise decision of ``at_floor`` differs from its own band, why)."""
     lines = []
-    for t in result.floor_tests:
-        text = floor_verdict(t)
+    for i, t in enumerate(result.floor_tests):
+        text = floor_verdict(t) + family_note(result.floor_tests, i)
         if t.verdict is None:
             text += f": {how_to_declare(result)}"
         elif t.method == "combined" and any(
@@ -700,8 +715,9 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     if outliers is not None and outliers_dominate(diag):
         where.append(outlier_text(outliers) or "")
     tests = result.floor_tests
-    where += [f"{t.dataset}: {floor_verdict(t)}" for t in tests
-              if t.verdict in ("above", "below")]
+    family = family_verdicts(tests)
+    where += [f"{t.dataset}: {floor_verdict(t)}" for t, v in zip(tests, family, strict=True)
+              if v in ("above", "below")]
     worst = _worst_against_floor(result, floors)
     if worst is not None and worst[0].noise is not None and worst[0].noise.verdict == "above":
         where.append(str(_worst_text(result, floors)))
@@ -733,7 +749,7 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
         more = (f" (and {len(significant) - 1} more significant, below)"
                 if len(significant) > 1 else "")
         lines.append(f"what to add: {significant[0].label}{more}")
-    elif any(t.verdict == "above" for t in tests):
+    elif "above" in family:
         lines.append("what to add: no candidate effect passes the test, yet the residuals are "
                      "above the noise floor: structure remains that no candidate explains "
                      "(or the readings are noisier than declared)" + _strongest_left(diag))
@@ -840,7 +856,7 @@ def diagnosis_report(diag: Diagnosis) -> str:
         return "\n".join(lines) + "\n"
     lines += ["", f"Which effect is missing ({diag.tested} candidate terms tested; family-wise "
               f"level {diag.alpha:g}, Bonferroni; indistinguishable candidates grouped)"]
-    if not diag.significant and any(t.verdict == "above" for t in result.floor_tests):
+    if not diag.significant and "above" in family_verdicts(result.floor_tests):
         lines.append("  no candidate effect is significant, yet the residuals are above the "
                      "noise floor: structure remains that no candidate of this library "
                      "explains")
