@@ -36,6 +36,9 @@ POWER = 0.8             # the power at which a minimal detectable effect is stat
 TERM = 1e-3             # the RMS of a term whose scaled coefficients are 1 (Basis.scales)
 INDISTINGUISHABLE = 0.98  # canonical correlation above which candidates are one group
 EQUAL = 0.95              # a simpler member leads a group if it explains this much as well
+#: Kinds of candidate that are not a term added to one output: their label is their
+#: description alone ("the constant rho (platen tooth pitch) is off").
+STANDALONE = ("approximation", "constant", "fixed", "latency")
 
 
 @dataclass(frozen=True)
@@ -101,7 +104,7 @@ class Candidate:
     def label(self) -> str:
         """E.g. ``"s1.p_hat += harmonic 1 of s2.p"`` (the description alone for the model's
         own approximation)."""
-        if self.basis.kind == "approximation":
+        if self.basis.kind in STANDALONE:
             return self.basis.description
         return f"{self.output} += {self.basis.description}"
 
