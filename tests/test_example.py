@@ -29,7 +29,7 @@ def test_walkthrough(capsys, tmp_path, monkeypatch) -> None:
     assert 1.7 < g_p < 2.2
     # the verdict states each dataset against its noise floor, as the README shows
     for line in ("  calibration: 1.94× the noise floor (χ²/dof 3.76, band 0.91–1.09)",
-                 "  flyby: 1.97× the noise floor (χ²/dof 3.88, band 0.87–1.14)"):
+                 "  flyby: 1.97× the noise floor (χ²/dof 3.88, band 0.86–1.15)"):
         assert line in out.split("\n\n")[1].splitlines() and line in readme
     # 2. the diagnosis names the effect first, with the YAML the example ships
     plots = tmp_path / "plots"
@@ -65,7 +65,7 @@ def test_walkthrough(capsys, tmp_path, monkeypatch) -> None:
     out = _run(capsys, "diagnose", "examples/hidden_effect/problem_revised.yaml", "--quiet")
     assert "no candidate effect is significant" in out
     assert ("where it fails: nowhere: every dataset is at its noise floor (calibration "
-            "χ²/dof 0.93, band 0.91–1.09; flyby χ²/dof 0.958, band 0.87–1.14)") in out
+            "χ²/dof 0.93, band 0.91–1.09; flyby χ²/dof 0.958, band 0.86–1.15)") in out
     for text in ("at the noise floor (χ²/dof 0.93, band 0.91–1.09)",
-                 "at the noise floor (χ²/dof 0.958, band 0.87–1.14)"):
+                 "at the noise floor (χ²/dof 0.958, band 0.86–1.15)"):
         assert text in readme

@@ -259,3 +259,89 @@ def test_chi2_band_against_scipy() -> None:
         lo, hi = chi2_band(nu)
         assert lo == pytest.approx(chi2.ppf(0.025, nu) / nu, rel=1e-9)
         assert hi == pytest.approx(chi2.ppf(0.975, nu) / nu, rel=1e-9)
+
+
+# --------------------------------------------------------- the band of an estimated floor
+
+
+def test_beta_function_and_quantiles_against_scipy() -> None:
+    from scipy import stats
+
+    from symcal.analysis.floors import beta_cdf, beta_quantile
+
+    for a, b in ((1.5, 2.5), (10.0, 30.0), (75.0, 74.0), (500.0, 499.0), (5e4, 5e4 + 7)):
+        for x in (0.1, 0.3, 0.49, 0.5, 0.51, 0.7, 0.9):
+            assert beta_cdf(x, a, b) == pytest.approx(stats.beta.cdf(x, a, b), abs=1e-10)
+        for p in (0.0125, 0.025, 0.5, 0.975, 0.9875):
+            assert beta_quantile(p, a, b) == pytest.approx(stats.beta.ppf(p, a, b), rel=1e-8)
+
+
+@pytest.mark.parametrize("centred", [False, True])
+@pytest.mark.parametrize("n", [60, 400])
+def test_the_band_of_an_estimated_floor_holds_on_white_noise(n: int, centred: bool) -> None:
+    """A residual of white noise, its floor estimated by successive differences on the same
+    rows: 20000 draws fall beyond each end of the 95 % band 2.5 % of the time (binomial
+    3σ: ±0.33 %); the normal band used before let 3.3-4.7 % above it.  The relative spread
+    is the first-order one (8 % low at n = 60, 1 % at 400)."""
+    from symcal.analysis.floors import ratio_band, ratio_sd
+
+    rng = np.random.default_rng(11 + n + centred)
+    r = rng.normal(size=(20_000, n)) + (3.0 if centred else 0.0)
+    about = r - r.mean(axis=1, keepdims=True) if centred else r
+    floor2 = np.sum(np.diff(r, axis=1) ** 2, axis=1) / (2 * (n - 1))
+    value = np.sum(about**2, axis=1) / (n - 1 if centred else n) / floor2
+    lo, hi = ratio_band(n, centred)
+    tol = 3 * np.sqrt(0.025 * 0.975 / 20_000)
+    assert abs(np.mean(value > hi) - 0.025) < tol
+    assert abs(np.mean(value < lo) - 0.025) < tol
+    assert ratio_sd(n, centred) == pytest.approx(np.std(value), rel=0.1)
+
+
+def test_a_dataset_test_gives_its_band_at_any_level() -> None:
+    from symcal.analysis.floors import DatasetTest, normal_band, ratio_band
+
+    chi2 = DatasetTest("a", ("g",), "propagated", 1000.0, 967.0, chi2_band(967.0))
+    assert chi2.band_at(0.99) == pytest.approx(chi2_band(967.0, 0.99))
+    wider = DatasetTest("a", ("g",), "propagated", 1000.0, 967.0, chi2_band(400.0),
+                        "chi2", float(np.sqrt(2 / 400.0)))
+    assert wider.band_at(0.99) == pytest.approx(chi2_band(400.0, 0.99))
+    ratio = DatasetTest("a", ("g",), "combined", 300.0, 300.0, ratio_band(300), "ratio", 0.06)
+    assert ratio.band_at(0.99) == pytest.approx(ratio_band(300, False, 0.99))
+    normal = DatasetTest("a", ("g", "h"), "combined", 600.0, 600.0, normal_band(0.04),
+                         "normal", 0.04)
+    assert normal.band_at(0.99) == pytest.approx(normal_band(0.04, 0.99))
+    for test in (chi2, wider, ratio, normal):
+        again = DatasetTest.from_dict(test.to_dict())
+        assert again == test and again.band_at(0.98) == test.band_at(0.98)
+    old = {k: v for k, v in normal.to_dict().items() if k not in ("distribution", "sd")}
+    assert DatasetTest.from_dict(old).band_at(0.99) is None     # a result.json from before
+
+
+def test_at_floor_is_one_decision_for_the_datasets_together() -> None:
+    """Two datasets: one just above its own 95 % band but inside the Šidák band (each at
+    0.95^(1/2)) is at the floor with the other; the report keeps its own band and says
+    why; a third dataset widens the family's bands further."""
+    from symcal.analysis.floors import DatasetTest, at_floor, family_bands, family_level
+    from symcal.report.text import family_note
+
+    assert family_level(2) == pytest.approx(0.95 ** 0.5)
+    own = chi2_band(400.0)
+    family = chi2_band(400.0, 0.95 ** 0.5)
+    assert family[1] > own[1]
+    just = 0.5 * (own[1] + family[1]) * 400.0
+    tests = (DatasetTest("calibration", ("g",), "propagated", 967.0, 967.0,
+                         chi2_band(967.0)),
+             DatasetTest("flyby", ("g",), "propagated", just, 400.0, own))
+    assert tests[1].verdict == "above" and at_floor(tests) is True
+    assert family_bands(tests)[1] == pytest.approx(family)
+    assert family_note(tests, 0) == ""
+    assert family_note(tests, 1) == (
+        f"; at the floor as one of 2 datasets tested together (family-wise band "
+        f"{family[0]:.2f}–{family[1]:.2f}, 95 % for all of them, Šidák)")
+    far = tests[:1] + (DatasetTest("flyby", ("g",), "propagated", 1.5 * family[1] * 400.0,
+                                   400.0, own),)
+    assert at_floor(far) is False
+    unknown = tests + (DatasetTest("more", ("g",), "unknown"),)
+    assert at_floor(unknown) is None                # none off, one unknown
+    three = tests + (DatasetTest("more", ("g",), "propagated", 400.0, 400.0, own),)
+    assert family_bands(three)[1] == pytest.approx(chi2_band(400.0, 0.95 ** (1 / 3)))

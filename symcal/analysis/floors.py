@@ -410,7 +410,10 @@ class DatasetTest:
         return cls(str(doc["dataset"]), tuple(doc["constraints"]), str(doc["method"]),
                    doc.get("chi2"), doc.get("dof"),
                    None if band is None else (float(band[0]), float(band[1])),
-                   str(doc.get("distribution", "chi2")), doc.get("sd"))
+                   # a document from before distributions were stored: a propagated
+                   # test's is χ²; a combined one's cannot be known
+                   str(doc.get("distribution", "chi2" if doc["method"] == PROPAGATED
+                               else "")), doc.get("sd"))
 
 
 def family_level(count: int, level: float = LEVEL) -> float:
