@@ -16,7 +16,12 @@ further sets (every combination of ends).  Two goals:
   ``trace(C^16)^(1/16)``), with the most observations the limits allow;
 - standard-error targets (``l_x=5um``) with the fewest observations: the motion that
   minimises ``max_j n_j``, ``n_j`` the observations target ``j`` needs; when even the
-  limit on ``n`` does not suffice, the best reachable errors and the limits that bind.
+  limit on ``n`` does not suffice, the best reachable errors and the limits that bind;
+- with them or alone, a term to make detectable (``mde(TERM)=1um``,
+  :mod:`symcal.experiment.detectable`): its minimal detectable effect, which shrinks as
+  1/√n like a standard error, at most the amplitude, from the covariance of the term's
+  coefficients in the problem with the term added (its own model in the optimiser, on
+  the same motion; the largest eigenvalue through the smooth ``trace(M^16)^(1/16)``).
 
 Every design is then predicted exactly by :func:`symcal.experiment.predict.predict` (the
 scenario's readings, noise and misfit, the solve's weighting), which is what is reported;
@@ -41,6 +46,7 @@ from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SymcalError
 from symcal.base.linalg import sqrt_psd, whitening
 from symcal.base.units import internal_unit, size
+from symcal.experiment.detectable import Detectable
 from symcal.experiment.predict import Prediction, last_stage, operating_point, predict
 from symcal.problem.symbolic import Problem
 from symcal.simulation import Scenario, run_states
@@ -92,9 +98,15 @@ class Design:
         The limits that bind at the optimum (``theta <= 1.5 deg``); with targets that
         cannot be met, the limits that stop them.
     met
-        Whether each target is met by the designed motion's prediction.
+        Whether each target is met by the designed motion's prediction (a term to
+        detect: by its label).
     message
         What the optimiser reported.
+    detect
+        A term to make detectable (None without one).
+    mde_before, mde_after
+        Its minimal detectable effect on the given and the designed motion (internal
+        units; None where its coefficients are determined only in a combination).
     """
 
     baseline: Prediction
@@ -107,6 +119,9 @@ class Design:
     binding: tuple[str, ...]
     met: dict[str, bool]
     message: str
+    detect: Detectable | None = None
+    mde_before: float | None = None
+    mde_after: float | None = None
 
     @property
     def final(self) -> Prediction:
@@ -117,11 +132,15 @@ class Design:
     def needed_n(self) -> int | None:
         """With targets, the observations the designed motion would need to meet them
         all (the prediction scaled as 1/n); None without targets."""
-        if not self.targets:
+        if not self.targets and self.detect is None:
             return None
         se = self.final.se
-        worst = max(float(se[t.name]) / t.value for t in self.targets)  # type: ignore[arg-type]
-        return math.ceil(self.final.n * worst**2)
+        ratios = [float(se[t.name]) / t.value for t in self.targets]  # type: ignore[arg-type]
+        if self.detect is not None:
+            mde = self.mde_after if self.designed is not None else self.mde_before
+            ratios.append(math.inf if mde is None else mde / self.detect.value)
+        worst = max(ratios)
+        return None if math.isinf(worst) else math.ceil(self.final.n * worst**2)
 
     @property
     def units(self) -> dict[str, str]:
@@ -157,7 +176,9 @@ class Design:
         if isinstance(motion, Scatter):
             entry["dwell"] = _round(float(after["dwell"]))  # type: ignore[arg-type]
         goal = (f"criterion {self.criterion}" if self.criterion else
-                "targets " + ", ".join(t.text for t in self.targets))
+                "targets " + ", ".join(t.text for t in self.targets) if self.detect is None
+                else "targets " + ", ".join([t.text for t in self.targets]
+                                            + [self.detect.text]))
         doc = {
             "scenario": f"{self.baseline.scenario.name}_designed",
             "extends": rel,
@@ -407,6 +428,28 @@ class _Model:
         z = ca.DM(self.basis[i, :])
         return self.scales[i] ** 2 * ca.mtimes(ca.mtimes(z.T, cov), z)
 
+    def mde2(self, cov: Any, detect: Detectable) -> Any:
+        """The squared minimal detectable effect of ``detect``'s term (internal units)
+        from a scaled covariance: ``TERM² λ* λ_max(D⁻¹ C D⁻¹)``, the largest eigenvalue
+        by the smooth upper bound ``trace(M^16)^(1/16)`` (at most 4.4 % above it for two
+        columns; the design is predicted exactly afterwards)."""
+        from symcal.analysis.discovery import TERM
+
+        idx = [self.names.index(n) for n in detect.names]
+        factor = (np.asarray(self.scales)[idx] * detect.to_internal()
+                  / np.asarray(detect.scales))
+        z = ca.mtimes(ca.DM(np.diag(factor)), ca.DM(self.basis[idx, :]))
+        m = ca.mtimes(ca.mtimes(z, cov), z.T)
+        if len(idx) == 1:
+            top = m
+        else:
+            size_ = ca.trace(m)
+            power = m / size_
+            for _ in range(int(math.log2(E_POWER))):
+                power = ca.mtimes(power, power)
+            top = size_ * ca.trace(power) ** (1.0 / E_POWER)
+        return TERM**2 * detect.noncentrality * top
+
 
 def _criterion(kind: str, cov: Any, rank: int, reference: float) -> Any:
     if kind == "D":
@@ -420,10 +463,12 @@ def _criterion(kind: str, cov: Any, rank: int, reference: float) -> Any:
 
 
 def _optimise(model: _Model, variables: list[_Var], fixed: dict[str, object],
-              criterion: str | None, targets: tuple[Target, ...], n_scale: float
+              criterion: str | None, targets: tuple[Target, ...], n_scale: float,
+              detect: tuple[_Model, Detectable] | None = None
               ) -> tuple[dict[str, float], list[str], float, str]:
     """IPOPT over the motion; returns the values, the active bounds, the optimum and
-    IPOPT's status."""
+    IPOPT's status.  ``detect``: a term to make detectable, with the model of the problem
+    that has its coefficients."""
     d = ca.MX.sym("d", len(variables))
     values: dict[str, Any] = {}
     for key in model.ranged:
@@ -445,10 +490,14 @@ def _optimise(model: _Model, variables: list[_Var], fixed: dict[str, object],
     lbx = [v.lower for v in variables]
     ubx = [v.upper for v in variables]
     x0 = [v.start for v in variables]
-    if targets:
+    if targets or detect is not None:
         t = ca.MX.sym("t")
         x = ca.vertcat(d, t)
         ratios = [model.se2(cov, tg.name) / tg.value**2 / n_scale for tg in targets]
+        if detect is not None:
+            term_model, term = detect
+            ratios.append(term_model.mde2(term_model.covariance(values), term)
+                          / term.value**2 / n_scale)
         start: Any = ca.Function("r", [d], ratios)(x0)
         start = start if isinstance(start, (list, tuple)) else [start]
         g += [r - t for r in ratios]
@@ -464,7 +513,7 @@ def _optimise(model: _Model, variables: list[_Var], fixed: dict[str, object],
     gub = [0.0 if b == -ca.inf else -b if b < 0 else ca.inf for b in glb]
     glb = [-ca.inf if b < 0 else b for b in glb]
     xs, lam, best, status = _ipopt(x, objective, g, x0, lbx, ubx, glb, gub)
-    if targets:
+    if targets or detect is not None:
         best = float(xs[-1])
     active = []
     for i, v in enumerate(variables):
@@ -488,7 +537,7 @@ def _ipopt(x: ca.MX, f: ca.MX, g: list[ca.MX], x0: list[float], lbx: list[float]
     nlp = {"x": x, "f": f, "g": ca.vertcat(*g) if g else ca.MX(0, 1)}
     solver = ca.nlpsol("design", "ipopt", nlp, {
         "ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
-        "ipopt.max_iter": 200, "ipopt.tol": 1e-9,
+        "ipopt.max_iter": 1000, "ipopt.tol": 1e-9,
         "ipopt.hessian_approximation": "limited-memory"})
     sol = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
     status = str(solver.stats().get("return_status", ""))
@@ -533,8 +582,41 @@ def _met(prediction: Prediction, targets: tuple[Target, ...]) -> dict[str, bool]
             for t in targets}
 
 
+@dataclass(frozen=True)
+class _Plan:
+    """One motion's predictions: the problem's, and the term's (its MDE) if any."""
+
+    prediction: Prediction
+    mde: float | None
+
+    def ratio(self, targets: tuple[Target, ...], detect: Detectable | None) -> float:
+        """How many times its target the worst target is (1: just met)."""
+        se = self.prediction.se
+        ratios = [float(se[t.name]) / t.value for t in targets]  # type: ignore[arg-type]
+        if detect is not None:
+            ratios.append(math.inf if self.mde is None else self.mde / detect.value)
+        return max(ratios, default=0.0)
+
+    def met(self, targets: tuple[Target, ...], detect: Detectable | None) -> dict[str, bool]:
+        out = _met(self.prediction, targets)
+        if detect is not None:
+            out[detect.label] = self.mde is not None and self.mde <= detect.value
+        return out
+
+
+def _plan(problem: Problem, scenario: Scenario, run: str, seed: int,
+          detect: Detectable | None) -> _Plan:
+    prediction = predict(problem, scenario, run, seed)
+    if detect is None:
+        return _Plan(prediction, None)
+    term = prediction if detect.problem is problem else predict(detect.problem, scenario,
+                                                                 run, seed)
+    return _Plan(prediction, detect.mde(term))
+
+
 def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None,
-           targets: tuple[Target, ...] = (), seed: int = 0) -> Design:
+           targets: tuple[Target, ...] = (), seed: int = 0,
+           detect: Detectable | None = None) -> Design:
     """Optimise the motion of the scenario's ``design`` run within its limits.
 
     Parameters
@@ -550,6 +632,10 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
         the limits allow, or the best reachable errors with the limits that bind.
     seed
         Seed of the poses the predictions are evaluated on.
+    detect
+        A term to make detectable at an amplitude
+        (:class:`~symcal.experiment.detectable.Detectable`), with the standard-error
+        targets or alone: its minimal detectable effect at most that amplitude.
 
     Returns
     -------
@@ -560,7 +646,8 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
     ------
     SymcalError
         Without a ``design`` section, for an unknown criterion, or for a target that the
-        baseline cannot determine on its own.
+        baseline cannot determine on its own (a term to detect: whose coefficients it
+        determines only in a combination).
     """
     space = scenario.design
     if space is None:
@@ -568,59 +655,75 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
                           "section: declare which run may change and its limits (design: "
                           "{run: NAME, limits: {KEY: [lo, hi], ...}}, KEY a ranged state of "
                           "the run, dwell or n)")
-    if targets and criterion is not None:
+    goal = bool(targets) or detect is not None
+    if goal and criterion is not None:
         raise SymcalError("--criterion and --target: give one goal, a criterion or targets")
-    criterion = None if targets else (criterion or "D")
+    criterion = None if goal else (criterion or "D")
     if criterion is not None and criterion not in CRITERIA:
         raise SymcalError(f"--criterion {criterion}: expected one of {', '.join(CRITERIA)}"
                           f"{did_you_mean(criterion, CRITERIA)}")
     run = space.run
-    baseline = predict(problem, scenario, run, seed)
+    first = _plan(problem, scenario, run, seed, detect)
+    baseline = first.prediction
     for tg in targets:
         if baseline.se.get(tg.name) is None:
             raise SymcalError(f"--target {tg.text}: '{tg.name}' is determined only in a "
                               "combination with other parameters, on any motion of this "
                               "problem; target an identifiable parameter")
+    if detect is not None and first.mde is None:
+        raise SymcalError(f"--target {detect.text}: on the given motion the calibration "
+                          f"cannot tell {detect.label} from the parameters it has (its "
+                          f"coefficients {', '.join(detect.names)} are determined only in a "
+                          "combination); widen the motion in the scenario first")
     motion = motion_of(scenario, run)
     start = motion_values(scenario, motion)
     limits = space.bounds
     n_lo, n_hi = (int(limits["n"][0]), int(limits["n"][1])) if "n" in limits else (
         int(start["n"]), int(start["n"]))  # type: ignore[call-overload]
     variables = _variables(scenario, space.limits, start)
-    current = baseline
+    current, current_term = baseline, None
     values: dict[str, object] = dict(start)
     active: list[str] = []
     message = "only n may change: no motion to optimise"
-    designed = baseline
+    plan = first
     for _ in range(2):  # a second round with the design's own noise model, if needed
         if variables:
             model = _Model(problem, scenario, run, current)
+            term = None
+            if detect is not None:
+                term_prediction = current if detect.problem is problem else (
+                    current_term or predict(detect.problem, scenario, run, seed))
+                term = (_Model(detect.problem, scenario, run, term_prediction), detect)
             solution, active, best, status = _optimise(model, variables, start, criterion,
-                                                       targets, float(baseline.n))
+                                                       targets, float(baseline.n), term)
             message = f"IPOPT: {status}"
         else:
-            solution, best = {}, max(((float(baseline.se[t.name]) / t.value) ** 2  # type: ignore[arg-type]
-                                      for t in targets), default=0.0)
-        n = n_hi if not targets else min(max(math.ceil(best * baseline.n * 1.02), n_lo), n_hi)
+            solution, best = {}, first.ratio(targets, detect) ** 2
+        n = n_hi if not goal else min(max(math.ceil(best * baseline.n * 1.02), n_lo), n_hi)
         n = _whole(motion, n, n_hi)
         values = _apply(start, variables, solution, n)
-        designed = predict(problem, with_motion(scenario, run, values), run, seed)
-        if targets:
-            worst = max(float(designed.se[t.name]) / t.value for t in targets)  # type: ignore[arg-type]
+        plan = _plan(problem, with_motion(scenario, run, values), run, seed, detect)
+        if goal:
+            worst = plan.ratio(targets, detect)
             fitted = _whole(motion, min(max(math.ceil(n * worst**2 * 1.02), n_lo), n_hi),
-                            n_hi)
+                            n_hi) if math.isfinite(worst) else n_hi
             if fitted != n:  # the exact prediction needs more, or fewer, observations
                 values_n = _apply(start, variables, solution, fitted)
-                again = predict(problem, with_motion(scenario, run, values_n), run, seed)
-                if fitted > n or all(_met(again, targets).values()):
-                    n, values, designed = fitted, values_n, again
-        current = designed
-        if not targets or all(_met(designed, targets).values()):
+                again = _plan(problem, with_motion(scenario, run, values_n), run, seed,
+                              detect)
+                if fitted > n or all(again.met(targets, detect).values()):
+                    n, values, plan = fitted, values_n, again
+        if not goal or all(plan.met(targets, detect).values()):
             break
-    met = _met(designed, targets)
+        current = plan.prediction
+        if detect is not None and detect.problem is not problem:
+            current_term = predict(detect.problem, with_motion(scenario, run, values), run,
+                                   seed)
+    met = plan.met(targets, detect)
     binding = list(active)
     if "n" in limits and int(values["n"]) == _whole(motion, n_hi, n_hi) and (  # type: ignore[call-overload]
             criterion is not None or not all(met.values())):
         binding.append(f"n <= {n_hi}")
-    return Design(baseline, designed, with_motion(scenario, run, values), criterion,
-                  targets, start, values, tuple(dict.fromkeys(binding)), met, message)
+    return Design(baseline, plan.prediction, with_motion(scenario, run, values), criterion,
+                  targets, start, values, tuple(dict.fromkeys(binding)), met, message,
+                  detect, first.mde, plan.mde)

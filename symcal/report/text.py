@@ -18,6 +18,7 @@ from symcal.analysis.floors import family_bands, family_verdicts
 from symcal.analysis.outliers import THRESHOLD, Outliers, remedy, remedy_yaml
 from symcal.base.files import json_text as plain_json
 from symcal.base.units import DISPLAY_UNITS, symbol
+from symcal.base.units import size as unit_size
 from symcal.calibrate.result import REGRESSION_TOLERANCE, Regression, Result
 
 if TYPE_CHECKING:
@@ -1001,9 +1002,11 @@ def design_report(design: Design, result: Result | None = None) -> str:
     optimised = design.designed is not None and design.designed is not design.baseline
     lines = [f"Design of run '{base.run}' of scenario '{base.scenario.name}' "
              f"(last stage '{base.stage.name}': what the calibration reports)"]
+    detect = design.detect
     if optimised:
+        texts = [t.text for t in design.targets] + ([detect.text] if detect else [])
         goal = (f"criterion {design.criterion} with the most observations the limits allow"
-                if design.criterion else "targets " + ", ".join(t.text for t in design.targets)
+                if design.criterion else "targets " + ", ".join(texts)
                 + " with the fewest observations")
         lines.append(f"  goal: {goal}; {design.message}")
         space = base.scenario.design
@@ -1024,7 +1027,14 @@ def design_report(design: Design, result: Result | None = None) -> str:
             unit = final.units.get(t.name, "")
             lines.append(f"  target {t.text}: predicted {_se_text(se)} {unit} "
                          f"({'met' if ok else 'NOT met: the best reachable within the limits'})")
-        if design.targets and not all(design.met.values()):
+        if detect is not None:
+            ok = design.met.get(detect.label, False)
+            lines.append(f"  target {detect.text}: {detect.label} detectable from "
+                         f"{_mde_text(design.mde_after, detect.unit)} (given motion: "
+                         f"{_mde_text(design.mde_before, detect.unit)}; "
+                         f"{detect.describe()}) "
+                         f"({'met' if ok else 'NOT met: the best reachable within the limits'})")
+        if (design.targets or detect is not None) and not all(design.met.values()):
             lines.append(f"  meeting every target on the designed motion would need about "
                          f"{design.needed_n} observations")
     ident0, ident1 = base.identifiability, final.identifiability
@@ -1059,14 +1069,38 @@ def design_report(design: Design, result: Result | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _mde_text(value: float | None, unit: str) -> str:
+    """A minimal detectable effect (internal units) in ``unit``."""
+    if value is None:
+        return "nowhere (determined only in combination)"
+    return f"{value / unit_size(unit or '1'):.3g} {symbol(unit)}"
+
+
 def design_document(design: Design, scenario_path: str | None) -> dict[str, Any]:
     """The ``--json`` document of ``symcal design``: ``{"parameters": {NAME:
     {"predicted_se": ..., "baseline_se": ...}}, "binding": [...], "scenario": PATH}``, with
-    standard errors in each parameter's unit (null: determined only in combination)."""
+    standard errors in each parameter's unit (null: determined only in combination); with
+    a term to make detectable also ``"detectable": {"term", "target", "parameters",
+    "amplitude", "unit", "alpha", "tested", "level", "power", "baseline_mde",
+    "predicted_mde", "met"}`` (amplitudes in ``unit``; an MDE null where the term's
+    coefficients are determined only in a combination)."""
     final = design.final
-    return {
+    doc: dict[str, Any] = {
         "parameters": {name: {"predicted_se": final.se.get(name), "baseline_se": se}
                        for name, se in design.baseline.se.items()},
         "binding": list(design.binding),
         "scenario": scenario_path,
     }
+    detect = design.detect
+    if detect is not None:
+        from symcal.analysis.discovery import POWER
+
+        scale = unit_size(detect.unit or "1")
+        doc["detectable"] = {
+            "term": detect.label, "target": detect.text, "parameters": list(detect.names),
+            "amplitude": detect.value / scale, "unit": detect.unit, "alpha": detect.alpha,
+            "tested": detect.tested, "level": detect.level, "power": POWER,
+            "baseline_mde": None if design.mde_before is None else design.mde_before / scale,
+            "predicted_mde": None if design.mde_after is None else design.mde_after / scale,
+            "met": design.met.get(detect.label, False)}
+    return doc
