@@ -30,6 +30,7 @@ from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
 from symcal.revise.diagnose import Diagnosis, diagnose
 from symcal.revise.effects import write_revision
+from symcal.revise.watch import Watch, design_hint, new_parameters, wald, watch
 
 #: How many of the leading candidates are tried in a round before giving up.
 TRIES = 3
@@ -37,6 +38,9 @@ TRIES = 3
 WORSE = 0.10
 #: How many members of a group of indistinguishable candidates are tried.
 GROUP = 4
+#: Two revisions whose BIC differ by less than this fit about equally (Kass and Raftery:
+#: below 10 the evidence for one over the other is not strong).
+EQUAL_BIC = 10.0
 #: A revision may make an existing parameter's standard error at most this many times
 #: larger (beyond it the new term is nearly aliased with what the model has).
 INFLATION = 5.0
@@ -44,13 +48,21 @@ INFLATION = 5.0
 
 @dataclass(frozen=True)
 class Round:
-    """One revision: what was added (None for the starting problem), its file and fit."""
+    """One revision: what was added (None for the starting problem), its file and fit,
+    what the new term did to the parameters already there (``watch``) and what the data
+    could not tell it apart from (``ambiguous``: sentences)."""
 
     index: int
     added: str | None
     problem_file: Path
     result: Result
     significant: int
+    watch: Watch = Watch()
+    ambiguous: tuple[str, ...] = ()
+
+    def notes(self) -> list[str]:
+        """The round's sentences about the physics: moved, correlated, ambiguous."""
+        return [*self.watch.words(self.added or ""), *self.ambiguous]
 
     def to_dict(self) -> dict:
         """The round as ``symcal improve --json`` prints it."""
@@ -59,7 +71,9 @@ class Round:
                 "floor_tests": [t.to_dict() for t in self.result.floor_tests],
                 "at_floor": self.result.at_floor,
                 "significant": self.significant, "bic": self.result.bic,
-                "aic": self.result.aic, "success": self.result.success}
+                "aic": self.result.aic, "success": self.result.success,
+                "parameters": self.watch.to_dict(), "ambiguous": list(self.ambiguous),
+                "notes": self.notes()}
 
 
 @dataclass(frozen=True)
@@ -125,20 +139,27 @@ def held_out_change(new: Result, old: Result, kind: str | None = None) -> float:
     return float(np.mean(ratios)) if ratios else 0.0
 
 
-def _pays(new: Result, old: Result) -> str | None:
+def _pays(new: Result, old: Result, alpha: float) -> str | None:
     """None when ``new`` is better than ``old``, else why not: the solve succeeds, the BIC
-    falls, the held-out constraint residuals fall (on average), no existing parameter
-    becomes much less determined (:data:`INFLATION`), and no held-out reference comparison
-    gets worse by more than :data:`WORSE`."""
+    falls, the new term's coefficients are not zero within their noise (a Wald test at
+    ``alpha``), the held-out constraint residuals fall (on average), no existing
+    parameter becomes much less determined (:data:`INFLATION`) while the old model was
+    already at its noise floor, and no held-out reference comparison gets worse by more
+    than :data:`WORSE`."""
     if not new.success:
         return "the solve failed"
     if new.bic >= old.bic:
         return f"BIC does not fall ({old.bic:.1f} → {new.bic:.1f})"
+    names = new_parameters(new, old)
+    test = wald(new, names) if names else None
+    if test is not None and test[1] >= alpha:
+        return (f"its coefficients fit to zero within their noise (Wald χ² = {test[0]:.3g}, "
+                f"p = {test[1]:.2g})")
     change = held_out_change(new, old, "constraint")
     if change >= 0:
         return ("the held-out constraint residuals do not fall (mean change "
                 f"{np.expm1(change):+.1%})")
-    inflated = _inflated(new, old)
+    inflated = _inflated(new, old) if old.at_floor is not False else None
     if inflated:
         return inflated
     for s in new.statistics:
@@ -169,38 +190,72 @@ def _spread(result: Result, name: str, dataset: str) -> float | None:
         return None
 
 
+@dataclass(frozen=True)
+class _Kept:
+    """A revision that pays: its label, file, fit, and what it could not be told apart
+    from (sentences)."""
+
+    label: str
+    path: Path
+    result: Result
+    ambiguous: tuple[str, ...] = ()
+
+
 def _best_of_group(
     diag: Diagnosis, lead: Candidate, directory: Path, name: str,
     datasets: Mapping[str, Dataset], result: Result, rejected: list[tuple[str, str]],
-    say: Callable[[str], None],
-) -> tuple[str, Path, Result] | None:
+    say: Callable[[str], None], alpha: float, physical: set[str],
+) -> _Kept | None:
     """Try the lead and the members of its group (the constraints cannot tell them apart;
     a held-out reference may): keep the one that pays and predicts the held-out data
-    best, or None."""
+    best, or None.  Members that pay as well (BIC within :data:`EQUAL_BIC`) but put a
+    physical parameter elsewhere (beyond 3 standard errors) are named: the data cannot
+    tell them apart."""
     labels = [lead.label, *lead.indistinguishable[:GROUP - 1]]
-    best: tuple[float, str, Path, Result] | None = None
+    paying: list[tuple[float, str, Path, Result]] = []
     for i, label in enumerate(labels):
         path = _revision(diag, label, directory, f"{name}_try{i}")
         revised = _load_revision(path)
         new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
-        why = _pays(new, result)
+        why = _pays(new, result, alpha)
         if why is None:
-            score = held_out_change(new, result)
-            if best is None or score < best[0]:
-                if best is not None:
-                    best[2].unlink(missing_ok=True)
-                best = (score, label, path, new)
-                continue
-        else:
-            rejected.append((label, why))
-            say(f"tried {label}: not kept, {why}")
+            paying.append((held_out_change(new, result), label, path, new))
+            continue
+        rejected.append((label, why))
+        say(f"tried {label}: not kept, {why}")
         path.unlink(missing_ok=True)
-    if best is None:
+    if not paying:
         return None
-    _, label, path, new = best
+    paying.sort(key=lambda t: t[0])
+    _, label, path, new = paying[0]
+    ambiguous = tuple(_ambiguity(label, new, other, other_new, physical)
+                      for _, other, _, other_new in paying[1:]
+                      if _ambiguity(label, new, other, other_new, physical))
+    for _, _, other_path, _ in paying[1:]:
+        other_path.unlink(missing_ok=True)
     final = _renamed(path, name)
-    return label, final, solve(load_problem(final), {n: d for n, d in datasets.items()
-                                                      if n in new.problem.datasets})
+    again = solve(load_problem(final), {n: d for n, d in datasets.items()
+                                        if n in new.problem.datasets})
+    return _Kept(label, final, again, ambiguous)
+
+
+def _ambiguity(label: str, new: Result, other: str, other_new: Result,
+               physical: set[str]) -> str:
+    """A sentence when two revisions fit about equally (BIC within :data:`EQUAL_BIC`) and
+    put a physical parameter more than 3 standard errors apart, else ""."""
+    if abs(new.bic - other_new.bic) > EQUAL_BIC:
+        return ""
+    for name in sorted(physical):
+        a, b = new.params.get(name), other_new.params.get(name)
+        if a is None or b is None or not a.se or not b.se:
+            continue
+        if abs(a.value - b.value) > 3 * max(a.se, b.se):
+            target = design_hint(new, Path(new.problem.path),
+                                 (name, abs(a.value - b.value) / 3))
+            return (f"the data cannot tell {label} from {other} (BIC {new.bic:.1f} and "
+                    f"{other_new.bic:.1f}): they give {name} = {a.value:.6g} ± {a.se:.2g} "
+                    f"and {b.value:.6g} ± {b.se:.2g} {a.unit}; {target}")
+    return ""
 
 
 def _renamed(path: Path, name: str) -> Path:
@@ -258,10 +313,10 @@ def siblings(diag: Diagnosis, lead: Candidate) -> tuple[Candidate, ...]:
 
 
 def _try_siblings(
-    diag: Diagnosis, lead: Candidate, single: tuple[str, Path, Result] | None,
+    diag: Diagnosis, lead: Candidate, single: _Kept | None,
     directory: Path, name: str, datasets: Mapping[str, Dataset], result: Result,
-    rejected: list[tuple[str, str]], say: Callable[[str], None],
-) -> tuple[str, Path, Result] | None:
+    rejected: list[tuple[str, str]], say: Callable[[str], None], alpha: float,
+) -> _Kept | None:
     """The lead with the same effect in its sibling instances, in one revision, when it
     pays and beats the lead alone (``single``) on BIC: a sibling candidate that is only
     significant because it is aliased with the lead adds parameters the BIC refuses."""
@@ -272,18 +327,18 @@ def _try_siblings(
     path = write_revision(diag.result.problem, lead, directory, f"{name}_all", also)
     revised = _load_revision(path)
     new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
-    why = _pays(new, result)
-    if why is None and single is not None and new.bic >= single[2].bic:
-        why = (f"its BIC ({new.bic:.1f}) is not below that of {single[0]} alone "
-               f"({single[2].bic:.1f})")
+    why = _pays(new, result, alpha)
+    if why is None and single is not None and new.bic >= single.result.bic:
+        why = (f"its BIC ({new.bic:.1f}) is not below that of {single.label} alone "
+               f"({single.result.bic:.1f})")
     if why is not None:
         rejected.append((label, why))
         say(f"tried {label}: not kept, {why}")
         path.unlink(missing_ok=True)
         return single
     final = _renamed(path, name)
-    return label, final, solve(load_problem(final), {n: d for n, d in datasets.items()
-                                                      if n in new.problem.datasets})
+    return _Kept(label, final, solve(load_problem(final), {
+        n: d for n, d in datasets.items() if n in new.problem.datasets}))
 
 
 def _revision(diag: Diagnosis, cand_label: str, directory: Path, name: str) -> Path:
@@ -340,6 +395,7 @@ def improve(
     result = solve(current, datasets)
     diag = diagnose(result, alpha)
     rounds = [Round(0, None, Path(problem), result, len(diag.significant))]
+    physical = {n for n, p in result.params.items() if not p.fixed}
     stem = plain_name(Path(problem).stem)   # revisions are named after the file
     rejected: list[tuple[str, str]] = []
     say(f"round 0: {current.name}: {len(diag.significant)} significant candidate(s)")
@@ -362,18 +418,23 @@ def improve(
         leads.sort(key=lambda c: c.basis.kind != "approximation")
         for lead in leads[:TRIES]:
             single = _best_of_group(diag, lead, directory, name, datasets, result,
-                                    rejected, say_round)
+                                    rejected, say_round, alpha, physical)
             kept = _try_siblings(diag, lead, single, directory, name, datasets, result,
-                                 rejected, say_round)
+                                 rejected, say_round, alpha)
             if kept is not None:
                 break
         if kept is None:
             break
-        label, path, result = kept
+        seen = watch(kept.result, result, physical, kept.path)
+        result = kept.result
         last_try = len(rejected)
         diag = diagnose(result, alpha)
-        rounds.append(Round(k, label, path, result, len(diag.significant)))
-        say(f"round {k}: added {label}: {len(diag.significant)} significant candidate(s) left")
+        rounds.append(Round(k, kept.label, kept.path, result, len(diag.significant), seen,
+                            kept.ambiguous))
+        say(f"round {k}: added {kept.label}: {len(diag.significant)} significant "
+            "candidate(s) left")
+        for line in rounds[-1].notes():
+            say(f"round {k}: {line}")
     final = directory / "final.yaml"
     base = Path(os.path.relpath(rounds[-1].problem_file.resolve(), directory.resolve()))
     write_output(final, dump_yaml({
