@@ -88,11 +88,11 @@ def adjusted_values(problem: Problem, named: list[tuple[str, ca.SX]], ds: Datase
     noisy = problem.noisy
     by_name = {r.name: r for r in noisy.readings}
     eps = ca.vertcat(*(by_name[n].symbol for n in adjustment.readings))
-    values = ca.vertcat(*(sx for _, sx in named))
+    expr = ca.vertcat(*(sx for _, sx in named))
     exact = [r.symbol for r in noisy.readings if r.name not in adjustment.readings]
     if exact:   # readings declared exact (noise 0) are not adjusted
-        values = ca.substitute(values, ca.vertcat(*exact), ca.SX.zeros(len(exact)))
-    fn = mapped(noisy.theta, ca.vertcat(noisy.u, eps), [values], "adjusted")
+        expr = ca.substitute(expr, ca.vertcat(*exact), ca.SX.zeros(len(exact)))
+    fn = mapped(noisy.theta, ca.vertcat(noisy.u, eps), [expr], "adjusted")
     u = np.vstack([ds.matrix(noisy.columns), adjustment.corrections.T])
     values = fn(theta, u)[0]
     return {name: values[:, k] for k, (name, _) in enumerate(named)}

@@ -70,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
         for r in result.rounds:
             what = r.added or "(the starting problem)"
             lines.append(f"  round {r.index}: {what}  [{r.problem_file}]")
+            lines += [f"    {note}" for note in r.notes()]
         for label, why in result.rejected:
             lines.append(f"  not kept: {label}: {why}")
         for label, why in result.aliased:

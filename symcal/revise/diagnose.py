@@ -272,6 +272,8 @@ def _words(cand: Candidate, alpha: float, tested: int, variant: Variant | None,
                 f"{cand.share:.0%} of what the model cannot yet explain ({_falls(cand)} if "
                 f"the calibration is solved again with it){coef}; {stats}. Switch to the "
                 "implicit model rather than adding harmonics." + _group_words(cand, own))
+    if cand.basis.kind in ("fixed", "constant", "latency"):
+        return _value_words(cand, stats) + _group_words(cand, own)
     owner = cand.basis.variable.split(".", 1)[0] if "." in cand.basis.variable else None
     instance = cand.output.split(".", 1)[0]
     cross = ""
@@ -283,6 +285,30 @@ def _words(cand: Candidate, alpha: float, tested: int, variant: Variant | None,
             f"{cross} Adding it would remove {cand.share:.0%} of what the calibration's "
             f"constraints cannot yet explain; solving again with it would give "
             f"{_falls(cand)}; {stats}." + _group_words(cand, own))
+
+
+def _value_words(cand: Candidate, stats: str) -> str:
+    """A value the model takes as known that the data say is off: a fixed parameter, a
+    constant, or the delay between a sensor's clock and the others'."""
+    basis = cand.basis
+    asks = ""
+    if cand.coefficient:
+        c, se = cand.coefficient[0], cand.coefficient_se[0]
+        if basis.kind == "latency":
+            asks = (f": the data ask for a delay of {c * 1e3:.4g} ± {se * 1e3:.2g} ms "
+                    "(readings stamped that much late)")
+        else:
+            size = 1.0 if basis.kind == "fixed" else DISPLAY_UNITS[basis.unit]
+            value, change = basis.centre / size, c / size
+            rel = f" ({change / value:+.3g} ± {se / size / abs(value):.2g} relative)" \
+                if value else ""
+            asks = (f": the data ask for {value + change:.6g} ± {se / size:.2g} "
+                    f"{basis.unit} instead of {value:.6g}, a change of {change:+.3g}{rel}")
+    what = {"fixed": "Freeing it", "constant": "Making it a parameter",
+            "latency": "Allowing for the delay"}[basis.kind]
+    return (f"{basis.description[0].upper()}{basis.description[1:]}{asks}. {what} would "
+            f"remove {cand.share:.0%} of what the calibration's constraints cannot yet "
+            f"explain; solving again with it would give {_falls(cand)}; {stats}.")
 
 
 def _uncalibratable_words(cand: Candidate, needs: str,

@@ -325,7 +325,7 @@ def fixed_entries(problem: Problem, blocks: list[Block], fit: int, free: np.ndar
         doc = f" ({param.doc})" if param.doc else ""
         basis = Basis("fixed", name, f"the fixed parameter {name}{doc} is off", ("delta",),
                       (), unit=param.unit, scales=(float(f"{scale:.3g}"),), term=scale,
-                      targets=(name,))
+                      centre=param.value, targets=(name,))
         out.append(Entry(Candidate("", basis), _fixed_raw(blocks, k)))
     return out
 
