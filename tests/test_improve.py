@@ -410,10 +410,14 @@ NO_LATERAL = """problem: dual_no_lateral
 extends: {root}/problems/dual_sensor_calibration_implicit.yaml
 doc: the implicit dual problem without the lateral terms of eq. (9)
 instances:
-  s1: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}}}}
-  s2: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}}}}
-  s3: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}}}}
-  s4: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}}}}
+  s1: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s2.p, s2.u, s4.p, s4.u]}}}}
+  s2: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s1.p, s1.u, s3.p, s3.u]}}}}
+  s3: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s2.p, s2.u, s4.p, s4.u]}}}}
+  s4: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s1.p, s1.u, s3.p, s3.u]}}}}
 expressions: {{tx: null, ty: null, tt: null}}
 implicit: null
 """
@@ -421,10 +425,14 @@ NO_LATERAL_EXPLICIT = """problem: dual_no_lateral_explicit
 extends: {root}/problems/dual_sensor_calibration.yaml
 doc: the dual problem without the lateral terms of eq. (9)
 instances:
-  s1: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}}}}
-  s2: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}}}}
-  s3: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}}}}
-  s4: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}}}}
+  s1: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s2.p, s2.u, s4.p, s4.u]}}}}
+  s2: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s1.p, s1.u, s3.p, s3.u]}}}}
+  s3: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s2.p, s2.u, s4.p, s4.u]}}}}
+  s4: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s1.p, s1.u, s3.p, s3.u]}}}}
 """
 
 

@@ -43,6 +43,7 @@ class Block:
     jac_fixed: np.ndarray
     jac_columns: np.ndarray
     variables: list[Variable]
+    jac_constants: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
     regressors: dict[str, np.ndarray] = field(default_factory=dict)
     cov: np.ndarray | None = None
 
@@ -60,6 +61,7 @@ class Block:
                        after=self.after[:, cols], hooks=self.hooks[:, cols, :],
                        jac=self.jac[:, cols, :], jac_fixed=self.jac_fixed[:, cols, :],
                        jac_columns=self.jac_columns[:, cols, :],
+                       jac_constants=self.jac_constants[:, cols, :],
                        cov=None if self.cov is None else self.cov[:, cols][:, :, cols])
 
 
@@ -102,7 +104,8 @@ def evaluate(problem: Problem, ds: Dataset, theta0: np.ndarray, theta: np.ndarra
     hp = problem.diagnostic
     names, kinds, units, offsets, exprs, noisy, declared = _residuals(problem, hp, ds)
     hooks = ca.vertcat(*hp.hooks.values())
-    u_ext = ca.vertcat(hp.u, hooks)
+    deltas = ca.vertcat(*(c.symbol for c in hp.constants)) if hp.constants else ca.SX(0, 1)
+    u_ext = ca.vertcat(hp.u, hooks, deltas)
     e = ca.vertcat(*exprs)
     theta_free = hp.theta[np.flatnonzero(free).tolist()]
     theta_fixed = hp.theta[np.flatnonzero(~free).tolist()]
@@ -112,17 +115,19 @@ def evaluate(problem: Problem, ds: Dataset, theta0: np.ndarray, theta: np.ndarra
             # by each column in internal units: ∂e/∂u divided by the column's size
             (ca.jacobian(e, hp.u) @ ca.diag(1.0 / _sizes(hp))).T if hp.columns
             else ca.SX(0, e.shape[0]),
-            ca.vertcat(*(sx for _, sx, _, _, _ in var_specs))]
+            ca.vertcat(*(sx for _, sx, _, _, _ in var_specs)),
+            ca.jacobian(e, deltas).T]
     fn = mapped(hp.theta, u_ext, outs, "diag")
-    u = np.vstack([ds.matrix(hp.columns), np.zeros((hooks.shape[0], ds.n))])
-    after, dh, dj, dfix, dcol, values = fn(theta, u)
+    # the hooks and the constants' offsets δ are at zero: the problem as it is
+    u = np.vstack([ds.matrix(hp.columns), np.zeros((hooks.shape[0] + deltas.shape[0], ds.n))])
+    after, dh, dj, dfix, dcol, values, dcon = fn(theta, u)
     before = fn(theta0, u)[0]
     adjustment = adjust(problem, noisy, offsets, ds, theta, all(declared))
     if adjustment is not None:
         # the derivatives where the adjustment linearises: at the adjusted readings (a
         # candidate's regressor is evaluated there too; at the raw readings the
         # parameters' columns would carry the noise the adjusted regressors lack)
-        _, dh, dj, dfix, dcol, _ = fn(theta, _adjusted_columns(hp, u, adjustment))
+        _, dh, dj, dfix, dcol, _, dcon = fn(theta, _adjusted_columns(hp, u, adjustment))
     n, nq = after.shape
     variables = [Variable(name, values[:, k], unit, period, kind, role(hp, name))
                  for k, (name, _, unit, period, kind) in enumerate(var_specs)]
@@ -131,7 +136,8 @@ def evaluate(problem: Problem, ds: Dataset, theta0: np.ndarray, theta: np.ndarra
                   dh.reshape(n, nq, hooks.shape[0]),     # vec() of (n_h × n_q) is
                   dj.reshape(n, nq, int(free.sum())),    # column-major
                   dfix.reshape(n, nq, int((~free).sum())),
-                  dcol.reshape(n, nq, len(hp.columns)), variables)
+                  dcol.reshape(n, nq, len(hp.columns)), variables,
+                  dcon.reshape(n, nq, deltas.shape[0]))
     if adjustment is not None:
         _adjusted(problem, block, var_specs, adjustment, theta)
     return block

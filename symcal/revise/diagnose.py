@@ -50,6 +50,7 @@ from symcal.revise.effects import effect_yaml
 from symcal.revise.library import (
     Entry,
     Raw,
+    constant_entries,
     fixed_entries,
     latency_entries,
     output_entries,
@@ -364,6 +365,7 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
     entries, found = output_entries(problem, blocks, fit)
     entries += fixed_entries(problem, blocks, fit, free, set(fixes))
     entries += latency_entries(problem, blocks, fit, found)
+    entries += constant_entries(problem, blocks, fit)
     variant = implicit_variant(problem)
     if variant is not None:
         diff = _variant_differences(variant, blocks, data, result.theta)

@@ -94,23 +94,27 @@ def own_names(problem: Problem, instance: str) -> set[str]:
 
 def excluded(problem: Problem) -> set[str]:
     """Columns that are never an effect's variable: references, labels and indices."""
-    out = set(references(problem))
-    out |= {c for c, spec in problem.column_specs.items() if spec.role in NEVER}
-    return out
+    return set(problem.never_effects) | set(references(problem))
 
 
-def spaces(problem: Problem, declared: Mapping[str, Space] | None = None
-           ) -> dict[str, Space]:
-    """Each instance's search space: as declared, else the default."""
+def spaces(problem: Problem) -> dict[str, Space]:
+    """Each instance's search space: as its ``candidates:`` (instance entry, else model)
+    declares it, the default for what it does not say."""
     shared = [c for c, spec in problem.column_specs.items() if spec.role in SHARED]
     out = {}
-    for name in problem.instances:
-        if declared and name in declared:
-            out[name] = declared[name]
-            continue
+    for name, inst in problem.instances.items():
+        declared = inst.candidates
         own = sorted(own_names(problem, name))
-        out[name] = Space(name, tuple(own + shared), None, tuple(range(1, HARMONICS + 1)),
-                          "default: its own readings, time and state columns")
+        default = tuple(own + shared)
+        if declared is None:
+            out[name] = Space(name, default, None, tuple(range(1, HARMONICS + 1)),
+                              "default: its own readings, time and state columns")
+            continue
+        out[name] = Space(
+            name, default if declared.variables is None else tuple(declared.variables),
+            declared.kinds,
+            tuple(range(1, HARMONICS + 1)) if declared.harmonics is None
+            else tuple(declared.harmonics), declared.origin)
     return out
 
 
@@ -262,14 +266,13 @@ def _in_space(groups: list[tuple[Variable, set[str]]], space: Space, never: set[
     return out
 
 
-def output_entries(problem: Problem, blocks: list[Block], fit: int,
-                   declared: Mapping[str, Space] | None = None
+def output_entries(problem: Problem, blocks: list[Block], fit: int
                    ) -> tuple[list[Entry], dict[str, Space]]:
     """Every (output × shape) candidate of every instance's space, with its regressor."""
     hp = problem.diagnostic
     never = excluded(problem)
     groups = distinct_groups(blocks[fit].variables)
-    found = spaces(problem, declared)
+    found = spaces(problem)
     out: list[Entry] = []
     for h, output in enumerate(hp.hooks):
         if all(not np.any(b.hooks[:, :, h]) for b in blocks):
@@ -313,9 +316,11 @@ def fixed_entries(problem: Problem, blocks: list[Block], fit: int, free: np.ndar
                   gauge_fixes: set[str]) -> list[Entry]:
     """Each parameter the user fixed that no gauge needs fixed, as "this value is off"."""
     fixed = [n for n, f in zip(problem.parameter_names, free, strict=True) if not f]
+    allowed = set(problem.candidates.fixed) if problem.candidates.where is not None \
+        else set(fixed)
     out = []
     for k, name in enumerate(fixed):
-        if name in gauge_fixes:
+        if name in gauge_fixes or name not in allowed:
             continue
         param = problem.parameters[problem.index[name]]
         x = blocks[fit].jac_fixed[:, :, k]
@@ -333,6 +338,44 @@ def fixed_entries(problem: Problem, blocks: list[Block], fit: int, free: np.ndar
 def _fixed_raw(blocks: list[Block], k: int) -> Raw:
     def raw(i: int) -> np.ndarray:
         return blocks[i].jac_fixed[:, :, k:k + 1]
+    return raw
+
+
+def constant_entries(problem: Problem, blocks: list[Block], fit: int) -> list[Entry]:
+    """Each constant as "this value is off": a problem constant alone; a model's
+    constant once for all the instances that share it (one pitch of one platen), and for
+    each instance alone where several share it."""
+    index = {c.key: k for k, c in enumerate(problem.diagnostic.constants)}
+    groups: dict[tuple[str, str], list] = {}
+    for c in problem.constants:
+        if c.tested and c.key in index:
+            groups.setdefault((str(c.model_file or ""), c.name), []).append(c)
+    out = []
+    for members in groups.values():
+        sets = [members] + ([[c] for c in members] if len(members) > 1 else [])
+        for chosen in sets:
+            keys = [index[c.key] for c in chosen]
+            x = blocks[fit].jac_constants[:, :, keys].sum(axis=2)
+            if not np.any(x):
+                continue
+            first = chosen[0]
+            doc = f"{first.doc} " if first.doc else ""
+            whose = (f"{first.instance}'s " if len(chosen) == 1 and first.instance else "")
+            shared = (f" (shared by {', '.join(c.instance for c in chosen)})"
+                      if len(chosen) > 1 else "")
+            scale = column_scale(blocks[fit], x)
+            basis = Basis("constant", first.name,
+                          f"the {whose}{doc}{first.name}{shared} is off", ("delta",), (),
+                          unit=first.unit, scales=(float(f"{scale:.3g}"),), term=scale,
+                          centre=first.value * DISPLAY_UNITS[first.unit],
+                          targets=tuple(c.key for c in chosen))
+            out.append(Entry(Candidate("", basis), _constant_raw(blocks, keys)))
+    return out
+
+
+def _constant_raw(blocks: list[Block], keys: list[int]) -> Raw:
+    def raw(i: int) -> np.ndarray:
+        return blocks[i].jac_constants[:, :, keys].sum(axis=2)[:, :, None]
     return raw
 
 
