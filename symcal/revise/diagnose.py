@@ -301,8 +301,8 @@ def _value_words(cand: Candidate, stats: str) -> str:
         else:
             size = 1.0 if basis.kind == "fixed" else DISPLAY_UNITS[basis.unit]
             value, change = basis.centre / size, c / size
-            rel = f" ({change / value:+.3g} ± {se / size / abs(value):.2g} relative)" \
-                if value else ""
+            rel = (f" ({100 * change / value:+.3g} % ± {100 * se / size / abs(value):.2g} %)"
+                   if value else "")
             asks = (f": the data ask for {value + change:.6g} ± {se / size:.2g} "
                     f"{basis.unit} instead of {value:.6g}, a change of {change:+.3g}{rel}")
     what = {"fixed": "Freeing it", "constant": "Making it a parameter",

@@ -360,12 +360,13 @@ def constant_entries(problem: Problem, blocks: list[Block], fit: int) -> list[En
                 continue
             first = chosen[0]
             doc = f"{first.doc} " if first.doc else ""
-            whose = (f"{first.instance}'s " if len(chosen) == 1 and first.instance else "")
+            whose = (f"{first.instance}'s " if len(chosen) == 1 and first.instance
+                     else "the ")
             shared = (f" (shared by {', '.join(c.instance for c in chosen)})"
                       if len(chosen) > 1 else "")
             scale = column_scale(blocks[fit], x)
             basis = Basis("constant", first.name,
-                          f"the {whose}{doc}{first.name}{shared} is off", ("delta",), (),
+                          f"{whose}{doc}{first.name}{shared} is off", ("delta",), (),
                           unit=first.unit, scales=(float(f"{scale:.3g}"),), term=scale,
                           centre=first.value * DISPLAY_UNITS[first.unit],
                           targets=tuple(c.key for c in chosen))

@@ -76,28 +76,37 @@ class Moved:
 
 @dataclass(frozen=True)
 class Watch:
-    """What a kept term did to the parameters already there."""
+    """What a kept term did to the parameters already there; ``settled`` when the new
+    model is at its noise floor and the old one was above it (the moves are then the
+    bias the missing effect caused)."""
 
     moved: tuple[Moved, ...] = ()
     correlated: tuple[tuple[str, str, float], ...] = ()   # (new, existing, correlation)
     grown: tuple[tuple[str, float, float], ...] = ()      # (existing, old se, new se)
     design: str = ""
+    settled: bool = False
 
     def words(self, added: str) -> list[str]:
         """The verdict's sentences (empty when nothing is to be said)."""
         out = []
-        for m in self.moved:
-            out.append(
-                f"adding {added} moved {m.name} from {m.old:.6g} ± {m.old_se:.2g} to "
-                f"{m.new:.6g} ± {m.new_se:.2g} {m.unit} ({m.shift:.3g} of its old standard "
-                "errors): either the old estimate was biased by the missing effect, or the "
-                "term stands in for another one")
+        if self.moved:
+            ranked = sorted(self.moved, key=lambda m: -m.shift)
+            shown = "; ".join(
+                f"{m.name} {m.old:.6g} ± {m.old_se:.2g} → {m.new:.6g} ± {m.new_se:.2g} "
+                f"{m.unit} ({m.shift:.3g} se)".replace("  ", " ") for m in ranked[:3])
+            more = f"; and {len(ranked) - 3} more" if len(ranked) > 3 else ""
+            why = ("the old estimates were biased by the missing effect (the model is now at "
+                   "its noise floor)" if self.settled else
+                   "either the old estimates were biased by the missing effect, or the new "
+                   "term stands in for another one")
+            out.append(f"with {added}, {len(ranked)} parameter(s) moved by more than "
+                       f"{MOVED:g} of their standard errors: {shown}{more}: {why}")
         for new, existing, corr in self.correlated:
             out.append(f"{new} correlates {corr:+.4f} with {existing}: these data can hardly "
                        "tell them apart")
         for name, before, after in self.grown:
             out.append(f"the standard error of {name} grew from {before:.2g} to {after:.2g}")
-        if out and self.design:
+        if self.design and (self.correlated or self.grown or not self.settled):
             out.append(self.design)
         return out
 
@@ -108,7 +117,7 @@ class Watch:
                                for n, e, c in self.correlated],
                 "grown": [{"name": n, "se_before": b, "se_after": a}
                           for n, b, a in self.grown],
-                "design": self.design}
+                "design": self.design, "settled": self.settled}
 
 
 def watch(new: Result, old: Result, physical: set[str], problem_file: Path) -> Watch:
@@ -131,8 +140,9 @@ def watch(new: Result, old: Result, physical: set[str], problem_file: Path) -> W
             if other in physical and abs(value) > CORRELATED:
                 correlated.append((name, other, float(value)))
     worst = _worst(moved, grown, correlated, new)
+    settled = new.at_floor is True and old.at_floor is False
     return Watch(tuple(moved), tuple(correlated), tuple(grown),
-                 design_hint(new, problem_file, worst) if worst else "")
+                 design_hint(new, problem_file, worst) if worst else "", settled)
 
 
 def _worst(moved: list[Moved], grown: list[tuple[str, float, float]],
