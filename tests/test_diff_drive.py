@@ -191,8 +191,7 @@ def test_generated_c_compiles_and_matches_python(tmp_path) -> None:
 def test_the_readme_walkthrough_runs_as_written(tmp_path, monkeypatch, capsys) -> None:
     readme = EXAMPLE / "README.md"
     outputs = walkthrough.run(readme, tmp_path, monkeypatch, capsys, codes={
-        "symcal solve examples/diff_drive/problem.yaml": 1,
-        "symcal improve": 1})
+        "symcal solve examples/diff_drive/problem.yaml": 1})
     blocks = walkthrough.text_blocks(readme)
     free = outputs["symcal solve examples/diff_drive/problem.yaml"]
     assert blocks[0] in free                                 # the gauges, as shown
@@ -204,9 +203,12 @@ def test_the_readme_walkthrough_runs_as_written(tmp_path, monkeypatch, capsys) -
                                       r"(\S+) \|", readme.read_text(), re.MULTILINE):
         line = next(ln for ln in fixed.splitlines() if ln.split()[:1] == [name])
         assert line.split()[1:3] == [value, se], line
+    diagnosed = next(o for c, o in outputs.items() if c.startswith("symcal diagnose"))
+    assert blocks[2] in diagnosed                            # never proposed, as shown
     improve = next(o for c, o in outputs.items() if c.startswith("symcal improve"))
     assert "round 1: right.v += a slow drift in time (t)" in improve
+    assert "the diagnosis is quiet: every dataset is at its noise floor" in improve
     designed = next(o for c, o in outputs.items() if c.startswith("symcal design"))
-    assert blocks[2] in designed
+    assert blocks[3] in designed
     if walkthrough.CC is not None:
         assert "residual  g = " in outputs["build/diff_drive/c/example"]

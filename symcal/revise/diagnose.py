@@ -63,6 +63,9 @@ from symcal.revise.whitened import design, predict, whiten
 
 #: How many leading candidates get a prediction and a suggestion.
 TOP = 10
+#: How many members of a group (the lead included) get a prediction: those `improve`
+#: may try.
+GROUP = 4
 #: Label of the model's own approximation as a candidate.
 APPROXIMATION = "the model's approximation: errors evaluated at the raw readings"
 
@@ -387,7 +390,8 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
         [None if e.extra is None else own_regressor(e.extra) for e in entries],
         gauge_columns)
     leads = [c for c in _leads(tuple(ranked)) if c.significant][:TOP]
-    for cand in leads:
+    members = {label for c in leads for label in c.indistinguishable[:GROUP - 1]}
+    for cand in [*leads, *(c for c in ranked if c.label in members)]:
         predict(cand, own, own_regressor(by_label[cand.label].raw), blocks, free,
                 by_label[cand.label].raw)
     uncal, needs = _uncalibratable(problem, full, entries, full_regressor, leads, ranked,

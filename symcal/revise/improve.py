@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +20,7 @@ import numpy as np
 from symcal.analysis.discovery import Candidate
 from symcal.base.errors import SymcalError
 from symcal.base.files import write_output
-from symcal.calibrate.result import Result
+from symcal.calibrate.result import Result, file_hashes
 from symcal.calibrate.solve import solve
 from symcal.data.dataset import Dataset
 from symcal.data.loading import load_datasets
@@ -28,6 +28,7 @@ from symcal.language.fields import plain_name
 from symcal.language.yamlio import dump_yaml
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
+from symcal.revise.diagnose import GROUP as DIAGNOSED
 from symcal.revise.diagnose import Diagnosis, diagnose
 from symcal.revise.effects import write_revision
 from symcal.revise.watch import Watch, design_hint, new_parameters, wald, watch
@@ -37,7 +38,11 @@ TRIES = 3
 #: A held-out reference comparison may get worse by at most this fraction.
 WORSE = 0.10
 #: How many members of a group of indistinguishable candidates are tried.
-GROUP = 4
+GROUP = DIAGNOSED
+#: A member of a group is solved too, after one that pays, when the diagnosis predicts
+#: at least this share of that one's held-out improvement for it (it may fit as well and
+#: put a physical parameter elsewhere); the others are not worth a solve.
+CLOSE = 0.8
 #: Two revisions whose BIC differ by less than this fit about equally (Kass and Raftery:
 #: below 10 the evidence for one over the other is not strong).
 EQUAL_BIC = 10.0
@@ -139,7 +144,8 @@ def held_out_change(new: Result, old: Result, kind: str | None = None) -> float:
     return float(np.mean(ratios)) if ratios else 0.0
 
 
-def _pays(new: Result, old: Result, alpha: float) -> str | None:
+def _pays(new: Result, old: Result, alpha: float,
+          physical: set[str] | None = None) -> str | None:
     """None when ``new`` is better than ``old``, else why not: the solve succeeds, the BIC
     falls, the new term's coefficients are not zero within their noise (a Wald test at
     ``alpha``), the held-out constraint residuals fall (on average), no existing
@@ -159,7 +165,7 @@ def _pays(new: Result, old: Result, alpha: float) -> str | None:
     if change >= 0:
         return ("the held-out constraint residuals do not fall (mean change "
                 f"{np.expm1(change):+.1%})")
-    inflated = _inflated(new, old) if old.at_floor is not False else None
+    inflated = _inflated(new, old, physical) if old.at_floor is not False else None
     if inflated:
         return inflated
     for s in new.statistics:
@@ -171,10 +177,13 @@ def _pays(new: Result, old: Result, alpha: float) -> str | None:
     return None
 
 
-def _inflated(new: Result, old: Result) -> str | None:
+def _inflated(new: Result, old: Result, physical: set[str] | None = None) -> str | None:
     """Why the new terms are nearly aliased with parameters already there (a standard
-    error grows more than :data:`INFLATION` times), or None."""
-    before = {p.name: p.se for p in old.params.values() if p.se}
+    error of one of the ``physical`` parameters, default every one, grows more than
+    :data:`INFLATION` times), or None.  A term an earlier round added may trade against
+    the new one: that is the terms' structure changing, not the physics."""
+    before = {p.name: p.se for p in old.params.values() if p.se
+              and (physical is None or p.name in physical)}
     worst = max(((p.se / before[p.name], p.name) for p in new.params.values()
                  if p.se and p.name in before), default=None)
     if worst is not None and worst[0] > INFLATION:
@@ -212,12 +221,16 @@ def _best_of_group(
     physical parameter elsewhere (beyond 3 standard errors) are named: the data cannot
     tell them apart."""
     labels = [lead.label, *lead.indistinguishable[:GROUP - 1]]
+    predicted = {label: predicted_change(diag, label) for label in labels}
+    labels.sort(key=lambda label: predicted[label])
     paying: list[tuple[float, str, Path, Result]] = []
     for i, label in enumerate(labels):
+        if paying and not _close(predicted[label], predicted[paying[0][1]]):
+            continue       # the diagnosis predicts it does much worse than one that pays
         path = _revision(diag, label, directory, f"{name}_try{i}")
         revised = _load_revision(path)
         new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
-        why = _pays(new, result, alpha)
+        why = _pays(new, result, alpha, physical)
         if why is None:
             paying.append((held_out_change(new, result), label, path, new))
             continue
@@ -228,19 +241,55 @@ def _best_of_group(
         return None
     paying.sort(key=lambda t: t[0])
     _, label, path, new = paying[0]
-    ambiguous = tuple(_ambiguity(label, new, other, other_new, physical)
-                      for _, other, _, other_new in paying[1:]
-                      if _ambiguity(label, new, other, other_new, physical))
     for _, _, other_path, _ in paying[1:]:
         other_path.unlink(missing_ok=True)
     final = _renamed(path, name)
-    again = solve(load_problem(final), {n: d for n, d in datasets.items()
-                                        if n in new.problem.datasets})
-    return _Kept(label, final, again, ambiguous)
+    said = (_ambiguity(label, new, other, other_new, physical, final)
+            for _, other, _, other_new in paying[1:])
+    ambiguous = tuple(text for text in said if text)
+    return _Kept(label, final, _rebound(new, final), ambiguous)
+
+
+def _rebound(result: Result, path: Path) -> Result:
+    """``result`` of a revision, for the same revision renamed ``path`` (only its name
+    changed: the estimate, statistics and analysis are those of the same model on the
+    same data, so it is not solved again)."""
+    problem = load_problem(path)
+    if problem.parameter_names != result.problem.parameter_names:
+        raise RuntimeError(f"symcal renamed a revision into {path} and it changed")
+    return replace(result, problem=problem, files=file_hashes(problem))
+
+
+def predicted_change(diag: Diagnosis, label: str) -> float:
+    """The diagnosis's prediction for a candidate: the mean log ratio of the held-out
+    constraint residuals' spreads after and before solving again with it (the fitted
+    dataset's where none is held out; 0 without a prediction)."""
+    cand = next((c for c in diag.candidates if c.label == label), None)
+    if cand is None or not cand.reduction:
+        return 0.0
+    fit = diag.result.problem.fit_dataset
+    kinds = {(s.dataset, s.name): s.kind for s in diag.result.statistics}
+
+    def ratios(held_out: bool) -> list[float]:
+        out = []
+        for key, (now, new) in cand.reduction.items():
+            dataset, _, name = key.partition("/")
+            if (dataset != fit) == held_out and kinds.get((dataset, name)) == "constraint" \
+                    and now > 0 and new > 0:
+                out.append(float(np.log(new / now)))
+        return out
+
+    found = ratios(True) or ratios(False)
+    return float(np.mean(found)) if found else 0.0
+
+
+def _close(score: float, best: float) -> bool:
+    """Whether a predicted change is close enough to a paying one's to be solved too."""
+    return best >= 0 or score <= CLOSE * best
 
 
 def _ambiguity(label: str, new: Result, other: str, other_new: Result,
-               physical: set[str]) -> str:
+               physical: set[str], path: Path) -> str:
     """A sentence when two revisions fit about equally (BIC within :data:`EQUAL_BIC`) and
     put a physical parameter more than 3 standard errors apart, else ""."""
     if abs(new.bic - other_new.bic) > EQUAL_BIC:
@@ -250,8 +299,7 @@ def _ambiguity(label: str, new: Result, other: str, other_new: Result,
         if a is None or b is None or not a.se or not b.se:
             continue
         if abs(a.value - b.value) > 3 * max(a.se, b.se):
-            target = design_hint(new, Path(new.problem.path),
-                                 (name, abs(a.value - b.value) / 3))
+            target = design_hint(new, path, (name, abs(a.value - b.value) / 3))
             return (f"the data cannot tell {label} from {other} (BIC {new.bic:.1f} and "
                     f"{other_new.bic:.1f}): they give {name} = {a.value:.6g} ± {a.se:.2g} "
                     f"and {b.value:.6g} ± {b.se:.2g} {a.unit}; {target}")
@@ -316,6 +364,7 @@ def _try_siblings(
     diag: Diagnosis, lead: Candidate, single: _Kept | None,
     directory: Path, name: str, datasets: Mapping[str, Dataset], result: Result,
     rejected: list[tuple[str, str]], say: Callable[[str], None], alpha: float,
+    physical: set[str],
 ) -> _Kept | None:
     """The lead with the same effect in its sibling instances, in one revision, when it
     pays and beats the lead alone (``single``) on BIC: a sibling candidate that is only
@@ -327,7 +376,7 @@ def _try_siblings(
     path = write_revision(diag.result.problem, lead, directory, f"{name}_all", also)
     revised = _load_revision(path)
     new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
-    why = _pays(new, result, alpha)
+    why = _pays(new, result, alpha, physical)
     if why is None and single is not None and new.bic >= single.result.bic:
         why = (f"its BIC ({new.bic:.1f}) is not below that of {single.label} alone "
                f"({single.result.bic:.1f})")
@@ -337,8 +386,7 @@ def _try_siblings(
         path.unlink(missing_ok=True)
         return single
     final = _renamed(path, name)
-    return _Kept(label, final, solve(load_problem(final), {
-        n: d for n, d in datasets.items() if n in new.problem.datasets}))
+    return _Kept(label, final, _rebound(new, final))
 
 
 def _revision(diag: Diagnosis, cand_label: str, directory: Path, name: str) -> Path:
@@ -420,17 +468,18 @@ def improve(
             single = _best_of_group(diag, lead, directory, name, datasets, result,
                                     rejected, say_round, alpha, physical)
             kept = _try_siblings(diag, lead, single, directory, name, datasets, result,
-                                 rejected, say_round, alpha)
+                                 rejected, say_round, alpha, physical)
             if kept is not None:
                 break
         if kept is None:
             break
         seen = watch(kept.result, result, physical, kept.path)
+        zero = _now_zero(kept.result, rounds, alpha)
         result = kept.result
         last_try = len(rejected)
         diag = diagnose(result, alpha)
         rounds.append(Round(k, kept.label, kept.path, result, len(diag.significant), seen,
-                            kept.ambiguous))
+                            kept.ambiguous + zero))
         say(f"round {k}: added {kept.label}: {len(diag.significant)} significant "
             "candidate(s) left")
         for line in rounds[-1].notes():
@@ -446,14 +495,30 @@ def improve(
     return Improvement(tuple(rounds), quiet, final, tuple(rejected), diag, aliased)
 
 
+def _now_zero(new: Result, rounds: list[Round], alpha: float) -> tuple[str, ...]:
+    """Sentences for terms earlier rounds added that fit to zero in ``new``: the new term
+    explains what they stood in for (they stay in the chain of revisions; the verdict
+    says so rather than keep them silently)."""
+    out = []
+    for earlier, later in zip(rounds, rounds[1:], strict=False):
+        names = new_parameters(later.result, earlier.result)
+        test = wald(new, names) if names else None
+        if test is not None and test[1] >= alpha:
+            out.append(f"{later.added} (round {later.index}) now fits to zero (Wald χ² = "
+                       f"{test[0]:.3g}, p = {test[1]:.2g}): the new term explains what it "
+                       "stood in for")
+    return tuple(out)
+
+
 def _aliased(diag: Diagnosis, tried: list[tuple[str, str]]) -> tuple[tuple[str, str], ...]:
     """The last diagnosis's significant candidates that the last round found aliased with
-    existing parameters, themselves and every member of their group tried."""
+    existing parameters: every member of their group that was tried (the lead, and those
+    the diagnosis predicted as good) was."""
     why = dict(tried)
     out = []
     for cand in diag.significant:
         members = [cand.label, *cand.indistinguishable[:GROUP - 1]]
-        reasons = [why.get(m, "") for m in members]
-        if all(r.startswith("it is nearly aliased") for r in reasons):
+        reasons = [why[m] for m in members if m in why]
+        if reasons and all(r.startswith("it is nearly aliased") for r in reasons):
             out.append((cand.label, reasons[0]))
     return tuple(out)

@@ -208,13 +208,15 @@ def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shap
                                     unit=v.unit, centre=c),
                               _quadratic(v.name, c)))
     if allowed("product"):
-        for i, v in enumerate(variables):
-            for v2 in variables[i + 1:]:
-                cv = 0.0 if v.kind == "drift" else _centre(block.values(v.name))
-                cw = 0.0 if v2.kind == "drift" else _centre(block.values(v2.name))
+        # uncentred: a gain growing with time is exactly c·v·t (centring would leave a
+        # drift c·v̄·t behind); the linear terms it contains are allowed for in its test
+        pool = sorted(variables, key=lambda v: v.kind == "drift")   # time goes second
+        for i, v in enumerate(pool):
+            for v2 in pool[i + 1:]:
+                cv = cw = 0.0
                 out.append(_Shape(Basis(
                     "product", v.name, f"the product of {v.name} and {v2.name}", ("prod",),
-                    ("({v} - {centre})*({w} - {other_centre})",), unit=v.unit, centre=cv,
+                    ("{v}*{w}",), unit=v.unit, centre=cv,
                     other=v2.name, other_unit=v2.unit, other_centre=cw),
                     _product(v.name, cv, v2.name, cw), (v.name, v2.name)))
     if allowed("angle_harmonic"):
