@@ -139,6 +139,38 @@ def _project(x: np.ndarray, q: np.ndarray) -> np.ndarray:
     return x - q @ (q.T @ x) if q.shape[1] else x
 
 
+def redundant_columns(design: Design, x: np.ndarray) -> list[int]:
+    """The columns of a candidate's regressor (M × m) that add nothing on their own: each
+    absorbed by the nuisance (a quadratic's linear part where the sensor's gain already
+    is), or explaining the residual exactly (re-opening a gauge).  A term written without
+    them is the same hypothesis without a parameter the data cannot determine."""
+    if x.shape[1] < 2:
+        return []
+    qn = _basis(design)
+    r = _project(design.r, qn)
+    rss0 = float(r @ r)
+    out = []
+    for j in range(x.shape[1]):
+        raw = float(np.linalg.norm(x[:, j]))
+        xp = _project(x[:, j:j + 1], qn)[:, 0]
+        norm = float(np.linalg.norm(xp))
+        if raw == 0.0 or norm < ABSORBED * raw or (
+                rss0 > 0 and float(xp @ r) ** 2 / norm**2 >= (1 - EXACT_FIT) * rss0):
+            out.append(j)
+    return out
+
+
+_BASES: dict[int, tuple[Design, np.ndarray]] = {}
+
+
+def _basis(design: Design) -> np.ndarray:
+    """The nuisance's orthonormal basis, kept for the last design asked."""
+    kept = _BASES.get(0)
+    if kept is None or kept[0] is not design:
+        _BASES[0] = (design, range_basis(design.nuisance))
+    return _BASES[0][1]
+
+
 def gauge_fixes(design: Design, fixed: Mapping[str, np.ndarray]) -> dict[str, str]:
     """The fixed parameters (name → whitened column of ∂r/∂θ_k, rows as the design's)
     that fix a gauge, with how: freeing one either adds nothing the free parameters do

@@ -23,13 +23,20 @@ which effect is missing:
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
-from symcal.analysis.discovery import Basis, Candidate, Design, gauge_fixes, test_candidates
+from symcal.analysis.discovery import (
+    Basis,
+    Candidate,
+    Design,
+    gauge_fixes,
+    redundant_columns,
+    test_candidates,
+)
 from symcal.analysis.outliers import Outliers, remedy_yaml
 from symcal.analysis.residuals import (
     Binned,
@@ -382,6 +389,7 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
         instance = cand.output.split(".", 1)[0]
         return cand.basis.variable in own_names_of(problem, instance)
 
+    entries = [_without_redundant(e, own, own_regressor) for e in entries]
     candidates = [e.candidate for e in entries]
     by_label = {e.candidate.label: e for e in entries}
     gauge_columns = {name: fixed_columns[name] for name in fixes}
@@ -409,6 +417,29 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
                      len(candidates), tuple(uncal), needs, variant, own_inputs,
                      _better_problem(problem) if above else "",
                      tuple(sp.describe() for sp in found.values()), dict(fixes))
+
+
+def _without_redundant(entry: Entry, own: Design,
+                       regressor: Callable[[Raw], np.ndarray]) -> Entry:
+    """The candidate without the columns that add nothing on their own (a quadratic's
+    linear part the sensor's gain already is): the same hypothesis, written without a
+    parameter the data cannot determine."""
+    basis = entry.candidate.basis
+    if len(basis.columns) < 2 or len(basis.terms) != len(basis.columns):
+        return entry
+    drop = redundant_columns(own, regressor(entry.raw))
+    keep = [j for j in range(len(basis.columns)) if j not in drop]
+    if not drop or not keep:
+        return entry
+    reduced = replace(basis, columns=tuple(basis.columns[j] for j in keep),
+                      terms=tuple(basis.terms[j] for j in keep),
+                      scales=tuple(basis.scales[j] for j in keep) if basis.scales else ())
+
+    def pick(raw: Raw) -> Raw:
+        return lambda i: raw(i)[:, :, keep]
+
+    return Entry(Candidate(entry.candidate.output, reduced), pick(entry.raw),
+                 None if entry.extra is None else entry.extra)
 
 
 def _variant_differences(variant: Variant, blocks: list[Block], data: Mapping[str, Dataset],
