@@ -98,7 +98,10 @@ def every_kind(problem: symcal.Problem) -> list[Candidate]:
     return out
 
 
-@pytest.mark.parametrize("path", PROBLEMS, ids=lambda p: f"{p.parent.name}/{p.stem}")
+@pytest.mark.parametrize("path", [
+    p if p in (PROBLEMS[0], PROBLEMS[2], PROBLEMS[5], PROBLEMS[7])   # the others: slow
+    else pytest.param(p, marks=pytest.mark.slow) for p in PROBLEMS],
+    ids=lambda p: f"{p.parent.name}/{p.stem}")
 def test_every_kind_is_written_as_files_that_load(path: Path, tmp_path: Path) -> None:
     """Each kind that applies: the files load, add what the kind says, and no two
     candidates share a file."""
