@@ -214,7 +214,8 @@ class _Compiler:
                 raise SpecError(b.where, f"constant '{key}' of model '{model.name}' is in "
                                          f"{describe(want)}, but '{b.text}' bound to it is in "
                                          f"{describe(found)}")
-            varying = [v.name() for v in ca.symvar(value) if v.name() not in allowed]
+            varying = [v.name() for v in ca.symvar(value) if v.name() not in allowed
+                       and not v.name().startswith(("noise:", "hook:"))]
             if varying:
                 raise SpecError(b.where, f"constant '{key}' of model '{model.name}' is bound "
                                          f"to '{b.text}', which varies with "
