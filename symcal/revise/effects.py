@@ -257,6 +257,8 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
              "angle_harmonic": [per(out_unit, (angle_unit, 1))] * 2,
              "product": [per(out_unit, (var_unit, 1), (other_unit, 1))] * len(params),
              }[basis.kind]
+    if basis.kind == "quadratic" and basis.columns == ("quad",):
+        units = units[1:]      # the pure quadratic: its linear part is the sensor's gain
     if len(units) != len(params):
         raise ValueError(f"a '{basis.kind}' term has {len(units)} coefficients, the "
                          f"candidate names {len(params)}")
