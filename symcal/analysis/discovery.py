@@ -29,7 +29,7 @@ import numpy as np
 import scipy.linalg
 import scipy.stats
 
-from symcal.base.linalg import range_basis
+from symcal.base.linalg import rank_tolerance
 
 ABSORBED = 1e-3         # projected norm below this share of the raw norm: absorbed
 POWER = 0.8             # the power at which a minimal detectable effect is stated
@@ -127,11 +127,14 @@ class Design:
 
 
 def _orthonormal(x: np.ndarray) -> np.ndarray:
-    """An orthonormal basis of the columns of ``x`` (numerically independent ones)."""
+    """An orthonormal basis of the columns of ``x`` (numerically independent ones): the
+    SVD of its small R factor, so that the tall matrix is touched by one QR only."""
     if x.shape[1] == 0:
         return x
-    q, s, _ = np.linalg.svd(x, full_matrices=False)
-    return q[:, s > 1e-8 * s[0]] if s.size and s[0] > 0 else q[:, :0]
+    q, r = np.linalg.qr(x)
+    u, s, _ = np.linalg.svd(r)
+    keep = s > 1e-8 * s[0] if s.size and s[0] > 0 else np.zeros(s.shape, dtype=bool)
+    return q @ u[:, keep]
 
 
 def _project(x: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -160,15 +163,37 @@ def redundant_columns(design: Design, x: np.ndarray) -> list[int]:
     return out
 
 
-_BASES: dict[int, tuple[Design, np.ndarray]] = {}
+@dataclass(frozen=True)
+class _Nuisance:
+    """The nuisance's SVD on its numerical range: its orthonormal basis ``u``, and what
+    gives the coefficients of a column in it (``x ≈ nuisance @ (solve @ x)``)."""
+
+    u: np.ndarray
+    solve: np.ndarray
+
+
+_SVDS: dict[int, tuple[Design, _Nuisance]] = {}
+
+
+def _nuisance(design: Design) -> _Nuisance:
+    """The nuisance's SVD, kept for the last design asked (one SVD per design, however
+    many candidates are tested on it)."""
+    kept = _SVDS.get(0)
+    if kept is None or kept[0] is not design:
+        matrix = design.nuisance
+        if matrix.size == 0:
+            found = _Nuisance(np.zeros((matrix.shape[0], 0)), np.zeros((matrix.shape[1], 0)))
+        else:
+            u, sv, vt = np.linalg.svd(matrix, full_matrices=False)
+            keep = sv > rank_tolerance(sv, matrix.shape[0])
+            found = _Nuisance(u[:, keep], vt[keep].T / sv[keep][None, :])
+        _SVDS[0] = (design, found)
+    return _SVDS[0][1]
 
 
 def _basis(design: Design) -> np.ndarray:
-    """The nuisance's orthonormal basis, kept for the last design asked."""
-    kept = _BASES.get(0)
-    if kept is None or kept[0] is not design:
-        _BASES[0] = (design, range_basis(design.nuisance))
-    return _BASES[0][1]
+    """The nuisance's orthonormal basis (see :func:`_nuisance`)."""
+    return _nuisance(design).u
 
 
 def gauge_fixes(design: Design, fixed: Mapping[str, np.ndarray]) -> dict[str, str]:
@@ -177,7 +202,7 @@ def gauge_fixes(design: Design, fixed: Mapping[str, np.ndarray]) -> dict[str, st
     not already do (an offset or a rotation: ``"absorbed"``), or explains the residual
     exactly (a scale: the constraints are homogeneous in a set of parameters it belongs
     to, so that its projected column is the residual itself: ``"exact"``)."""
-    qn = range_basis(design.nuisance)
+    qn = _basis(design)
     r = _project(design.r, qn)
     rss0 = float(r @ r)
     out = {}
@@ -212,7 +237,8 @@ def test_candidates(
     determine does that; ``gauges`` (name → whitened column of a fixed parameter that
     fixes one) name which.
     """
-    qn = range_basis(design.nuisance)
+    nuisance = _nuisance(design)
+    qn = nuisance.u
     r = _project(design.r, qn)
     rss0 = float(r @ r)
     dof = len(r) - qn.shape[1]
@@ -226,7 +252,7 @@ def test_candidates(
             continue
         if np.linalg.norm(xp) < ABSORBED * raw:
             cand.absorbed = True
-            coef = np.linalg.lstsq(design.nuisance, x, rcond=None)[0]
+            coef = nuisance.solve @ (qn.T @ x)     # x's coefficients in the nuisance
             weight = np.linalg.norm(coef, axis=1) if coef.ndim == 2 else np.abs(coef)
             weight = weight * np.linalg.norm(design.nuisance, axis=0)
             order = np.argsort(-weight)

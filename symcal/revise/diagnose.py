@@ -330,7 +330,7 @@ def _uncalibratable_words(cand: Candidate, needs: str,
             f"leaves them unchanged. {needs}" + _group_words(cand, own))
 
 
-def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
+def diagnose(result: Result, alpha: float = 0.01, *, views: bool = True) -> Diagnosis:
     """Find where a calibrated model fails and which effect is most likely missing.
 
     Nothing is solved again: the residuals, their sensitivities and the candidate terms
@@ -343,6 +343,10 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
         :meth:`~symcal.calibrate.result.Result.load`.
     alpha
         Family-wise significance level over all candidates (Bonferroni).
+    views
+        Whether to examine each residual along every variable (binned structure,
+        periodograms, what is left: what the report shows); ``False`` tests the
+        candidates only (the improve loop's rounds).
 
     Returns
     -------
@@ -355,7 +359,8 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
               for ds in data.values()]
     if result.outliers is not None and result.outliers.dominate:
         # outliers first: F-tests for missing effects mean nothing while they dominate
-        return Diagnosis(result, tuple(_views(blocks, result)), (), {}, alpha, 0)
+        return Diagnosis(result, tuple(_views(blocks, result)) if views else (), (), {},
+                         alpha, 0)
     fit = list(data).index(problem.fit_dataset)
     own_names = [c.name for c in result.stages[-1].costs]
     own_cols = [blocks[fit].names.index(n) for n in own_names]
@@ -413,7 +418,8 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
                   for name, inst in problem.instances.items()}
     above = any(s.kind == "comparison" and s.noise is not None and s.noise.verdict == "above"
                 for s in result.statistics)
-    return Diagnosis(result, tuple(_views(blocks, result)), tuple(ranked), yaml, alpha,
+    return Diagnosis(result, tuple(_views(blocks, result)) if views else (), tuple(ranked),
+                     yaml, alpha,
                      len(candidates), tuple(uncal), needs, variant, own_inputs,
                      _better_problem(problem) if above else "",
                      tuple(sp.describe() for sp in found.values()), dict(fixes))

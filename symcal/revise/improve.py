@@ -441,7 +441,7 @@ def improve(
     current: Problem = load_problem(problem)
     datasets = load_datasets(current, data, drop_invalid)
     result = solve(current, datasets)
-    diag = diagnose(result, alpha)
+    diag = diagnose(result, alpha, views=False)
     rounds = [Round(0, None, Path(problem), result, len(diag.significant))]
     physical = {n for n, p in result.params.items() if not p.fixed}
     stem = plain_name(Path(problem).stem)   # revisions are named after the file
@@ -477,7 +477,7 @@ def improve(
         zero = _now_zero(kept.result, rounds, alpha)
         result = kept.result
         last_try = len(rejected)
-        diag = diagnose(result, alpha)
+        diag = diagnose(result, alpha, views=False)
         rounds.append(Round(k, kept.label, kept.path, result, len(diag.significant), seen,
                             kept.ambiguous + zero))
         say(f"round {k}: added {kept.label}: {len(diag.significant)} significant "
