@@ -423,17 +423,24 @@ def test_passes_on_a_local_dask_cluster_equal_the_passes_in_memory(dual, cluster
 
 
 @pytest.mark.slow
-def test_a_partitioned_solve_on_dask_equals_the_in_memory_solve(cluster, tmp_path) -> None:
+def test_a_partitioned_solve_on_dask_equals_the_in_memory_solve(cluster, tmp_path, slips
+                                                                 ) -> None:
+    """On a local Dask cluster (every task pickled to a worker process, the weighers and
+    analyses with it): the propagated weighting, a robust loss, the outliers' refit and
+    their medians give the in-memory solve's document."""
     problem = symcal.load_problem(ROOT / "problems/platen_self_calibration.yaml")
     cols = _columns("", "problems/scenarios/courier_platen.yaml", 6000, seed=2)
     folder = write_shards(tmp_path / "log", cols, "parquet", (2000, 2500, 1500))
     memory = make_dataset("calibration", "memory", cols, needed_columns(problem))
     on_dask = solve_partitioned(problem, folder, executor=cluster)
-    local = solve_partitioned(problem, memory)
-    scales = np.array([p.scale for p in problem.parameters])
-    np.testing.assert_allclose(on_dask.theta / scales, local.theta / scales, rtol=0,
-                               atol=1e-10)
-    assert on_dask.rss == pytest.approx(local.rss, rel=1e-10)
+    assert differences(on_dask.to_dict(),
+                       symcal.solve(problem, {"calibration": memory}).to_dict()) == []
+    _, log, memory, flyby, tmp = slips
+    for robust in (symcal.load_problem(ROOT / PLATEN),
+                   symcal.load_problem(tmp / "robust.yaml")):
+        on_dask = solve_partitioned(robust, log, data={"flyby": flyby}, executor=cluster)
+        full = symcal.solve(robust, {"calibration": memory, "flyby": flyby})
+        assert differences(on_dask.to_dict(), full.to_dict()) == []
 
 
 @pytest.mark.slow
@@ -441,9 +448,10 @@ def test_a_nonlinear_partitioned_solve_equals_the_in_memory_solve(tmp_path) -> N
     """The dual problem (closed form, closed form, then lm, weighting estimated) on NPZ
     shards: the estimate equals symcal.solve's on the data in memory to 1e-10 of each
     parameter's scale, although the passes reduce in another order (lm's last
-    Gauss-Newton step settles what the cost's rounding cannot)."""
+    Gauss-Newton step settles what the cost's rounding cannot), and so is the rest of its
+    document."""
     problem = symcal.load_problem(ROOT / "problems/dual_sensor_calibration.yaml")
-    problem = problem.with_weighting("estimated")   # 'propagated' weights every row
+    problem = problem.with_weighting("estimated")
     cols = _columns("", "problems/scenarios/courier_dual.yaml", 6000, seed=2)
     folder = write_shards(tmp_path / "log", cols, "npz", (2000, 2500, 1500))
     memory = make_dataset("calibration", "memory", cols, needed_columns(problem))
@@ -454,3 +462,5 @@ def test_a_nonlinear_partitioned_solve_equals_the_in_memory_solve(tmp_path) -> N
     scales = np.array([p.scale for p in problem.parameters])
     np.testing.assert_allclose(sharded.theta / scales, full.theta / scales, rtol=0,
                                atol=1e-10)
+    # the weighting's note, the standard errors, outliers, floors and tests too
+    assert differences(sharded.to_dict(), full.to_dict()) == []

@@ -38,7 +38,7 @@ from symcal.analysis.implicit import ImplicitCheck, implicit_checks
 from symcal.analysis.serial_passes import time_ordered_passes
 from symcal.base.errors import DataError
 from symcal.base.options import SolveOptions
-from symcal.base.progress import Bars, Meter, meter
+from symcal.base.progress import Bars, Meter, reporting
 from symcal.calibrate.log_stage import run_stage_passes
 from symcal.calibrate.result import (
     DatasetInfo,
@@ -154,23 +154,29 @@ def solve_partitioned(
         Worker processes of an embedded local cluster (``executor="local"``; default one
         per core).
     progress
-        Called with one line per solver iteration (None: silent).
+        Called with each line of progress, as for :func:`symcal.solve`: one per solver
+        iteration, and notes (None: no lines).  See :mod:`symcal.base.progress`.
     bars
-        Progress bars: one meter counting the shards done.
+        Progress bars (:func:`symcal.base.progress.terminal_bars`): one meter counting
+        the shards each pass has done, the stage and the latest iteration's line beside
+        it (then not passed to ``progress``).  None: no bars.
 
     Returns
     -------
     Result
-        As :func:`symcal.solve` gives it (see the module's docstring for what is not
-        computed on the log, said in its notes).
+        As :func:`symcal.solve` gives it on the same data in memory (see the module).
 
     Raises
     ------
     DataError
-        If the shards cannot be read or lack a needed column (named by file).
+        If the shards cannot be read or lack a needed column (named by file), or hold
+        too few observations for the stage's parameters.
     SolveError
-        If a stage asks for the closed form on constraints that are not linear, or has a
-        constraint with a robust loss.
+        If a stage asks for the closed form on constraints that are not linear.
+    SymcalError
+        If a constraint is not finite at the start (named with its observation), a
+        robust loss meets ``estimated`` or ``propagated`` weighting, or ``propagated``
+        weighting lacks a reading's declared noise (as :func:`symcal.solve`).
     """
     problem = problem if isinstance(problem, Problem) else load_problem(problem)
     options = options or problem.options
@@ -209,14 +215,15 @@ def _solve(problem: Problem, log: ShardedDataset | Dataset, held: dict[str, Data
     theta = theta0
     stages: list[StageResult] = []
     with contextlib.ExitStack() as stack:
-        m = stack.enter_context(meter(bars, "log", None, "shard"))
+        report = stack.enter_context(reporting(progress, bars, "log", None, "shard",
+                                               counts=False))
         if inner is not None:           # in memory without one: the default policy
-            stack.enter_context(using(_Metered(inner, m)))
+            stack.enter_context(using(_Metered(inner, report.meter)))
         ordered = time_ordered_passes(problem, log, sample.columns)
         for stage in problem.stages:
-            m.note(stage.name)
+            report.meter.note(stage.name)
             theta, outcome = run_stage_passes(problem, stage, log, sample, theta, options,
-                                              progress, ordered)
+                                              report.callback(), ordered)
             stages.append(outcome)
             if not outcome.success:
                 break
