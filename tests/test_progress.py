@@ -126,6 +126,7 @@ def test_a_log_kept_as_shards_counts_its_shards_on_a_bar(tmp_path) -> None:
     assert [s.strip() for s in steps] == [n for n in bars.notes if is_step(n)]
 
 
+@pytest.mark.slow
 def test_design_reports_its_rounds() -> None:
     problem = symcal.load_problem(ROOT / "problems" / "dual_sensor_calibration.yaml")
     scenario = symcal.load_scenario(ROOT / "problems" / "scenarios" / "courier_dual.yaml")

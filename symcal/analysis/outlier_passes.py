@@ -33,7 +33,14 @@ from symcal.analysis.outliers import (
 )
 from symcal.base.numeric import chunks
 from symcal.solvers.objective import Source
-from symcal.solvers.weighed import Flags, LossWeights, Residuals, map_pieces, read_piece
+from symcal.solvers.weighed import (
+    Flags,
+    LossWeights,
+    Residuals,
+    map_pieces,
+    read_both,
+    read_piece,
+)
 
 #: ``refit(flags)``: the estimate of the fit solved again with the residuals ``flags``
 #: flags weighted 0 (None if it failed).
@@ -101,8 +108,11 @@ class _Listing:
     time: str | None
 
     def __call__(self, piece: Any) -> tuple[float, float, np.ndarray, int, list[tuple], int]:
-        u = read_piece(piece, self.columns)
-        t = None if self.time is None else read_piece(piece, (self.time,))[0]
+        if self.time is None:
+            u, t = read_piece(piece, self.columns), None
+        else:
+            u, times = read_both(piece, self.columns, (self.time,))
+            t = times[0]
         total = share = 0.0
         by = np.zeros(self.flags.centre.size, dtype=np.int64)
         observations = 0

@@ -64,6 +64,14 @@ def read_piece(piece: Any, columns: tuple[str, ...]) -> np.ndarray:
     return np.asarray(piece.read(columns))
 
 
+def read_both(piece: Any, columns: tuple[str, ...], more: tuple[str, ...]
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Two sets of columns of a shard (or :class:`Whole`), read once; ``more`` NaN where
+    the piece lacks them."""
+    ds = piece.dataset("shard")
+    return ds.matrix(columns), ds.matrix(more)
+
+
 @dataclass(frozen=True)
 class Whole:
     """A dataset in memory as the one piece of a per-piece task (run in this process)."""
