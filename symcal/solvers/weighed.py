@@ -249,6 +249,21 @@ class Weighed(Objective):
         r_aug, rows = out if out is not None else (np.zeros((0, n + 1)), 0)
         return self._split_r(r_aug, rows, n)
 
+    def residuals(self, dataset: Dataset, theta: np.ndarray) -> np.ndarray:
+        """Weighted residuals at ``theta``, ``N × n_g`` (in-memory data only; never from,
+        nor into, what the unweighted objective keeps)."""
+        if self.weigher is None:
+            return super().residuals(dataset, theta)
+        instrument.record_pass("residual", "residuals", dataset.n)
+        return np.asarray(self._pass("residuals", "residual", dataset, theta))
+
+    def _kept_g(self, dataset: Source, theta: np.ndarray) -> np.ndarray | None:
+        """What the unweighted objective keeps of its residuals is not this one's."""
+        if self.weigher is not None:
+            return None
+        parent = getattr(super(), "_kept_g", None)
+        return None if parent is None else parent(dataset, theta)
+
     def _pass(self, kind: Kind, fn_name: str, dataset: Source, theta: np.ndarray,
               transform: np.ndarray | None = None) -> Any:
         if self.weigher is None:
