@@ -172,28 +172,6 @@ def bandwidth(rho: float, rows: int) -> int:
     return max(1, min(lags, rows // 4))
 
 
-def hac_meat(scores: Iterator[np.ndarray], lags: int, n_free: int) -> np.ndarray:
-    """``Σ_{|l|≤L} (1 − |l|/(L+1)) Γ_l`` of per-row scores given chunk by chunk in row
-    order (each chunk ``m × n_free``)."""
-    meat = np.zeros((n_free, n_free))
-    tail = np.zeros((0, n_free))
-    for chunk in scores:
-        rows = np.vstack([tail, chunk])
-        start = tail.shape[0]
-        new = rows[start:]
-        meat += new.T @ new
-        for lag in range(1, lags + 1):
-            weight = 1.0 - lag / (lags + 1.0)
-            # pairs (i - lag, i) with i among the new rows and i - lag among all rows held
-            first = max(start, lag)
-            if first >= rows.shape[0]:
-                break
-            cross = rows[first - lag:rows.shape[0] - lag].T @ rows[first:]
-            meat += weight * (cross + cross.T)
-        tail = rows[-lags:] if lags else tail
-    return meat
-
-
 @dataclass(frozen=True)
 class HacPart:
     """One piece's share of the Newey-West sum: the sum within it (:func:`hac_meat`), and
@@ -245,3 +223,26 @@ def hac_combine(parts: Iterable[HacPart], lags: int, n_free: int) -> np.ndarray:
 def _last(rows: np.ndarray, k: int) -> np.ndarray:
     """The last ``k`` rows (none for 0)."""
     return rows[max(rows.shape[0] - k, 0):] if k > 0 else rows[:0]
+
+
+def hac_meat(scores: Iterator[np.ndarray], lags: int, n_free: int) -> np.ndarray:
+    """``Σ_{|l|≤L} (1 − |l|/(L+1)) Γ_l`` of per-row scores given chunk by chunk in row
+    order (each chunk ``m × n_free``)."""
+    meat = np.zeros((n_free, n_free))
+    tail = np.zeros((0, n_free))
+    for chunk in scores:
+        rows = np.vstack([tail, chunk])
+        start = tail.shape[0]
+        new = rows[start:]
+        meat += new.T @ new
+        for lag in range(1, lags + 1):
+            weight = 1.0 - lag / (lags + 1.0)
+            # pairs (i - lag, i) with i among the new rows and i - lag among all rows held
+            first = max(start, lag)
+            if first >= rows.shape[0]:
+                break
+            cross = rows[first - lag:rows.shape[0] - lag].T @ rows[first:]
+            meat += weight * (cross + cross.T)
+        tail = rows[-lags:] if lags else tail
+    return meat
+
