@@ -245,4 +245,3 @@ def hac_meat(scores: Iterator[np.ndarray], lags: int, n_free: int) -> np.ndarray
             meat += weight * (cross + cross.T)
         tail = rows[-lags:] if lags else tail
     return meat
-
