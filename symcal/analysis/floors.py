@@ -640,13 +640,16 @@ class RowsPlan:
         prop, theta0, n = self.prop, self.theta0, len(self.names)
         out = RowSums([_Sums() for _ in range(n)], [_Sums() for _ in range(n)], [None] * n,
                       [None] * n)
+        u = ds.matrix(prop.columns) if theta0 is not None else None
         for part, r, lmat, jac in prop.rows(ds, self.theta):
             c = np.einsum("mae,mbe->mab", lmat, lmat)
             start = part.start == 0 and len(r) > 0      # the piece's first row is here
             if start:
                 out.first = [float(v) for v in r[0]]
-            if theta0 is not None:
-                r0 = prop.residuals(ds, theta0, part)
+            if theta0 is not None and u is not None:
+                block = u[:, part]
+                r0 = prop.fn.chunk(theta0, np.vstack([block, np.zeros((prop.n_eps,
+                                                                       block.shape[1]))]))[0]
                 if start:
                     out.first_before = [float(v) for v in r0[0]]
                 for k, s in enumerate(out.before):
