@@ -347,6 +347,45 @@ def test_propagated_weights_of_two_constraints_on_shards(tmp_path) -> None:
     assert "residuals" not in counts.by_method and "score_chunks" not in counts.by_method
 
 
+LOG_FIT = """\
+problem: log_fit
+columns: {x: {unit: "1"}, y: {unit: mm}}
+parameters:
+  a: {value: 1, scale: 1}
+  b: {value: 0, scale: 1}
+constraints:
+  r: {expr: y - a*log(x) - b, sigma: 0.1}
+datasets:
+  calibration: {path: d.csv}
+"""
+
+
+def test_refusals_on_shards_are_those_in_memory(tmp_path, slips) -> None:
+    """What solve refuses, a log kept as shards refuses with the same words: a constraint
+    that is not finite at the start (its observation counted over the whole log), a
+    robust loss with per-row weighting."""
+    (tmp_path / "fit.yaml").write_text(LOG_FIT)
+    x = np.linspace(0.5, 3, 200)
+    x[137] = 0.0                                    # y - log(0): inf on observation 138
+    cols = {"x": x, "y": 2 * np.log(np.maximum(x, 1e-3)) + 0.1}
+    folder = write_shards(tmp_path / "log", cols, "npz", (100, 60, 40))
+    problem = symcal.load_problem(tmp_path / "fit.yaml")
+    messages = []
+    for data in (folder, make_dataset("calibration", "memory", cols, [])):
+        with pytest.raises(symcal.SymcalError) as caught:
+            (solve_partitioned(problem, data) if isinstance(data, Path)
+             else symcal.solve(problem, {"calibration": data}))
+        messages.append(str(caught.value).replace(str(folder), "memory"))
+    assert messages[0] == messages[1]
+    assert "'r' is inf at the initial parameters on observation 138 of 'calibration'" in \
+        messages[0]
+    _, log, _, _, tmp = slips
+    robust = symcal.load_problem(tmp / "robust.yaml").with_weighting("propagated")
+    with pytest.raises(symcal.SymcalError, match=r"is a robust loss, which weighting "
+                                                 r"'propagated' does not support"):
+        solve_partitioned(robust, log)
+
+
 def test_shards_are_checked_and_named(dual, tmp_path) -> None:
     problem, cols, *_ = dual
     needed = needed_columns(problem)
