@@ -253,7 +253,7 @@ def _solve(problem: Problem, log: ShardedDataset | Dataset, held: dict[str, Data
     notes += [n for n in skipped if n not in notes]
     stats = [replace(s, noise=found.get((s.dataset, s.name))) for s in (*stats, *more)]
     checks += list(implicit_checks(problem, held, theta))
-    notes += [contraction_note(c) for c in checks if not c.contracts]
+    notes += [_contraction_note(c) for c in checks if not c.contracts]
     infos = (info, *(_info(d, data.get(d.name), problem.datasets[d.name].path)
                      for d in held.values()))
     datasets: dict[str, Any] = {log.name: log, **held}
@@ -262,7 +262,7 @@ def _solve(problem: Problem, log: ShardedDataset | Dataset, held: dict[str, Data
                   tests, _hashes(problem), datasets)
 
 
-def contraction_note(c: ImplicitCheck) -> str:
+def _contraction_note(c: ImplicitCheck) -> str:
     """The note of an implicit definition that is not a contraction (as ``symcal.solve``'s)."""
     return (f"'{c.name}' is not a contraction on dataset '{c.dataset}': max |dF/dx| = "
             f"{c.contraction:.3g} >= 1, so its fixed-point steps do not converge and the "
