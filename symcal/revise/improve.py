@@ -20,6 +20,7 @@ import numpy as np
 from symcal.analysis.discovery import Candidate
 from symcal.base.errors import SymcalError
 from symcal.base.files import write_output
+from symcal.base.progress import Bars, Report, reporting
 from symcal.calibrate.result import Result, file_hashes
 from symcal.calibrate.solve import solve
 from symcal.data.dataset import Dataset
@@ -410,6 +411,7 @@ def improve(
     alpha: float = 0.01,
     drop_invalid: bool = False,
     progress: Callable[[str], None] | None = None,
+    bars: Bars | None = None,
 ) -> Improvement:
     """Run the improvement loop on ``problem`` and write every revision into ``out``.
 
@@ -429,13 +431,25 @@ def improve(
     drop_invalid
         Drop rows with NaN/inf instead of refusing the data.
     progress
-        Called with one line per round (None: silent).
+        Called with each line of progress (:mod:`symcal.base.progress`): what each round
+        tries and keeps (None: no lines).
+    bars
+        Progress bars (:func:`symcal.base.progress.terminal_bars`): one meter counting
+        the rounds kept (at most ``max_rounds``), the latest round's line beside it
+        (then not passed to ``progress``).  None: no bars.
 
     Returns
     -------
     Improvement
     """
-    say = progress or (lambda _line: None)
+    with reporting(progress, bars, "improve", total=max_rounds, unit="round") as report:
+        return _improve(problem, out, data, max_rounds, alpha, drop_invalid, report)
+
+
+def _improve(problem: str | Path, out: str | Path,
+             data: Mapping[str, Dataset | str | Path] | None, max_rounds: int, alpha: float,
+             drop_invalid: bool, report: Report) -> Improvement:
+    say = report.line
     directory = Path(out)
     directory.mkdir(parents=True, exist_ok=True)
     current: Problem = load_problem(problem)
@@ -480,8 +494,8 @@ def improve(
         diag = diagnose(result, alpha, views=False)
         rounds.append(Round(k, kept.label, kept.path, result, len(diag.significant), seen,
                             kept.ambiguous + zero))
-        say(f"round {k}: added {kept.label}: {len(diag.significant)} significant "
-            "candidate(s) left")
+        report.step(f"round {k}: added {kept.label}: {len(diag.significant)} significant "
+                    "candidate(s) left")
         for line in rounds[-1].notes():
             say(f"round {k}: {line}")
     final = directory / "final.yaml"
