@@ -519,3 +519,28 @@ def test_implicit_definitions_on_shards(tmp_path) -> None:
                                atol=1e-10)
     assert differences(sharded.to_dict(), full.to_dict(), rel=1e-7,
                        skip=("message", "iterations")) == []
+
+
+def test_a_log_is_diagnosed_on_its_rows_spread_over_the_whole_log(tmp_path,
+                                                                    monkeypatch) -> None:
+    """symcal.diagnose takes a partitioned result: a log within symcal's bound is
+    diagnosed on all its rows (the same candidates, to 1e-9, as the same data in
+    memory); a larger one on rows spread evenly over every shard, in time order."""
+    import symcal.revise.diagnose as diagnosing
+
+    problem = symcal.load_problem(ROOT / "problems/platen_self_calibration.yaml")
+    cols = _columns("", "problems/scenarios/courier_platen.yaml", 1200, seed=4)
+    folder = write_shards(tmp_path / "log", cols, "npz", (500, 400, 300))
+    memory = make_dataset("calibration", "memory", cols, needed_columns(problem))
+    sharded = symcal.diagnose(solve_partitioned(problem, folder, executor=SerialExecutor()))
+    full = symcal.diagnose(symcal.solve(problem, {"calibration": memory}))
+    assert [c.label for c in sharded.leads[:5]] == [c.label for c in full.leads[:5]]
+    for a, b in zip(sharded.leads[:5], full.leads[:5], strict=True):
+        assert a.f_stat == pytest.approx(b.f_stat, rel=1e-9)
+    monkeypatch.setattr(diagnosing, "LOG_ROWS", 400)
+    log = open_shards("calibration", folder, needed_columns(problem))
+    sample = diagnosing._in_memory({"calibration": log})["calibration"]
+    t = np.asarray(sample.columns["t"])
+    assert sample.n == 400 and np.all(np.diff(t) > 0)
+    np.testing.assert_array_equal(t, np.asarray(cols["t"])[::3])
+    assert "(one row in 3 of its 1200: 400 rows)" in sample.source

@@ -353,7 +353,7 @@ def diagnose(result: Result, alpha: float = 0.01, *, views: bool = True) -> Diag
     Diagnosis
     """
     problem = result.problem
-    data = result.data
+    data = _in_memory(result.data)
     free = np.array([n in result.stages[-1].free for n in problem.parameter_names])
     blocks = [evaluate(problem, ds, result.theta0, result.theta, free)
               for ds in data.values()]
@@ -423,6 +423,19 @@ def diagnose(result: Result, alpha: float = 0.01, *, views: bool = True) -> Diag
                      len(candidates), tuple(uncal), needs, variant, own_inputs,
                      _better_problem(problem) if above else "",
                      tuple(sp.describe() for sp in found.values()), dict(fixes))
+
+
+#: A log kept as shards is diagnosed on at most this many of its rows, spread evenly.
+LOG_ROWS = 100_000
+
+
+def _in_memory(data: Mapping[str, Dataset]) -> dict[str, Dataset]:
+    """The datasets in memory: a log kept as shards by at most :data:`LOG_ROWS` of its
+    rows, spread evenly over the whole log (the dataset's source says so)."""
+    from symcal.data.shards import ShardedDataset
+
+    return {name: ds.spread(LOG_ROWS) if isinstance(ds, ShardedDataset) else ds
+            for name, ds in data.items()}
 
 
 def _without_redundant(entry: Entry, own: Design,
