@@ -28,7 +28,7 @@ output it changes (internal units), from the data, whatever the units.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -309,8 +309,7 @@ def output_entries(problem: Problem, blocks: list[Block], fit: int
 
 
 def _with_scales(basis: Basis, sigma: float, phi: np.ndarray) -> Basis:
-    from dataclasses import replace
-
+    """The basis with its coefficients' scales (terms of about ``sigma`` RMS)."""
     return replace(basis, scales=_scales(sigma, phi), term=sigma)
 
 
