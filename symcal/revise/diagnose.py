@@ -444,8 +444,8 @@ def _without_redundant(entry: Entry, own: Design,
     linear part the sensor's gain already is): the same hypothesis, written without a
     parameter the data cannot determine."""
     basis = entry.candidate.basis
-    if len(basis.columns) < 2 or len(basis.terms) != len(basis.columns):
-        return entry
+    if basis.kind != "quadratic" or len(basis.terms) != len(basis.columns):
+        return entry        # a harmonic's sine and cosine are one phase: both or none
     drop = redundant_columns(own, regressor(entry.raw))
     keep = [j for j in range(len(basis.columns)) if j not in drop]
     if not drop or not keep:

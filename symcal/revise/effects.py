@@ -257,8 +257,8 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
              "angle_harmonic": [per(out_unit, (angle_unit, 1))] * 2,
              "product": [per(out_unit, (var_unit, 1), (other_unit, 1))] * len(params),
              }[basis.kind]
-    if basis.kind == "quadratic" and basis.columns == ("quad",):
-        units = units[1:]      # the pure quadratic: its linear part is the sensor's gain
+    if basis.kind == "quadratic" and len(basis.columns) == 1:   # one part left (the
+        units = units[1:] if basis.columns == ("quad",) else units[:1]   # other redundant)
     if len(units) != len(params):
         raise ValueError(f"a '{basis.kind}' term has {len(units)} coefficients, the "
                          f"candidate names {len(params)}")
