@@ -225,10 +225,13 @@ def _best_of_group(
     predicted = {label: predicted_change(diag, label) for label in labels}
     labels.sort(key=lambda label: predicted[label])
     paying: list[tuple[float, str, Path, Result]] = []
+    written: dict[str, set[Path]] = {}
     for i, label in enumerate(labels):
         if paying and not _close(predicted[label], predicted[paying[0][1]]):
             continue       # the diagnosis predicts it does much worse than one that pays
+        before = _models(directory)
         path = _revision(diag, label, directory, f"{name}_try{i}")
+        written[label] = {path} | (_models(directory) - before)
         revised = _load_revision(path)
         new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
         why = _pays(new, result, alpha, physical)
@@ -237,13 +240,15 @@ def _best_of_group(
             continue
         rejected.append((label, why))
         say(f"tried {label}: not kept, {why}")
-        path.unlink(missing_ok=True)
+        used = {f.resolve() for r in paying for f in r[3].problem.source_files()}
+        _remove({f for f in written[label] if f.resolve() not in used})
     if not paying:
         return None
     paying.sort(key=lambda t: t[0])
     _, label, path, new = paying[0]
-    for _, _, other_path, _ in paying[1:]:
-        other_path.unlink(missing_ok=True)
+    used = {f.resolve() for f in new.problem.source_files()}
+    for _, other, _, _ in paying[1:]:
+        _remove({f for f in written[other] if f.resolve() not in used})
     final = _renamed(path, name)
     said = (_ambiguity(label, new, other, other_new, physical, final)
             for _, other, _, other_new in paying[1:])
@@ -305,6 +310,17 @@ def _ambiguity(label: str, new: Result, other: str, other_new: Result,
                     f"{other_new.bic:.1f}): they give {name} = {a.value:.6g} ± {a.se:.2g} "
                     f"and {b.value:.6g} ± {b.se:.2g} {a.unit}; {target}")
     return ""
+
+
+def _models(directory: Path) -> set[Path]:
+    """The model files in the output folder's ``models/`` (revisions' own)."""
+    return set((directory / "models").glob("*.yaml"))
+
+
+def _remove(paths: set[Path]) -> None:
+    """Remove the files a revision that was not kept wrote (never a file it found)."""
+    for path in paths:
+        path.unlink(missing_ok=True)
 
 
 def _renamed(path: Path, name: str) -> Path:
@@ -374,7 +390,9 @@ def _try_siblings(
     if not also:
         return single
     label = "; ".join(c.label for c in (lead, *also))
+    before = _models(directory)
     path = write_revision(diag.result.problem, lead, directory, f"{name}_all", also)
+    written = {path} | (_models(directory) - before)
     revised = _load_revision(path)
     new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
     why = _pays(new, result, alpha, physical)
@@ -384,7 +402,7 @@ def _try_siblings(
     if why is not None:
         rejected.append((label, why))
         say(f"tried {label}: not kept, {why}")
-        path.unlink(missing_ok=True)
+        _remove(written)
         return single
     final = _renamed(path, name)
     return _Kept(label, final, _rebound(new, final))
