@@ -85,10 +85,24 @@ class Watch:
     grown: tuple[tuple[str, float, float], ...] = ()      # (existing, old se, new se)
     design: str = ""
     settled: bool = False
+    largest_growth: tuple[str, float] | None = None          # (existing, se ratio)
+    largest_correlation: tuple[str, str, float] | None = None  # (new, existing, corr)
 
     def words(self, added: str) -> list[str]:
-        """The verdict's sentences (empty when nothing is to be said)."""
+        """The verdict's sentences: the term's effect on the parameters already there,
+        and what is beyond the thresholds."""
         out = []
+        parts = []
+        if self.largest_growth is not None:
+            name, ratio = self.largest_growth
+            parts.append(f"standard errors of the parameters already there changed by "
+                         f"{ratio:.3g}× at most ({name})")
+        if self.largest_correlation is not None:
+            new, existing, corr = self.largest_correlation
+            parts.append(f"its largest correlation with one of them is {corr:+.3f} "
+                         f"({new} with {existing})")
+        if parts:
+            out.append(f"with {added}: " + "; ".join(parts))
         if self.moved:
             ranked = sorted(self.moved, key=lambda m: -m.shift)
             shown = "; ".join(
@@ -117,13 +131,20 @@ class Watch:
                                for n, e, c in self.correlated],
                 "grown": [{"name": n, "se_before": b, "se_after": a}
                           for n, b, a in self.grown],
-                "design": self.design, "settled": self.settled}
+                "design": self.design, "settled": self.settled,
+                "largest_growth": None if self.largest_growth is None else {
+                    "name": self.largest_growth[0], "ratio": self.largest_growth[1]},
+                "largest_correlation": None if self.largest_correlation is None else {
+                    "new": self.largest_correlation[0],
+                    "existing": self.largest_correlation[1],
+                    "correlation": self.largest_correlation[2]}}
 
 
 def watch(new: Result, old: Result, physical: set[str], problem_file: Path) -> Watch:
     """What ``new`` (with a term ``old`` lacks) did to the physical parameters ``old``
     has (free in both)."""
     moved, grown = [], []
+    growth: tuple[str, float] | None = None
     for name in sorted(physical):
         a, b = old.params.get(name), new.params.get(name)
         if a is None or b is None or a.fixed or b.fixed or not a.se or not b.se:
@@ -133,16 +154,24 @@ def watch(new: Result, old: Result, physical: set[str], problem_file: Path) -> W
             moved.append(entry)
         if b.se > GROWN * a.se:
             grown.append((name, a.se, b.se))
+        if growth is None or b.se / a.se > growth[1]:
+            growth = (name, b.se / a.se)
     correlated = []
+    largest: tuple[str, str, float] | None = None
     for name in new_parameters(new, old):
         corr = new.params[name].correlations
         for other, value in corr.items():
-            if other in physical and abs(value) > CORRELATED:
+            if other not in physical:
+                continue
+            if abs(value) > CORRELATED:
                 correlated.append((name, other, float(value)))
+            if largest is None or abs(value) > abs(largest[2]):
+                largest = (name, other, float(value))
     worst = _worst(moved, grown, correlated, new)
     settled = new.at_floor is True and old.at_floor is False
     return Watch(tuple(moved), tuple(correlated), tuple(grown),
-                 design_hint(new, problem_file, worst) if worst else "", settled)
+                 design_hint(new, problem_file, worst) if worst else "", settled, growth,
+                 largest)
 
 
 def _worst(moved: list[Moved], grown: list[tuple[str, float, float]],
