@@ -45,6 +45,7 @@ import numpy as np
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SymcalError
 from symcal.base.linalg import sqrt_psd, whitening
+from symcal.base.progress import Bars, Progress, Report, reporting
 from symcal.base.units import internal_unit, size
 from symcal.experiment.detectable import Detectable
 from symcal.experiment.predict import Prediction, last_stage, operating_point, predict
@@ -616,7 +617,8 @@ def _plan(problem: Problem, scenario: Scenario, run: str, seed: int,
 
 def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None,
            targets: tuple[Target, ...] = (), seed: int = 0,
-           detect: Detectable | None = None) -> Design:
+           detect: Detectable | None = None, progress: Progress | None = None,
+           bars: Bars | None = None) -> Design:
     """Optimise the motion of the scenario's ``design`` run within its limits.
 
     Parameters
@@ -636,6 +638,13 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
         A term to make detectable at an amplitude
         (:class:`~symcal.experiment.detectable.Detectable`), with the standard-error
         targets or alone: its minimal detectable effect at most that amplitude.
+    progress
+        Called with each line of progress (:mod:`symcal.base.progress`): the baseline's
+        prediction, each optimisation round's outcome (None: no lines).
+    bars
+        Progress bars (:func:`symcal.base.progress.terminal_bars`): one meter counting
+        the optimisation rounds (at most 2), the latest round's line beside it (then not
+        passed to ``progress``).  None: no bars.
 
     Returns
     -------
@@ -662,9 +671,20 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
     if criterion is not None and criterion not in CRITERIA:
         raise SymcalError(f"--criterion {criterion}: expected one of {', '.join(CRITERIA)}"
                           f"{did_you_mean(criterion, CRITERIA)}")
+    with reporting(progress, bars, "design", total=2, unit="round") as report:
+        return _design(problem, scenario, criterion, targets, seed, report, detect)
+
+
+def _design(problem: Problem, scenario: Scenario, criterion: str | None,
+            targets: tuple[Target, ...], seed: int, report: Report,
+            detect: Detectable | None) -> Design:
+    space = scenario.design
+    assert space is not None
     run = space.run
+    goal = bool(targets) or detect is not None
     first = _plan(problem, scenario, run, seed, detect)
     baseline = first.prediction
+    report.line(f"design: the baseline run '{run}' predicted ({baseline.n} observations)")
     for tg in targets:
         if baseline.se.get(tg.name) is None:
             raise SymcalError(f"--target {tg.text}: '{tg.name}' is determined only in a "
@@ -686,7 +706,7 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
     active: list[str] = []
     message = "only n may change: no motion to optimise"
     plan = first
-    for _ in range(2):  # a second round with the design's own noise model, if needed
+    for round_ in range(2):  # a second round with the design's own noise model, if needed
         if variables:
             model = _Model(problem, scenario, run, current)
             term = None
@@ -713,6 +733,7 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
                               detect)
                 if fitted > n or all(again.met(targets, detect).values()):
                     n, values, plan = fitted, values_n, again
+        report.step(f"design: round {round_ + 1}: {message}; {n} observations")
         if not goal or all(plan.met(targets, detect).values()):
             break
         current = plan.prediction
