@@ -295,6 +295,7 @@ def test_dual_baked_matches_python_and_example_runs(dual, tmp_path) -> None:
     _check_example(dual, out, _theta(dual), baked=True)
 
 
+@pytest.mark.slow
 @needs_cc
 def test_platen_baked_and_unbaked_match_python(platen, tmp_path) -> None:
     baked_dir, free_dir = tmp_path / "baked", tmp_path / "free"
@@ -380,6 +381,7 @@ def test_hash_covers_the_yaml_and_the_baked_values(platen) -> None:
 # ------------------------------------------------------------------------- errors
 
 
+@pytest.mark.slow
 def test_result_for_another_problem_is_refused(platen, dual, tmp_path) -> None:
     with pytest.raises(symcal.SymcalError) as err:
         codegen.generate(dual.problem, tmp_path / "c", platen.result_path)

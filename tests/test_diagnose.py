@@ -97,6 +97,7 @@ def test_platen_hidden_effect_found_and_fixed(case, tmp_path) -> None:
         assert last.result.stat(name, unit="(internal)").after.std < 1.2 * floor, (case, name)
 
 
+@pytest.mark.slow
 def test_lateral_effect_is_reported_with_its_twin(tmp_path) -> None:
     """Through g_p the lateral term of s1 is s4's own first harmonic, and against the
     reference θ it is the same as the term on s3: the diagnosis reports it apart, as

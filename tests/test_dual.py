@@ -144,6 +144,7 @@ def test_null_space_of_the_dual_problem(paper_result) -> None:
         "s1.k0 - o_x", "s3.k0 - o_x", "s2.k0 - o_y", "s4.k0 - o_y"]
 
 
+@pytest.mark.slow
 def test_staged_solve_reports_every_stage() -> None:
     scenario = _paper_scenario()
     result = symcal.solve(symcal.load_problem(DUAL), _data(scenario, seed=7))
@@ -200,6 +201,7 @@ def test_cli_failed_solve_exits_1_and_prints_report(capsys) -> None:
     assert out.err == ""
 
 
+@pytest.mark.slow
 def test_cli_progress_on_stderr_and_json_on_stdout(capsys) -> None:
     assert main(["solve", str(DUAL), "--json"]) == 0
     out = capsys.readouterr()

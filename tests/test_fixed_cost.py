@@ -41,6 +41,7 @@ def test_the_command_line_module_imports_no_heavy_library() -> None:
     assert _imported_after("import symcal") == []
 
 
+@pytest.mark.slow
 def test_the_public_api_is_imported_on_first_use() -> None:
     assert "casadi" in _imported_after("import symcal\nsymcal.solve")
     assert callable(symcal.solve) and symcal.Result.__name__ == "Result"

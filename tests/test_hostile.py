@@ -69,8 +69,8 @@ def _symcal(*args: str, cwd: Path, timeout: float = 120, **kw: object
 
 # ----------------------------------------------------------------- non-regular inputs
 
-@pytest.mark.parametrize("role", ["problem", "data", *(pytest.param(r, marks=pytest.mark.slow)
-                                                 for r in ("model", "scenario", "result"))])
+@pytest.mark.parametrize("role", ["problem", *(pytest.param(r, marks=pytest.mark.slow)
+                                     for r in ("model", "data", "scenario", "result"))])
 def test_a_fifo_is_refused_without_blocking(toy: Path, role: str) -> None:
     fifo = toy / "pipe"
     os.mkfifo(fifo)
@@ -766,9 +766,8 @@ noise: {{p1: 0.2 um, p2: 0.2 um}}     # as simulated: the floor is known
     return problems / name
 
 
-@pytest.mark.parametrize("name", ["prob-v2.yaml",
-                                  pytest.param("2nd try.yaml", marks=pytest.mark.slow),
-                                  pytest.param("a.b.yaml", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["prob-v2.yaml", "2nd try.yaml", "a.b.yaml"])
 def test_improve_runs_to_the_end_whatever_the_names(tmp_path: Path, monkeypatch, capsys,
                                                      name: str) -> None:
     from symcal.language.fields import is_name
@@ -997,7 +996,8 @@ def _fleet(folder: Path, units: int = 2) -> None:
         shutil.copy(folder / "data.csv", folder / "units" / f"u{i}" / "calibration.csv")
 
 
-@pytest.mark.parametrize("server", ["silent", pytest.param("http", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("server", ["silent", "http"])
 def test_a_scheduler_address_that_does_not_speak_dask_is_refused(toy: Path,
                                                                  server: str) -> None:
     """Something listens on 127.0.0.1 but never answers Dask's handshake: refused after

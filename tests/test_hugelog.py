@@ -87,7 +87,8 @@ def _same_passes(objective: Objective, sharded, memory, theta: np.ndarray) -> No
                                objective.residual_covariance(memory, theta, 7), rtol=1e-10)
 
 
-@pytest.mark.parametrize("kind", ["parquet", "npz", "csv"])
+@pytest.mark.parametrize("kind", ["parquet", *(pytest.param(k, marks=pytest.mark.slow)
+                                              for k in ("npz", "csv"))])
 def test_passes_over_shards_equal_the_passes_in_memory(dual, tmp_path, kind) -> None:
     problem, cols, free, constraints, theta = dual
     folder = write_shards(tmp_path / kind, cols, kind)
@@ -142,6 +143,7 @@ def _signless(entry: dict) -> dict:
             "coefficients": {k: sign * v for k, v in entry["coefficients"].items()}}
 
 
+@pytest.mark.slow
 def test_a_partitioned_solve_equals_the_in_memory_solve(tmp_path) -> None:
     """solve_partitioned returns a Result like solve's (issue 21 item 3), its document the
     same to 1e-9: the estimate, standard errors, the serial correlation of the
@@ -183,6 +185,7 @@ def test_a_partitioned_solve_equals_the_in_memory_solve(tmp_path) -> None:
         symcal.Result.load(tmp_path / "r.json").check_data()
 
 
+@pytest.mark.slow
 def test_a_folder_of_shards_from_the_command_line(tmp_path, capsys) -> None:
     """symcal solve PROBLEM --data calibration=FOLDER solves the log kept as shards and
     prints the same report as for the data in one file (issue 26 item 7)."""
@@ -328,6 +331,7 @@ def test_serial_correlation_on_shards_shorter_than_its_lags(tmp_path) -> None:
     assert solve_partitioned(problem, shuffled).stages[-1].serial is None
 
 
+@pytest.mark.slow
 def test_propagated_weights_of_two_constraints_on_shards(tmp_path) -> None:
     """The dual problem's 'propagated' weighting (each observation's 2 × 2 C_i^-½ of g_x,
     g_y, computed in every pass from the noisy view, never held): the same weights'
@@ -521,6 +525,7 @@ def test_implicit_definitions_on_shards(tmp_path) -> None:
                        skip=("message", "iterations")) == []
 
 
+@pytest.mark.slow
 def test_a_log_is_diagnosed_on_its_rows_spread_over_the_whole_log(tmp_path,
                                                                     monkeypatch) -> None:
     """symcal.diagnose takes a partitioned result: a log within symcal's bound is

@@ -216,9 +216,9 @@ def test_lateral_dependence_is_not_calibratable_from_g_p() -> None:
     assert any(truth in (u["label"], *u["indistinguishable"]) for u in doc["uncalibratable"])
 
 
-@pytest.mark.parametrize(("case", "start"), [
-    ("harmonic", IMPLICIT), pytest.param("drift", IMPLICIT, marks=pytest.mark.slow),
-    pytest.param("clean", EXPLICIT, marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize(("case", "start"), [("harmonic", IMPLICIT), ("drift", IMPLICIT),
+                                             ("clean", EXPLICIT)])
 def test_predictions_are_what_solving_again_gives(case, start, tmp_path) -> None:
     """For the candidate the loop applies, the predicted spreads on every dataset,
     held-out ones included, are within 20 % of what solving again with it gives (for the
@@ -258,8 +258,8 @@ def _apply_printed(text: str, home: Path) -> Path:
     return next(p for p in files if p.parent == home)
 
 
-@pytest.mark.parametrize("case", ["drift", pytest.param("angle-dependent gain",
-                                                        marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["drift", "angle-dependent gain"])
 def test_printed_suggestions_load_and_carry_units(case, tmp_path) -> None:
     """Every printed suggestion, written literally as the comments say, loads and solves;
     coefficients carry the units of what they multiply; terms go into the error `e`."""

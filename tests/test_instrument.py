@@ -158,6 +158,7 @@ def test_staged_solve_counts_every_ipopt_stage() -> None:
     assert counts.r_passes >= len(result.stages)
 
 
+@pytest.mark.slow
 def test_default_staged_solve_counts_lm_steps() -> None:
     """By default: closed form, closed form, then lm.  The hook sees the accepted lm steps
     (no more than the trial steps the stage reports) and only the lm stage."""

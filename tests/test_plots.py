@@ -160,6 +160,7 @@ def test_save_figures_writes_every_figure_in_every_format(doc: dict, tmp_path: P
             assert data.startswith(b"%PDF")
 
 
+@pytest.mark.slow
 def test_save_figures_edge_cases(minimal: dict, tmp_path: Path) -> None:
     written = plots.save_figures(minimal, tmp_path, formats=["png"])
     assert {k: [p.name for p in v] for k, v in written.items()} == {

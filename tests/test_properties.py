@@ -43,6 +43,7 @@ def test_random_text_as_problem(tmp_path: Path, text: str) -> None:
         pass
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(doc=documents)
 def test_random_structures_as_problem_and_model(tmp_path: Path, doc: object) -> None:
@@ -161,6 +162,7 @@ magics = st.sampled_from([b"", b"\x1f\x8b", b"PK\x03\x04", b"\x93NUMPY", b"\xef\
 hostile_bytes = st.builds(lambda a, b: a + b, magics, st.binary(max_size=600))
 
 
+@pytest.mark.slow
 @CLI_SETTINGS
 @given(target=st.sampled_from(sorted(TARGETS)), pick=st.integers(0, 3), content=hostile_bytes)
 def test_random_bytes_through_every_command(capsys, target: str, pick: int,
@@ -175,6 +177,7 @@ yaml_text = st.lists(st.sampled_from(list("ab01:-[]{}&*!|>#'\", \n\t.e~%@")
                      max_size=80).map("".join)
 
 
+@pytest.mark.slow
 @CLI_SETTINGS
 @given(target=st.sampled_from(["prob.yaml", "seg.yaml", "s.yaml"]), pick=st.integers(0, 3),
        doc=st.one_of(documents.map(_yaml), yaml_text))

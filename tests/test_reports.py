@@ -320,6 +320,7 @@ def test_diagnosis_verdict_before_and_after_uncalibratable(gain: symcal.Result) 
         "determine"]
 
 
+@pytest.mark.slow
 def test_diagnosis_report_flags_the_regression(gain: symcal.Result, gain_diagnosis) -> None:
     text = diagnosis_report(gain_diagnosis)
     reg = gain.regressions[0]

@@ -121,6 +121,7 @@ def test_a_changed_data_file_is_refused(project, tmp_path) -> None:
         loaded.data  # noqa: B018 - the data are read on first use
 
 
+@pytest.mark.slow
 def test_consumers_of_a_result_never_solve_again(project, tmp_path) -> None:
     result = _solve(project["problem"], project)
     loaded = symcal.Result.load(result.save(tmp_path / "r.json"))

@@ -294,6 +294,7 @@ def _applied(folder: Path, kind: str, scale: float, data) -> symcal.Result:
     return fixed
 
 
+@pytest.mark.slow
 def test_diagnose_flags_outliers_before_missing_effects_and_its_yaml_works(slips) -> None:
     """The printed loss, applied as printed, lands within one standard error of the squared
     fit without the slipped rows (measured 0.34-0.77 on seeds 11 and 14-20 at 1 % and 5 %;

@@ -143,7 +143,8 @@ print(json.dumps([before, inside, after, sorted(set(during)), blas(), result.suc
 """
 
 
-@pytest.mark.parametrize("threads", [None, pytest.param("3", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("threads", [None, "3"])
 def test_blas_is_held_inside_symcals_passes_whatever_the_import_order(threads) -> None:
     """numpy imported before symcal, no BLAS variable set (OpenBLAS then starts one thread
     per core): inside symcal's passes and solver steps BLAS has one thread, and the

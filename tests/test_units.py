@@ -47,6 +47,7 @@ def test_unknown_and_offset_units_are_refused() -> None:
     assert units.check_unit("1000 mm") == "'1000 mm' is not a unit (it holds a number)"
 
 
+@pytest.mark.slow
 def test_import_symcal_does_not_import_pint() -> None:
     import subprocess
     import sys
