@@ -42,7 +42,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                           "diagnosis that is to detect the term, as symcal diagnose's "
                           "(default 0.01)")
     cmd.add_argument("--seed", type=int, default=0,
-                     help="seed of the poses the prediction is evaluated on (default 0)")
+                     help="seed of the poses the prediction is evaluated on, and of the noise "
+                          "of the data an mde(...) target is diagnosed on (default 0)")
     cmd.add_argument("--out", metavar="DIR",
                      help="write scenario.yaml (the designed scenario), report.txt and "
                           "motion.png to DIR")
