@@ -33,6 +33,7 @@ Rows are evaluated chunk by chunk; nothing of size N × (residuals × readings) 
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from statistics import NormalDist
@@ -41,7 +42,8 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from symcal.base.numeric import chunks, mapped
+from symcal.base import jit
+from symcal.base.numeric import Mapped, chunks, mapped
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
 
@@ -92,23 +94,40 @@ def _lower_gamma(a: float, x: float) -> float:
     return max(0.0, 1.0 - math.exp(log_front) * h)
 
 
+def _chi2_density(x: float, nu: float) -> float:
+    """The density of χ²_ν at ``x`` > 0."""
+    k = nu / 2.0
+    return math.exp((k - 1.0) * math.log(x) - x / 2.0 - k * math.log(2.0) - math.lgamma(k))
+
+
 def chi2_quantile(p: float, nu: float) -> float:
-    """The ``p`` quantile of χ²_ν (bisection on its distribution function, to 1e-12
-    relative; SciPy is not needed for a solve)."""
+    """The ``p`` quantile of χ²_ν, to 1e-12 relative (SciPy is not needed for a solve):
+    Newton's method on the distribution function from the Wilson–Hilferty
+    approximation, kept inside a bracket (bisection where a step leaves it)."""
     if nu <= 0:
         return 0.0
     lo, hi = 0.0, max(nu, 1.0)
     while _lower_gamma(nu / 2.0, hi / 2.0) < p:
-        hi *= 2.0
+        lo, hi = hi, 2.0 * hi
+    h = 2.0 / (9.0 * nu)
+    x = nu * max(1.0 - h + normal_quantile(p) * math.sqrt(h), 1e-3) ** 3
+    if not lo < x < hi:
+        x = 0.5 * (lo + hi)
     for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if _lower_gamma(nu / 2.0, mid / 2.0) < p:
-            lo = mid
+        f = _lower_gamma(nu / 2.0, x / 2.0) - p
+        if f < 0:
+            lo = x
         else:
-            hi = mid
-        if hi - lo <= 1e-12 * hi:
-            break
-    return 0.5 * (lo + hi)
+            hi = x
+        density = _chi2_density(x, nu)
+        step = f / density if density > 0 else math.inf
+        new = x - step
+        if not lo < new < hi:
+            new = 0.5 * (lo + hi)
+        if abs(new - x) <= 1e-13 * new or hi - lo <= 1e-12 * hi:
+            return new
+        x = new
+    return x
 
 
 def chi2_band(nu: float, level: float = LEVEL) -> tuple[float, float]:
@@ -328,8 +347,27 @@ def _entries(problem: Problem, ds: Dataset) -> _Entries:
     return out
 
 
+#: Per problem (while it lives): the propagation functions built for it, by what they
+#: evaluate (the entries' names and the free parameters): repeated solves reuse them.
+_BUILT: weakref.WeakKeyDictionary[Problem, dict[tuple[object, ...], _Propagation]] = \
+    weakref.WeakKeyDictionary()
+
+
+def _propagation(problem: Problem, names: tuple[str, ...], exprs: list[ca.SX],
+                 free: np.ndarray) -> _Propagation:
+    """The :class:`_Propagation` of ``exprs`` (named ``names``: the same names of one
+    problem are the same expressions), built once per problem."""
+    built = _BUILT.setdefault(problem, {})
+    key = (names, np.asarray(free, dtype=bool).tobytes())
+    if key not in built:
+        built[key] = _Propagation(problem, exprs, free)
+    return built[key]
+
+
 class _Propagation:
-    """Per observation: the residuals, ``L = ∂r/∂ε·diag(σ)`` and ``J = ∂r/∂θ_free``."""
+    """Per observation: the residuals, ``L = ∂r/∂ε·diag(σ)`` and ``J = ∂r/∂θ_free``; the
+    residuals alone by a function of their own.  Each pass evaluates the compiled twin
+    when it pays (:func:`symcal.base.jit.select`: the same bits)."""
 
     def __init__(self, problem: Problem, exprs: list[ca.SX], free: np.ndarray) -> None:
         noisy = problem.noisy
@@ -344,6 +382,8 @@ class _Propagation:
             else ca.SX(self.n_e, 0)
         outs = [e, jac_eps.T, ca.jacobian(e, theta_free).T]
         self.fn = mapped(noisy.theta, ca.vertcat(noisy.u, eps), outs, "noise")
+        self.plain: Mapped = mapped(noisy.theta, ca.vertcat(noisy.u, eps), [e],
+                                    "noise_residuals")
         self.columns = noisy.columns
 
     def rows(self, ds: Dataset, theta: np.ndarray
@@ -351,11 +391,12 @@ class _Propagation:
         """``(rows, r, L, J)`` chunk by chunk: ``r`` m × n_e, ``L`` m × n_e × n_ε, ``J``
         m × n_e × n_p."""
         u = ds.matrix(self.columns)
+        fn = jit.select(self.fn, ds.n)
         for part in chunks(ds.n):
             block = u[:, part]
             m = block.shape[1]
             ext = np.vstack([block, np.zeros((self.n_eps, m))])
-            r, lt, jt = self.fn.chunk(theta, ext)
+            r, lt, jt = fn.chunk(theta, ext)
             yield (part, r, lt.reshape(m, self.n_e, self.n_eps),
                    jt.reshape(m, self.n_e, self.n_p))
 
@@ -363,7 +404,7 @@ class _Propagation:
         """The residuals of the observations ``part`` at ``theta`` (m × n_e)."""
         block = ds.matrix(self.columns)[:, part]
         ext = np.vstack([block, np.zeros((self.n_eps, block.shape[1]))])
-        return self.fn.chunk(theta, ext)[0]
+        return jit.select(self.plain, block.shape[1]).chunk(theta, ext)[0]
 
 
 def _pinv_rows(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -393,13 +434,23 @@ def row_covariances(problem: Problem, constraints: tuple[str, ...], ds: Dataset,
     noisy = problem.noisy
     quantities = [noisy.constraint(n) for n in constraints]
     sigma = np.array([q.sigma for q in quantities])
-    prop = _Propagation(problem, [q.sx for q in quantities],
+    prop = _propagation(problem, ("covariances", *constraints), [q.sx for q in quantities],
                         np.zeros(len(problem.parameters), dtype=bool))
     out = np.empty((ds.n, len(constraints), len(constraints)))
     for part, _, lmat, _ in prop.rows(ds, theta):
         lmat = lmat / sigma[None, :, None]
-        out[part] = np.einsum("mae,mbe->mab", lmat, lmat)
+        out[part] = _gram(lmat)
     return out
+
+
+def _gram(lmat: np.ndarray) -> np.ndarray:
+    """Per row, ``L Lᵀ`` (m × n × k → m × n × n)."""
+    return np.einsum("mae,mbe->mab", lmat, lmat)
+
+
+def _sandwich(left: np.ndarray, middle: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """Per row, ``left · middle · rightᵀ`` (m × a × p, p × q, m × b × q → m × a × b)."""
+    return (left @ middle) @ np.swapaxes(right, 1, 2)
 
 
 def _weights(fit: Fit, c: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -431,15 +482,16 @@ def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray
         return None
     noisy = problem.noisy
     sigma = np.array([q.sigma for q in quantities])
-    prop = _Propagation(problem, [noisy.constraint(n).sx for n in fit.constraints], fit.free)
+    prop = _propagation(problem, ("share", *fit.constraints),
+                        [noisy.constraint(n).sx for n in fit.constraints], fit.free)
     n_p = prop.n_p
     a, b = np.zeros((n_p, n_p)), np.zeros((n_p, n_p))
     for _, _, lmat, jac in prop.rows(ds, theta):
-        c = np.einsum("mae,mbe->mab", lmat, lmat)
+        c = _gram(lmat)
         w = _weights(fit, c, sigma)
-        wj = np.einsum("mab,mbp->map", w, jac)
-        a += np.einsum("map,maq->pq", jac, wj)
-        b += np.einsum("map,mab,mbq->pq", wj, c, wj)
+        wj = w @ jac
+        a += jac.reshape(-1, n_p).T @ wj.reshape(-1, n_p)
+        b += wj.reshape(-1, n_p).T @ (c @ wj).reshape(-1, n_p)
     if n_p == 0:
         return _Estimate(a, b)
     vals, vecs = np.linalg.eigh(a)
@@ -525,7 +577,7 @@ def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
                    share: _Estimate | None, theta0: np.ndarray | None = None
                    ) -> tuple[dict[str, FloorTest], DatasetTest]:
     entries = _entries(problem, ds)
-    prop = _Propagation(problem, entries.exprs, fit.free)
+    prop = _propagation(problem, ("entries", *entries.names), entries.exprs, fit.free)
     fitted = [entries.names.index(n) for n in fit.constraints] \
         if ds.name == fit.dataset else []
     cons = [k for k, kind in enumerate(entries.kinds) if kind == "constraint"]
@@ -536,7 +588,7 @@ def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
     use_share = share is not None and prop.n_p > 0
     before = [_Sums() for _ in entries.names]
     for part, r, lmat, jac in prop.rows(ds, theta):
-        c = np.einsum("mae,mbe->mab", lmat, lmat)
+        c = _gram(lmat)
         if theta0 is not None:
             r0 = prop.residuals(ds, theta0, part)
             for k, s in enumerate(before):
@@ -545,11 +597,11 @@ def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
         x = None
         if use_share:
             assert share is not None
-            expect += np.einsum("map,pq,mbq->mab", jac, share.cov, jac)
+            expect += _sandwich(jac, share.cov, jac)
             if fitted:
                 w = _weights(fit, c[:, fitted][:, :, fitted], sigma_f)
-                x = np.einsum("maf,mfg,mgp->map", c[:, :, fitted], w, jac[:, fitted, :])
-                xa = np.einsum("map,pq,mbq->mab", x, share.a_pinv, jac)
+                x = (c[:, :, fitted] @ w) @ jac[:, fitted, :]
+                xa = _sandwich(x, share.a_pinv, jac)
                 expect -= xa + np.transpose(xa, (0, 2, 1))
         if joint_ok:
             sub = np.ix_(range(c.shape[0]), cons, cons)
