@@ -33,7 +33,6 @@ Rows are evaluated chunk by chunk; nothing of size N × (residuals × readings) 
 from __future__ import annotations
 
 import math
-import weakref
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from statistics import NormalDist
@@ -43,7 +42,7 @@ import casadi as ca
 import numpy as np
 
 from symcal.base import jit
-from symcal.base.numeric import Mapped, chunks, mapped
+from symcal.base.numeric import Mapped, chunks, mapped, owned
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
 
@@ -324,6 +323,12 @@ class _Entries:
 
 
 def _entries(problem: Problem, ds: Dataset) -> _Entries:
+    """The entries of ``ds`` (built once per problem, dataset name and columns)."""
+    key = ("floor entries", ds.name, frozenset(ds.columns))
+    return owned(problem, key, lambda: _build_entries(problem, ds))
+
+
+def _build_entries(problem: Problem, ds: Dataset) -> _Entries:
     noisy = problem.noisy
     out = _Entries()
     comparisons = {c.name: c for c in noisy.comparisons}
@@ -347,21 +352,12 @@ def _entries(problem: Problem, ds: Dataset) -> _Entries:
     return out
 
 
-#: Per problem (while it lives): the propagation functions built for it, by what they
-#: evaluate (the entries' names and the free parameters): repeated solves reuse them.
-_BUILT: weakref.WeakKeyDictionary[Problem, dict[tuple[object, ...], _Propagation]] = \
-    weakref.WeakKeyDictionary()
-
-
 def _propagation(problem: Problem, names: tuple[str, ...], exprs: list[ca.SX],
                  free: np.ndarray) -> _Propagation:
     """The :class:`_Propagation` of ``exprs`` (named ``names``: the same names of one
     problem are the same expressions), built once per problem."""
-    built = _BUILT.setdefault(problem, {})
-    key = (names, np.asarray(free, dtype=bool).tobytes())
-    if key not in built:
-        built[key] = _Propagation(problem, exprs, free)
-    return built[key]
+    key = ("floors", names, np.asarray(free, dtype=bool).tobytes())
+    return owned(problem, key, lambda: _Propagation(problem, exprs, free))
 
 
 class _Propagation:
@@ -449,8 +445,10 @@ def _gram(lmat: np.ndarray) -> np.ndarray:
 
 
 def _sandwich(left: np.ndarray, middle: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """Per row, ``left · middle · rightᵀ`` (m × a × p, p × q, m × b × q → m × a × b)."""
-    return (left @ middle) @ np.swapaxes(right, 1, 2)
+    """Per row, ``left · middle · rightᵀ`` (m × a × p, p × q, m × b × q → m × a × b): the
+    first product as one matrix product over all rows."""
+    m, a, p = left.shape
+    return (left.reshape(m * a, p) @ middle).reshape(m, a, -1) @ np.swapaxes(right, 1, 2)
 
 
 def _weights(fit: Fit, c: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -644,14 +642,15 @@ def _accumulate(s: _Sums, k: int, r: np.ndarray, c: np.ndarray, expect: np.ndarr
     s.r2 += float(np.sum(rk * rk))
     s.d += float(d.sum())
     s.wd += float(np.sum(w * expect[:, k, k]))
-    if share is not None:
+    if share is not None:     # sums over the rows as products (a strided sum is slow)
         jk = jac[:, k, :]
+        ones = np.ones(len(rk))
         s.add_vectors("wj", w @ jk)
-        s.add_vectors("j", jk.sum(axis=0))
+        s.add_vectors("j", ones @ jk)
         if x is not None:
             xk = x[:, k, :]
             s.add_vectors("wxv", w @ xk)
-            s.add_vectors("x", xk.sum(axis=0))
+            s.add_vectors("x", ones @ xk)
     if len(rk):
         first = float(rk[0])
         if s.last is not None:
