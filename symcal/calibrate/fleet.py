@@ -301,7 +301,7 @@ def solve_units(tasks: tuple[UnitTask, ...]) -> list[dict[str, Any]]:
 
 #: Batches per worker: units are sent in batches, so that a quick unit does not pay a
 #: task's round trip of its own, and several per worker, so that the load stays balanced.
-BATCHES_PER_WORKER = 4
+BATCHES_PER_WORKER = 12
 
 
 def batches(units: list[str], workers: int) -> list[list[str]]:
