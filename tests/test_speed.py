@@ -349,3 +349,57 @@ def test_qr_of_a_block_with_nan_is_not_finite_and_does_not_raise(rows) -> None:
                                atol=1e-12 * np.abs(r).max())
     block[rows // 2, 3] = np.nan
     assert not np.all(np.isfinite(passes._qr_r(block)))
+
+
+# ------------------------------------------------------------------ the analysis around a solve
+
+
+def test_a_repeated_solve_builds_nothing_again_and_finds_the_same(monkeypatch) -> None:
+    """The second solve of one problem on the same data reuses the analysis' functions
+    (series statistics, noise floors: one object per problem and dataset layout) and its
+    Result is the same document, every number equal, as the first's."""
+    from symcal.analysis import fit, floors
+    from symcal.base import numeric
+
+    problem = symcal.load_problem(ROOT / "problems" / "platen_self_calibration.yaml")
+    first = symcal.solve(problem)
+    kept = dict(numeric._OWNED[problem])
+    assert any(k[0] == "series" for k in kept) and any(k[0] == "floors" for k in kept)
+    built: list[str] = []
+
+    def counted(theta, u, outputs, name="f"):  # type: ignore[no-untyped-def]
+        built.append(name)
+        return numeric.mapped(theta, u, outputs, name)
+
+    monkeypatch.setattr(fit, "mapped", counted)
+    monkeypatch.setattr(floors, "mapped", counted)
+    second = symcal.solve(problem, dict(first.data))
+    assert built == []
+    assert all(numeric._OWNED[problem][k] is v for k, v in kept.items())
+    one, two = first.to_dict(), second.to_dict()
+    for doc in (one, two):
+        doc.pop("solver")
+        doc.pop("datasets")          # the first simulated them, the second was given them
+        for stage in doc["stages"]:
+            stage.pop("seconds")
+    assert one == two
+
+
+def test_hac_meat_of_a_solve_equals_the_lag_by_lag_sum() -> None:
+    """The window-sum form of the Newey-West meat equals the sum over lags (the form it
+    replaced) on a real fit's per-row scores, whatever the chunking."""
+    from symcal.analysis.serial import hac_meat
+
+    problem, _, data, objective = _dual_objective(3_000)
+    theta = np.array([p.value for p in problem.parameters])
+    scores = np.vstack(list(objective.score_chunks(data, theta)))
+    for lags in (1, 7, 40):
+        direct = scores.T @ scores
+        for lag in range(1, lags + 1):
+            cross = scores[:-lag].T @ scores[lag:]
+            direct += (1 - lag / (lags + 1)) * (cross + cross.T)
+        for size in (500, 3_000):
+            parts = (scores[i:i + size] for i in range(0, len(scores), size))
+            got = hac_meat(parts, lags, scores.shape[1])
+            np.testing.assert_allclose(got, direct, rtol=1e-11,
+                                       atol=1e-13 * np.abs(direct).max())
