@@ -403,3 +403,29 @@ def test_hac_meat_of_a_solve_equals_the_lag_by_lag_sum() -> None:
             got = hac_meat(parts, lags, scores.shape[1])
             np.testing.assert_allclose(got, direct, rtol=1e-11,
                                        atol=1e-13 * np.abs(direct).max())
+
+
+def test_a_simulated_dataset_reuses_its_scenario_until_a_file_changes(tmp_path) -> None:
+    """The scenario of a problem's simulated datasets is parsed once per process and
+    parsed again when it, or a file it extends, changes; the data are those of a fresh
+    load either way."""
+    import shutil
+
+    from symcal.data import loading
+    from symcal.simulation import load_scenario, simulate_run
+
+    source = ROOT / "problems" / "scenarios" / "courier_platen.yaml"
+    base = tmp_path / "base.yaml"
+    shutil.copy(source, base)
+    top = tmp_path / "top.yaml"
+    top.write_text("scenario: top\nextends: base.yaml\n", encoding="utf-8")
+    first = loading.scenario(top)
+    assert loading.scenario(top) is first
+    np.testing.assert_array_equal(
+        simulate_run(first, "flyby", seed=2)["t"],
+        simulate_run(load_scenario(top), "flyby", seed=2)["t"])
+    text = base.read_text(encoding="utf-8")
+    base.write_text(text.replace("scenario:", "# changed\nscenario:", 1), encoding="utf-8")
+    again = loading.scenario(top)
+    assert again is not first
+    assert loading.scenario(top) is again
