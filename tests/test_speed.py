@@ -429,3 +429,47 @@ def test_a_simulated_dataset_reuses_its_scenario_until_a_file_changes(tmp_path) 
     again = loading.scenario(top)
     assert again is not first
     assert loading.scenario(top) is again
+
+
+def test_a_function_is_compiled_once_across_processes(empty_cache, monkeypatch) -> None:
+    """While another process holds the claim on a cache entry, a process waits for its
+    library instead of compiling the same function again; a claim left by a killed
+    process (older than BUILD_WAIT) is taken over."""
+    import os
+    import threading
+    import time
+
+    jit = empty_cache
+    if jit.compiler() is None:
+        pytest.skip("no C compiler")
+    fn = _function("claimed_twin")
+    cc = jit.compiler()
+    target = jit.cache_dir() / f"{jit._key(fn.serialized(), cc)}.so"
+    lock = target.with_suffix(".building")
+    assert jit._claim(lock)                              # "another process" builds
+    builds: list[str] = []
+    original = jit._build
+
+    def counted(source, name, compiler, where):  # type: ignore[no-untyped-def]
+        builds.append(name)
+        original(source, name, compiler, where)
+
+    monkeypatch.setattr(jit, "_build", counted)
+    got: list[object] = []
+    waiter = threading.Thread(target=lambda: got.append(jit.compiled(fn.fn, fn.serialized())))
+    waiter.start()
+    time.sleep(0.3)
+    assert waiter.is_alive() and not builds              # it waits, it does not compile
+    original(jit._source(fn.fn), fn.fn.name(), cc, target)   # the other process's entry
+    lock.unlink()
+    waiter.join(timeout=60)
+    assert got and got[0] is not None and builds == []
+    # an abandoned claim is taken over
+    other = _function("abandoned_twin")
+    target = jit.cache_dir() / f"{jit._key(other.serialized(), cc)}.so"
+    stale = target.with_suffix(".building")
+    stale.write_text("")
+    old = time.time() - 2 * jit.BUILD_WAIT
+    os.utime(stale, (old, old))
+    assert jit.compiled(other.fn, other.serialized()) is not None
+    assert builds == ["abandoned_twin"] and not stale.exists()
