@@ -36,6 +36,9 @@ POWER = 0.8             # the power at which a minimal detectable effect is stat
 TERM = 1e-3             # the RMS of a term whose scaled coefficients are 1 (Basis.scales)
 INDISTINGUISHABLE = 0.98  # canonical correlation above which candidates are one group
 EQUAL = 0.95              # a simpler member leads a group if it explains this much as well
+#: Kinds of candidate that are not a term added to one output: their label is their
+#: description alone ("the constant rho (platen tooth pitch) is off").
+STANDALONE = ("approximation", "constant", "fixed", "latency")
 
 
 @dataclass(frozen=True)
@@ -43,7 +46,7 @@ class Basis:
     """φ(v): the shape of a candidate term, with what it takes to write it in YAML."""
 
     kind: str                  # harmonic | linear | quadratic | angle_harmonic | drift |
-                               # approximation
+                               # product | latency | constant | fixed | approximation
     variable: str              # the variable's name in the problem (column, signal, expr)
     description: str           # e.g. "harmonic 3 of s2.p (period 1.016 mm)"
     columns: tuple[str, ...]   # coefficient names, e.g. ("h3_sin", "h3_cos")
@@ -57,12 +60,21 @@ class Basis:
     scales: tuple[float, ...] = ()  # coefficients giving terms of about 1 µm (internal)
     period: float = 0.0        # the period of a harmonic, in internal units
     centre: float = 0.0        # the centre of a linear or quadratic term, internal units
+    # a product of two variables, ``({v} - {centre})*({w} - {other_centre})``:
+    other: str | None = None   # the second variable's name in the problem
+    other_unit: str = ""       # its display unit
+    other_centre: float = 0.0  # its centre, internal units
+    # ``constant``: the constants (keys of Problem.constants) made into ONE parameter
+    # started at their common value; ``fixed``: the fixed parameter freed (its name);
+    # ``latency``: the instance whose readings lag (variable) and the columns it reads
+    targets: tuple[str, ...] = ()
 
     @property
     def complexity(self) -> tuple[int, int]:
         """How simple the shape is: linear and drift before harmonics (by number) before
         quadratic before angle products."""
-        rank = {"approximation": 0, "linear": 1, "drift": 1, "harmonic": 2, "quadratic": 3,
+        rank = {"approximation": 0, "constant": 0, "fixed": 0, "linear": 1, "drift": 1,
+                "latency": 1, "harmonic": 2, "quadratic": 3, "product": 4,
                 "angle_harmonic": 4}
         return rank.get(self.kind, 5), self.order
 
@@ -92,7 +104,7 @@ class Candidate:
     def label(self) -> str:
         """E.g. ``"s1.p_hat += harmonic 1 of s2.p"`` (the description alone for the model's
         own approximation)."""
-        if self.basis.kind == "approximation":
+        if self.basis.kind in STANDALONE:
             return self.basis.description
         return f"{self.output} += {self.basis.description}"
 
