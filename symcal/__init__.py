@@ -18,6 +18,7 @@ The whole product, by public name (imported on first use)::
     symcal.export(problem, "firmware", result)          # C of the calibrated model
     symcal.simulate(symcal.load_scenario("scenario.yaml"), seed=1)
     symcal.solve_fleet(problem, "fleet"); symcal.solve_partitioned(problem, "shards")
+    symcal.solve(problem, progress=print, bars=symcal.terminal_bars())  # any long call
 
 In a notebook, a :class:`Result` and a :class:`Diagnosis` display their report.
 """
@@ -61,10 +62,12 @@ _LAZY = {
     "json_report": ("symcal.report.text", "json_report"),
     "diagnosis_report": ("symcal.report.text", "diagnosis_report"),
     "ladder_report": ("symcal.report.ladder", "ladder_report"),
+    "terminal_bars": ("symcal.base.progress", "terminal_bars"),
 }
 
 if _TYPE_CHECKING:
     from symcal.base.options import SolveOptions
+    from symcal.base.progress import terminal_bars
     from symcal.calibrate.fleet import FleetResult, solve_fleet
     from symcal.calibrate.partitioned import solve_partitioned
     from symcal.calibrate.result import Result
@@ -107,6 +110,6 @@ __all__ = [
     "SolveError", "SolveOptions", "SpecError", "SymcalError", "codegen", "compare", "design",
     "diagnose", "diagnosis_report", "improve", "json_report", "ladder_report",
     "load_datasets", "load_problem", "load_scenario", "open_shards", "predict", "read_table",
-    "simulate", "solve", "solve_fleet", "solve_partitioned", "text_report",
+    "simulate", "solve", "solve_fleet", "solve_partitioned", "terminal_bars", "text_report",
 ]
 __version__ = "0.1.0"

@@ -71,7 +71,7 @@ def test_spec_error_exit_2_no_traceback(tmp_path, monkeypatch, capsys) -> None:
         "symcal: error: bad.yaml:3: constraint: unknown key 'constraint' (did you mean "
         "'constraints'?); allowed keys: problem, constraints, datasets, instances, doc, "
         "extends, constants, parameters, columns, expressions, comparisons, stages, "
-        "weighting, implicit, solver, noise\n")
+        "weighting, implicit, solver, noise, candidates\n")
 
 
 def test_unknown_dataset_override(csvs, capsys) -> None:

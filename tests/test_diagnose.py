@@ -154,7 +154,7 @@ def test_cli_diagnose_json_plots_report(tmp_path, capsys) -> None:
     doc = json.loads(capsys.readouterr().out)
     assert doc["candidates"][0]["label"] == CASES["extra 3rd harmonic in s2"][1]
     assert doc["candidates"][0]["significant"] is True
-    assert doc["candidates"][0]["yaml"].startswith("# models/platen_segment_h3_p.yaml")
+    assert doc["candidates"][0]["yaml"].startswith("# models/platen_segment_p_hat_h3_p.yaml")
     g_p = next(r for r in doc["residuals"] if r["dataset"] == "calibration"
                and r["name"] == "g_p")
     assert g_p["periodogram"]["peak"]["text"] == "3 cycles per period of s2.p"

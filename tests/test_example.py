@@ -38,11 +38,11 @@ def test_walkthrough(capsys, tmp_path, monkeypatch) -> None:
     table = re.search(r"^ +1  (.*)$", out, re.MULTILINE).group(1)
     assert table.startswith("s2.p_hat += harmonic 3 of s2.p (period 1.016 mm)")
     assert table.split()[0] + " " + " ".join(table.split()[1:9]) in readme
-    shipped = (EXAMPLE / "models" / "platen_segment_h3_p.yaml").read_text()
+    shipped = (EXAMPLE / "models" / "platen_segment_p_hat_h3_p.yaml").read_text()
     suggested = out.split("To add it:\n", 1)[1].split("\n\n", 1)[0]
     suggested_lines = [ln[7:] for ln in suggested.splitlines()[1:]]
     assert "\n".join(suggested_lines) + "\n" == shipped
-    overlay = out.split("# basic_s2_h3.yaml (beside problem.yaml): the problem with it\n",
+    overlay = out.split("# basic_s2_p_hat_h3_p.yaml (beside problem.yaml): the problem with it\n",
                         1)[1].split("\n\n", 1)[0]
     assert "\n".join(ln[7:] for ln in overlay.splitlines()) + "\n" == (
         EXAMPLE / "problem_revised.yaml").read_text()

@@ -410,10 +410,14 @@ NO_LATERAL = """problem: dual_no_lateral
 extends: {root}/problems/dual_sensor_calibration_implicit.yaml
 doc: the implicit dual problem without the lateral terms of eq. (9)
 instances:
-  s1: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}}}}
-  s2: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}}}}
-  s3: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}}}}
-  s4: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}}}}
+  s1: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s2.p, s2.u, s4.p, s4.u]}}}}
+  s2: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s1.p, s1.u, s3.p, s3.u]}}}}
+  s3: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s2.p, s2.u, s4.p, s4.u]}}}}
+  s4: {{model: {root}/models/platen_segment_implicit.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s1.p, s1.u, s3.p, s3.u]}}}}
 expressions: {{tx: null, ty: null, tt: null}}
 implicit: null
 """
@@ -421,10 +425,14 @@ NO_LATERAL_EXPLICIT = """problem: dual_no_lateral_explicit
 extends: {root}/problems/dual_sensor_calibration.yaml
 doc: the dual problem without the lateral terms of eq. (9)
 instances:
-  s1: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}}}}
-  s2: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}}}}
-  s3: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}}}}
-  s4: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}}}}
+  s1: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s2.p, s2.u, s4.p, s4.u]}}}}
+  s2: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s1.p, s1.u, s3.p, s3.u]}}}}
+  s3: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s2.p, s2.u, s4.p, s4.u]}}}}
+  s4: {{model: {root}/models/platen_segment.yaml, inputs: {{q: null}},
+       candidates: {{variables: [p, u, t, theta_raw, s1.p, s1.u, s3.p, s3.u]}}}}
 """
 
 
@@ -437,14 +445,16 @@ def test_lateral_dependence_in_the_dual_problem_is_found_and_fixed(start, seed,
     the same effect shows in the four sibling segments, so a round adds it to each that
     shows it (its harmonic of the perpendicular pair's reading; starting explicit, the
     model's own approximation first); quiet at the floor on the calibration and the
-    fly-by in 2 rounds at most, each coefficient within 3 standard errors of eq. (9)."""
+    fly-by in 3 rounds at most (issue 23's acceptance; a sibling whose term leads another
+    instance's group waits for the next round), each coefficient within 3 standard errors
+    of eq. (9)."""
     first = tmp_path / "no_lateral.yaml"
     text = NO_LATERAL if start == "implicit" else NO_LATERAL_EXPLICIT
     first.write_text(text.format(root=ROOT.as_posix()))
     scenario = load_scenario(PROBLEMS / "scenarios" / "courier_dual_clean.yaml")
     data = _data(scenario, seed=seed)
     result = improve(first, tmp_path / "out", data, max_rounds=3)
-    assert result.quiet and len(result.rounds) - 1 <= 2, [r.added for r in result.rounds]
+    assert result.quiet and len(result.rounds) - 1 <= 3, [r.added for r in result.rounds]
     added = " ".join(r.added or "" for r in result.rounds)
     for term in ("s1.p_hat += harmonic 1 of s4.u", "s2.p_hat += harmonic 1 of s1.u",
                  "s3.p_hat += harmonic 1 of s2.u", "s4.p_hat += harmonic 1 of s3.u"):

@@ -251,10 +251,10 @@ def test_hidden_effect_revision_swaps_one_model() -> None:
     home = ROOT / "examples" / "hidden_effect"
     revised, basic = merged(home / "problem_revised.yaml"), merged(home / "problem.yaml")
     assert revised["instances"].pop("s2") == {
-        "model": "models/platen_segment_h3_p.yaml", "inputs": {"p": "p2"}, "doc": "y segment"}
+        "model": "models/platen_segment_p_hat_h3_p.yaml", "inputs": {"p": "p2"}, "doc": "y segment"}
     basic["instances"].pop("s2")
     assert _absolute_paths(revised, home) == _absolute_paths(basic, home) | {
-        "problem": "basic_s2_h3",
+        "problem": "basic_s2_p_hat_h3_p",
         "doc": "basic plus s2.p_hat += harmonic 3 of s2.p (period 1.016 mm)"}
 
 
@@ -363,7 +363,11 @@ def test_a_value_that_is_not_a_mapping_replaces_the_base(toy: Path) -> None:
     _write(toy, {"a.yaml": "problem: a\ncolumns: courier\nconstants: {x: 1}\n",
                  "b.yaml": "problem: b\nextends: a.yaml\ncolumns: {p1: {unit: mm}}\n",
                  "c.yaml": "problem: c\nextends: b.yaml\ncolumns: courier\nconstants: [1]\n"})
-    assert merged(toy / "b.yaml")["columns"] == {"p1": {"unit": "mm"}}
+    # columns over a preset add to (or replace) the preset's columns, one by one
+    columns = merged(toy / "b.yaml")["columns"]
+    assert columns["p1"] == {"unit": "mm"} and columns["t"]["role"] == "time"
+    assert list(columns) == ["t", "p1", "p2", "p3", "p4", "psi_x", "psi_y", "x_ref", "y_ref",
+                             "theta_ref"]
     assert merged(toy / "c.yaml")["columns"] == "courier"
     assert merged(toy / "c.yaml")["constants"] == [1]
 

@@ -22,7 +22,7 @@ def test_the_python_recipe_runs_as_written(monkeypatch, capsys) -> None:
     monkeypatch.chdir(ROOT)
     namespace: dict[str, object] = {}
     blocks = _blocks()
-    assert len(blocks) == 6
+    assert len(blocks) == 7
     for block in blocks:
         exec(compile(block, str(RECIPE), "exec"), namespace)  # noqa: S102 - our own doc
     out = capsys.readouterr().out

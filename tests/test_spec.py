@@ -68,7 +68,7 @@ def test_valid_files_load(tmp_path: Path, monkeypatch) -> None:
     (MODEL.replace("parameters:", "paramters:"), PROBLEM,
      "seg.yaml:6: paramters: unknown key 'paramters' (did you mean 'parameters'?); allowed "
      "keys: model, doc, extends, constants, inputs, parameters, expressions, outputs, "
-     "implicit"),
+     "implicit, candidates"),
     (MODEL.replace("k0: {value: 0", "k0: {valu: 0"), PROBLEM,
      "seg.yaml:7: parameters.k0.valu: unknown key 'valu' (did you mean 'value'?); allowed keys: "
      "value, unit, lower, upper, fixed, scale, doc"),

@@ -403,6 +403,16 @@ def test_hac_meat_of_a_solve_equals_the_lag_by_lag_sum() -> None:
             got = hac_meat(parts, lags, scores.shape[1])
             np.testing.assert_allclose(got, direct, rtol=1e-11,
                                        atol=1e-13 * np.abs(direct).max())
+    # a piece with fewer rows than lags (a short shard of a partitioned log)
+    for rows, lags in ((3, 40), (1, 7), (40, 40)):
+        few = scores[:rows]
+        direct = few.T @ few
+        for lag in range(1, min(lags, rows - 1) + 1):
+            cross = few[:-lag].T @ few[lag:]
+            direct += (1 - lag / (lags + 1)) * (cross + cross.T)
+        got = hac_meat(iter([few[:2], few[2:]]), lags, few.shape[1])
+        np.testing.assert_allclose(got, direct, rtol=1e-11,
+                                   atol=1e-13 * np.abs(direct).max())
 
 
 def test_a_simulated_dataset_reuses_its_scenario_until_a_file_changes(tmp_path) -> None:

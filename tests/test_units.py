@@ -321,16 +321,17 @@ def test_derived_units_of_candidate_effects_load_and_check(solved, tmp_path: Pat
                                              "cos(2*pi*{v}/{period})"), unit="deg",
                                             scales=(0.001, 0.001), period=2 * math.pi))
     text = effects.suggestion(problem, linear).model_text("lin.yaml")
-    # the coefficient: the output's internal unit per the variable's; the centre in rad
-    assert "lin_q: {value: 0, unit: mm/rad, scale: 0.01}" in text
+    # the coefficient: the output's declared unit (m) per the variable's, an angle in rad;
+    # its scale (0.01 mm/rad internal) in that unit; the centre in rad
+    assert "lin_q: {value: 0, unit: m/rad, scale: 1e-05}" in text
     assert f"c_lin_q: {{value: {centre:g}, unit: rad}}" in text
     assert "e: base.e + lin_q*(v_q - c_lin_q)" in text
     assert "v_q: {doc: bound to q in the problem, unit: rad}" in text
-    assert "drift_t: {value: 0, unit: mm/s, scale: 0.001}" in \
+    assert "drift_t: {value: 0, unit: m/s, scale: 1e-06}" in \
         effects.suggestion(problem, drift).model_text("lin.yaml")
-    assert "P_h1_q: {value: 6.28319, unit: rad}" in \
+    assert "P_h1_q: {value: 6.28318530718, unit: rad}" in \
         effects.suggestion(problem, harmonic).model_text("enc.yaml")
     for k, cand in enumerate((linear, drift, harmonic)):
         revised = effects.revised_problem(problem, cand, tmp_path / str(k))
         added = [p for p in revised.parameters if p.name not in problem.index]
-        assert [p.unit for p in added] == {0: ["mm/rad"], 1: ["mm/s"], 2: ["rad", "rad"]}[k]
+        assert [p.unit for p in added] == {0: ["m/rad"], 1: ["m/s"], 2: ["deg", "deg"]}[k]

@@ -22,20 +22,21 @@ regressor with each column scaled to a term of RMS one unit (:attr:`Basis.scales
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
 import scipy.stats
 
-from symcal.base.linalg import range_basis
+from symcal.base.linalg import rank_tolerance
 
 ABSORBED = 1e-3         # projected norm below this share of the raw norm: absorbed
 POWER = 0.8             # the power at which a minimal detectable effect is stated
 TERM = 1e-3             # the RMS of a term whose scaled coefficients are 1 (Basis.scales)
 INDISTINGUISHABLE = 0.98  # canonical correlation above which candidates are one group
 EQUAL = 0.95              # a simpler member leads a group if it explains this much as well
+EXACT_FIT = 1e-6          # a residual sum of squares left below this share: an exact fit
 #: Kinds of candidate that are not a term added to one output: their label is their
 #: description alone ("the constant rho (platen tooth pitch) is off").
 STANDALONE = ("approximation", "constant", "fixed", "latency")
@@ -68,6 +69,9 @@ class Basis:
     # started at their common value; ``fixed``: the fixed parameter freed (its name);
     # ``latency``: the instance whose readings lag (variable) and the columns it reads
     targets: tuple[str, ...] = ()
+    # the RMS of the term (internal units of what it changes) when every coefficient is
+    # its scale; for constant, fixed and latency, the scale itself (the coefficient's size)
+    term: float = 1e-3
 
     @property
     def complexity(self) -> tuple[int, int]:
@@ -99,6 +103,7 @@ class Candidate:
     indistinguishable: list[str] = field(default_factory=list)
     q: np.ndarray | None = field(default=None, repr=False)
     mde: float | None = None     # the minimal detectable term's RMS, internal units
+    reopens: str = ""            # why it is never proposed: it re-opens a gauge
 
     @property
     def label(self) -> str:
@@ -117,59 +122,194 @@ class Design:
     nuisance: np.ndarray                # (M, k)
     nuisance_names: tuple[str, ...]
     blocks: tuple[tuple[str, slice, np.ndarray, tuple[str, ...], tuple[float, ...]], ...]
-    # (dataset, rows, unwhitening matrix (n_q × rank), quantity names, display scales)
+    # (dataset, rows, unwhitening per observation (N × n_q × rank), quantity names,
+    #  display scales)
+
+
+def _orthonormal(x: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of the columns of ``x`` (numerically independent ones): the
+    SVD of its small R factor, so that the tall matrix is touched by one QR only."""
+    if x.shape[1] == 0:
+        return x
+    q, r = np.linalg.qr(x)
+    u, s, _ = np.linalg.svd(r)
+    keep = s > 1e-8 * s[0] if s.size and s[0] > 0 else np.zeros(s.shape, dtype=bool)
+    return q @ u[:, keep]
+
+
+def _project(x: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``x`` with the span of the orthonormal ``q`` removed."""
+    return x - q @ (q.T @ x) if q.shape[1] else x
+
+
+def redundant_columns(design: Design, x: np.ndarray) -> list[int]:
+    """The columns of a candidate's regressor (M × m) that add nothing on their own: each
+    absorbed by the nuisance (a quadratic's linear part where the sensor's gain already
+    is), or explaining the residual exactly (re-opening a gauge).  A term written without
+    them is the same hypothesis without a parameter the data cannot determine."""
+    if x.shape[1] < 2:
+        return []
+    qn = _basis(design)
+    r = _project(design.r, qn)
+    rss0 = float(r @ r)
+    out = []
+    for j in range(x.shape[1]):
+        raw = float(np.linalg.norm(x[:, j]))
+        xp = _project(x[:, j:j + 1], qn)[:, 0]
+        norm = float(np.linalg.norm(xp))
+        if raw == 0.0 or norm < ABSORBED * raw or (
+                rss0 > 0 and float(xp @ r) ** 2 / norm**2 >= (1 - EXACT_FIT) * rss0):
+            out.append(j)
+    return out
+
+
+@dataclass(frozen=True)
+class _Nuisance:
+    """The nuisance's SVD on its numerical range: its orthonormal basis ``u``, and what
+    gives the coefficients of a column in it (``x ≈ nuisance @ (solve @ x)``)."""
+
+    u: np.ndarray
+    solve: np.ndarray
+
+
+_SVDS: dict[int, tuple[Design, _Nuisance]] = {}
+
+
+def _nuisance(design: Design) -> _Nuisance:
+    """The nuisance's SVD, kept for the last design asked (one SVD per design, however
+    many candidates are tested on it)."""
+    kept = _SVDS.get(0)
+    if kept is None or kept[0] is not design:
+        matrix = design.nuisance
+        if matrix.size == 0:
+            found = _Nuisance(np.zeros((matrix.shape[0], 0)), np.zeros((matrix.shape[1], 0)))
+        else:
+            u, sv, vt = np.linalg.svd(matrix, full_matrices=False)
+            keep = sv > rank_tolerance(sv, matrix.shape[0])
+            found = _Nuisance(u[:, keep], vt[keep].T / sv[keep][None, :])
+        _SVDS[0] = (design, found)
+    return _SVDS[0][1]
+
+
+def _basis(design: Design) -> np.ndarray:
+    """The nuisance's orthonormal basis (see :func:`_nuisance`)."""
+    return _nuisance(design).u
+
+
+def gauge_fixes(design: Design, fixed: Mapping[str, np.ndarray]) -> dict[str, str]:
+    """The fixed parameters (name → whitened column of ∂r/∂θ_k, rows as the design's)
+    that fix a gauge, with how: freeing one either adds nothing the free parameters do
+    not already do (an offset or a rotation: ``"absorbed"``), or explains the residual
+    exactly (a scale: the constraints are homogeneous in a set of parameters it belongs
+    to, so that its projected column is the residual itself: ``"exact"``)."""
+    qn = _basis(design)
+    r = _project(design.r, qn)
+    rss0 = float(r @ r)
+    out = {}
+    for name, x in fixed.items():
+        raw = float(np.linalg.norm(x))
+        if raw == 0.0:
+            continue
+        xp = _project(x[:, None], qn)[:, 0]
+        norm = float(np.linalg.norm(xp))
+        if norm < ABSORBED * raw:
+            out[name] = "absorbed"
+        elif rss0 > 0 and float(xp @ r) ** 2 / norm**2 >= (1 - EXACT_FIT) * rss0:
+            out[name] = "exact"
+    return out
 
 
 def test_candidates(
     design: Design, candidates: list[Candidate], regressors: list[np.ndarray], alpha: float,
     local: Callable[[Candidate], bool] | None = None,
+    extras: list[np.ndarray | None] | None = None,
+    gauges: Mapping[str, np.ndarray] | None = None,
 ) -> list[Candidate]:
     """Test every candidate (regressor ``(M, m)``) and rank them, best first.
 
-    Returns the candidates (all of them, absorbed ones last), with significance at
-    ``alpha / len(candidates)`` and groups of indistinguishable candidates filled in.
-    Within a group the data cannot choose; ``local`` marks the candidates to lead their
-    group then (e.g. a term in the sensor's own input).
+    Returns the candidates (all of them: absorbed ones and those that re-open a gauge
+    last), with significance at ``alpha / len(candidates)`` and groups of
+    indistinguishable candidates filled in.  Within a group the data cannot choose;
+    ``local`` marks the candidates to lead their group then (e.g. a term in the sensor's
+    own input).  ``extras[i]`` (M × k or None): what candidate i is tested beyond (the
+    simpler terms it contains).  A candidate that explains the residual exactly re-opens
+    a gauge (``reopens``; never significant): on noisy data only a direction no data can
+    determine does that; ``gauges`` (name → whitened column of a fixed parameter that
+    fixes one) name which.
     """
-    qn = range_basis(design.nuisance)
-    r = design.r - qn @ (qn.T @ design.r)
+    nuisance = _nuisance(design)
+    qn = nuisance.u
+    r = _project(design.r, qn)
     rss0 = float(r @ r)
     dof = len(r) - qn.shape[1]
     level = alpha / max(len(candidates), 1)
-    for cand, x in zip(candidates, regressors, strict=True):
+    fixes = {name: _project(x[:, None], qn)[:, 0] for name, x in (gauges or {}).items()}
+    for i, (cand, x) in enumerate(zip(candidates, regressors, strict=True)):
         raw = float(np.linalg.norm(x))
-        xp = x - qn @ (qn.T @ x)
+        xp = _project(x, qn)
         if raw == 0.0:
             cand.absorbed = True
             continue
         if np.linalg.norm(xp) < ABSORBED * raw:
             cand.absorbed = True
-            coef = np.linalg.lstsq(design.nuisance, x, rcond=None)[0]
+            coef = nuisance.solve @ (qn.T @ x)     # x's coefficients in the nuisance
             weight = np.linalg.norm(coef, axis=1) if coef.ndim == 2 else np.abs(coef)
             weight = weight * np.linalg.norm(design.nuisance, axis=0)
             order = np.argsort(-weight)
             cand.biases = tuple(design.nuisance_names[i] for i in order[:4]
                                 if weight[i] > 0.05 * weight[order[0]])
             continue
-        q, s, _ = np.linalg.svd(xp, full_matrices=False)
-        q = q[:, s > 1e-8 * s[0]]
+        extra = None if extras is None else extras[i]
+        base, rb, m_extra = r, rss0, 0
+        if extra is not None:
+            qe = _orthonormal(_project(extra, qn))
+            m_extra = qe.shape[1]
+            base = _project(r, qe)
+            rb = float(base @ base)
+            xp = _project(xp, qe)
+        q = _orthonormal(xp)
         m = q.shape[1]
-        proj = q.T @ r
+        if m == 0:
+            cand.absorbed = True
+            continue
+        proj = q.T @ base
         delta = float(proj @ proj)
         cand.q = q
         cand.delta_rss = delta
         cand.share = delta / rss0 if rss0 > 0 else 0.0
-        denom = (rss0 - delta) / max(dof - m, 1)
+        if rss0 > 0 and rss0 - delta <= EXACT_FIT * rss0:
+            cand.reopens = _reopens(q, fixes)
+            continue
+        rest = max(dof - m_extra - m, 1)
+        denom = (rb - delta) / rest
         cand.f_stat = (delta / m) / denom if denom > 0 else float("inf")
-        cand.p_value = float(scipy.stats.f.sf(cand.f_stat, m, max(dof - m, 1)))
-        cand.log_p = float(scipy.stats.f.logsf(cand.f_stat, m, max(dof - m, 1)))
+        cand.p_value = float(scipy.stats.f.sf(cand.f_stat, m, rest))
+        cand.log_p = float(scipy.stats.f.logsf(cand.f_stat, m, rest))
         cand.significant = cand.p_value < level
-        cand.reduction = _reduction(design, r, r - q @ proj)
-        cand.mde = _detectable(xp, cand.basis.scales, m, level, denom)
-    ranked = sorted([c for c in candidates if not c.absorbed],
-                    key=lambda c: (c.log_p, -c.delta_rss))
+        cand.reduction = _reduction(design, r, base - q @ proj)
+        cand.mde = _detectable(xp, cand.basis.scales, m, level, denom, cand.basis.term)
+    tested = [c for c in candidates if not c.absorbed and not c.reopens]
+    ranked = sorted(tested, key=lambda c: (c.log_p, -c.delta_rss))
     _group(ranked, local)
-    return ranked + [c for c in candidates if c.absorbed]
+    return ranked + [c for c in candidates if c.reopens] + \
+        [c for c in candidates if c.absorbed]
+
+
+def _reopens(q: np.ndarray, fixes: Mapping[str, np.ndarray]) -> str:
+    """Why a candidate that explains the residual exactly is never proposed."""
+    best = None
+    for name, x in fixes.items():
+        norm = float(np.linalg.norm(x))
+        if norm == 0.0:
+            continue
+        corr = float(np.linalg.norm(q.T @ x)) / norm
+        if corr > INDISTINGUISHABLE and (best is None or corr > best[0]):
+            best = (corr, name)
+    if best is not None:
+        return (f"it re-opens the gauge that fixing {best[1]} closed: free, it explains "
+                "the residual's own noise exactly")
+    return ("it explains the residual exactly, noise included: it re-opens a gauge (a "
+            "direction no data can determine)")
 
 
 _NONCENTRALITY: dict[tuple[int, float], float] = {}
@@ -189,15 +329,17 @@ def noncentrality(m: int, level: float, power: float = POWER) -> float:
 
 
 def _detectable(xp: np.ndarray, scales: tuple[float, ...], m: int, level: float,
-                variance: float) -> float | None:
+                variance: float, term: float = TERM) -> float | None:
     """The minimal detectable term of a candidate (RMS, internal units), or None."""
     if len(scales) != xp.shape[1] or not np.isfinite(variance) or variance <= 0:
         return None
     scaled = xp * np.asarray(scales)[None, :]
-    low = float(np.linalg.eigvalsh(scaled.T @ scaled)[0])
-    if low <= 0:
+    sv = np.linalg.svd(scaled, compute_uv=False)
+    sv = sv[sv > 1e-8 * sv[0]] if sv.size and sv[0] > 0 else sv[:0]
+    if not sv.size:
         return None
-    return TERM * float(np.sqrt(noncentrality(m, level) * variance / low))
+    low = float(sv[-1]) ** 2     # the worst direction the data see (absorbed ones aside)
+    return term * float(np.sqrt(noncentrality(m, level) * variance / low))
 
 
 def _reduction(design: Design, before: np.ndarray, after: np.ndarray
@@ -205,9 +347,9 @@ def _reduction(design: Design, before: np.ndarray, after: np.ndarray
     """Standard deviation of every residual, before and after adding a candidate."""
     out = {}
     for dataset, rows, unwhiten, names, scales in design.blocks:
-        rank = unwhiten.shape[1]
-        b = before[rows].reshape(-1, rank) @ unwhiten.T
-        a = after[rows].reshape(-1, rank) @ unwhiten.T
+        rank = unwhiten.shape[2]
+        b = np.einsum("nqr,nr->nq", unwhiten, before[rows].reshape(-1, rank))
+        a = np.einsum("nqr,nr->nq", unwhiten, after[rows].reshape(-1, rank))
         for k, name in enumerate(names):
             out[f"{dataset}/{name}"] = (float(np.std(b[:, k]) / scales[k]),
                                         float(np.std(a[:, k]) / scales[k]))

@@ -595,6 +595,203 @@ def time_ordered(problem: Problem, ds: Dataset) -> bool:
     return bool(np.all(np.diff(t) >= 0) and t[-1] > t[0])
 
 
+# ------------------------------------------------------------ a log kept as shards
+# The sums behind the estimate's share, the floors and the tests, as plans that a task of
+# a log kept as shards runs on its own rows (picklable: no Problem), and sums that join in
+# row order.  The arithmetic is that of _estimate_share and _dataset_tests, a piece of
+# rows at a time; tests/test_hugelog.py holds the two equal (whole result documents, to
+# 1e-9).
+
+
+@dataclass(frozen=True)
+class SharePlan:
+    """What the estimate's share is summed with over the fitted rows (a task of a log
+    kept as shards sums its own rows, :func:`share_finish` ends it)."""
+
+    prop: _Propagation
+    fit: Fit
+    sigma: np.ndarray
+
+    def sums(self, ds: Dataset, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(A, B)``: ``Σ J_iᵀW_iJ_i`` and ``Σ J_iᵀW_iC_iW_iJ_i`` over the rows of ``ds``."""
+        n_p = self.prop.n_p
+        a, b = np.zeros((n_p, n_p)), np.zeros((n_p, n_p))
+        for _, _, lmat, jac in self.prop.rows(ds, theta):
+            c = np.einsum("mae,mbe->mab", lmat, lmat)
+            w = _weights(self.fit, c, self.sigma)
+            wj = np.einsum("mab,mbp->map", w, jac)
+            a += np.einsum("map,maq->pq", jac, wj)
+            b += np.einsum("map,mab,mbq->pq", wj, c, wj)
+        return a, b
+
+
+def share_plan(problem: Problem, fit: Fit) -> SharePlan | None:
+    """The plan of the estimate's share, as :func:`_estimate_share` sums it (None where a
+    fitted constraint reads a column of undeclared noise)."""
+    quantities = [problem.constraint(n) for n in fit.constraints]
+    if any(problem.undeclared(q.sx) for q in quantities):
+        return None
+    noisy = problem.noisy
+    prop = _Propagation(problem, [noisy.constraint(n).sx for n in fit.constraints], fit.free)
+    return SharePlan(prop, fit, np.array([q.sigma for q in quantities]))
+
+
+def share_finish(a: np.ndarray, b: np.ndarray) -> _Estimate:
+    """A⁺ and the estimate's covariance ``A⁺ B A⁺`` from the sums of all rows."""
+    if a.shape[0] == 0:
+        return _Estimate(a, b)
+    vals, vecs = np.linalg.eigh(a)
+    keep = vals > 1e-10 * max(float(vals.max(initial=0.0)), 1e-300)
+    a_pinv = (vecs[:, keep] / vals[keep]) @ vecs[:, keep].T
+    return _Estimate(a_pinv, a_pinv @ b @ a_pinv)
+
+
+@dataclass
+class RowSums:
+    """What a piece of a dataset's rows reduces to: each entry's accumulators at the
+    estimate and at the start, each entry's first residual there (to join the successive
+    differences across a boundary), and the joint χ² and its expectation."""
+
+    sums: list[_Sums]
+    before: list[_Sums]
+    first: list[float | None]
+    first_before: list[float | None]
+    chi2: float = 0.0
+    dof: float = 0.0
+
+    def join(self, later: RowSums) -> RowSums:
+        """The sums of this piece followed by ``later``."""
+        return RowSums(
+            [_joined(a, b, f) for a, b, f in zip(self.sums, later.sums, later.first,
+                                                 strict=True)],
+            [_joined(a, b, f) for a, b, f in zip(self.before, later.before,
+                                                 later.first_before, strict=True)],
+            [a if a is not None else b for a, b in zip(self.first, later.first,
+                                                       strict=True)],
+            [a if a is not None else b for a, b in zip(self.first_before, later.first_before,
+                                                       strict=True)],
+            self.chi2 + later.chi2, self.dof + later.dof)
+
+
+def _joined(a: _Sums, b: _Sums, b_first: float | None) -> _Sums:
+    """An entry's accumulators over a piece of rows followed by another, whose first
+    residual is ``b_first``."""
+    def add(x: np.ndarray | None, y: np.ndarray | None) -> np.ndarray | None:
+        return y if x is None else x if y is None else x + y
+
+    diff2 = a.diff2 + b.diff2
+    if a.last is not None and b_first is not None:
+        diff2 += (b_first - a.last) ** 2
+    return _Sums(n=a.n + b.n, w=a.w + b.w, wr2=a.wr2 + b.wr2, wr=a.wr + b.wr, r=a.r + b.r,
+                 d=a.d + b.d, wd=a.wd + b.wd, wj=add(a.wj, b.wj), wxv=add(a.wxv, b.wxv),
+                 j=add(a.j, b.j), x=add(a.x, b.x), exact=a.exact + b.exact, diff2=diff2,
+                 last=b.last if b.last is not None else a.last, r2=a.r2 + b.r2)
+
+
+@dataclass(frozen=True)
+class RowsPlan:
+    """How the rows of one dataset are reduced for its floors and tests, as
+    :func:`_dataset_tests` reduces them: :meth:`reduce` on each piece, the pieces' sums
+    joined in order (:meth:`RowSums.join`), then :meth:`finish`."""
+
+    dataset: str
+    names: tuple[str, ...]
+    declared: tuple[bool, ...]
+    centred: tuple[bool, ...]
+    prop: _Propagation
+    fitted: tuple[int, ...]
+    cons: tuple[int, ...]
+    joint_ok: bool
+    sigma_f: np.ndarray
+    fit: Fit
+    share: _Estimate | None
+    theta: np.ndarray
+    theta0: np.ndarray | None
+
+    def reduce(self, ds: Dataset) -> RowSums:
+        """The sums of the rows of ``ds``, chunk by chunk."""
+        fit, share, fitted, cons = self.fit, self.share, list(self.fitted), list(self.cons)
+        prop, theta0, n = self.prop, self.theta0, len(self.names)
+        out = RowSums([_Sums() for _ in range(n)], [_Sums() for _ in range(n)], [None] * n,
+                      [None] * n)
+        u = ds.matrix(prop.columns) if theta0 is not None else None
+        for part, r, lmat, jac in prop.rows(ds, self.theta):
+            c = np.einsum("mae,mbe->mab", lmat, lmat)
+            start = part.start == 0 and len(r) > 0      # the piece's first row is here
+            if start:
+                out.first = [float(v) for v in r[0]]
+            if theta0 is not None and u is not None:
+                block = u[:, part]
+                r0 = prop.fn.chunk(theta0, np.vstack([block, np.zeros((prop.n_eps,
+                                                                       block.shape[1]))]))[0]
+                if start:
+                    out.first_before = [float(v) for v in r0[0]]
+                d = np.diagonal(c, axis1=1, axis2=2)
+                for k, s in enumerate(out.before):
+                    _accumulate(s, r0[:, k], d[:, k], d[:, k], None, None)
+            expect = c.copy()
+            x = None
+            if share is not None:
+                expect += np.einsum("map,pq,mbq->mab", jac, share.cov, jac)
+                if fitted:
+                    w = _weights(fit, c[:, fitted][:, :, fitted], self.sigma_f)
+                    x = np.einsum("maf,mfg,mgp->map", c[:, :, fitted], w, jac[:, fitted, :])
+                    xa = np.einsum("map,pq,mbq->mab", x, share.a_pinv, jac)
+                    expect -= xa + np.transpose(xa, (0, 2, 1))
+            if self.joint_ok:
+                sub = np.ix_(range(c.shape[0]), cons, cons)
+                pinv, _ = _pinv_rows(c[sub])
+                rc = r[:, cons]
+                out.chi2 += float(np.einsum("ma,mab,mb->", rc, pinv, rc))
+                out.dof += float(np.einsum("mab,mba->", pinv, expect[sub]))
+            d, e = np.diagonal(c, axis1=1, axis2=2), np.diagonal(expect, axis1=1, axis2=2)
+            for k, s in enumerate(out.sums):
+                _accumulate(s, r[:, k], d[:, k], e[:, k],
+                            None if share is None else jac[:, k, :],
+                            None if x is None else x[:, k, :])
+        return out
+
+    def finish(self, sums: RowSums, ordered: bool) -> tuple[dict[str, FloorTest], DatasetTest]:
+        """Each entry's floor and test and the dataset's global test from the sums of all
+        its rows (``ordered``: whether the rows are in time order)."""
+        names, cons = self.names, self.cons
+        found = {}
+        for k, name in enumerate(names):
+            found[name] = _entry_test(sums.sums[k], self.declared[k], self.centred[k],
+                                      ordered, self.share)
+            if self.theta0 is not None and found[name].method == PROPAGATED and \
+                    found[name].chi2 is not None:
+                found[name] = replace(found[name],
+                                      chi2_before=_chi2(sums.before[k], self.centred[k]))
+        if self.joint_ok and sums.dof > 0:
+            joint = DatasetTest(self.dataset, tuple(names[k] for k in cons), PROPAGATED,
+                                sums.chi2, sums.dof, chi2_band(sums.dof))
+        else:
+            joint = _combined(self.dataset, [names[k] for k in cons],
+                              [found[names[k]] for k in cons])
+        return found, joint
+
+
+def rows_plan(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
+              share: _Estimate | None, theta0: np.ndarray | None = None) -> RowsPlan:
+    """The plan of the floors and tests of the dataset ``ds`` (its name and columns: a
+    sample of a log kept as shards will do), at the estimate ``theta`` (``theta0``: the
+    start too), with the estimate's share ``share`` from the fitted rows."""
+    entries = _entries(problem, ds)
+    prop = _Propagation(problem, entries.exprs, fit.free)
+    fitted = [entries.names.index(n) for n in fit.constraints] \
+        if ds.name == fit.dataset else []
+    cons = [k for k, kind in enumerate(entries.kinds) if kind == "constraint"]
+    joint_ok = all(entries.declared[k] for k in cons) and bool(cons)
+    sigma_f = np.array([problem.constraint(entries.names[k]).sigma for k in fitted])
+    use_share = share is not None and prop.n_p > 0
+    return RowsPlan(ds.name, tuple(entries.names), tuple(entries.declared),
+                    tuple(entries.centred), prop, tuple(fitted), tuple(cons), joint_ok,
+                    sigma_f, fit, share if use_share else None,
+                    np.array(theta, dtype=float),
+                    None if theta0 is None else np.array(theta0, dtype=float))
+
+
 def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
                    share: _Estimate | None, theta0: np.ndarray | None = None
                    ) -> tuple[dict[str, FloorTest], DatasetTest]:

@@ -21,7 +21,7 @@ were are too small (two halves of one recording disagree by several of them).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -103,9 +103,65 @@ def lag_one(residuals: np.ndarray) -> tuple[float, ...]:
 
 def detect(constraints: tuple[str, ...], residuals: np.ndarray) -> SerialCorrelation:
     """Serial correlation of a fit's weighted residuals (rows in time order)."""
-    n_g = max(residuals.shape[1], 1)
-    threshold = normal_quantile(1.0 - ALPHA / (2.0 * n_g))
-    return SerialCorrelation(constraints, lag_one(residuals), threshold, residuals.shape[0])
+    return detected(constraints, lag_one(residuals), residuals.shape[0],
+                    residuals.shape[1])
+
+
+def detected(constraints: tuple[str, ...], rho: tuple[float, ...], rows: int,
+             n_g: int | None = None) -> SerialCorrelation:
+    """The detection from lag-1 autocorrelations computed elsewhere (a log kept as shards
+    reduces them shard by shard, :func:`lag_sums` and :func:`lag_one_of`)."""
+    n = max(len(constraints) if n_g is None else n_g, 1)
+    threshold = normal_quantile(1.0 - ALPHA / (2.0 * n))
+    return SerialCorrelation(constraints, rho, threshold, rows)
+
+
+@dataclass(frozen=True)
+class LagSums:
+    """A piece of time-ordered rows' share of the lag-1 autocorrelations: about the mean
+    of all rows, ``Σ c²`` and ``Σ c_i c_{i-1}`` within the piece, its first and last row."""
+
+    squares: np.ndarray
+    products: np.ndarray
+    first: np.ndarray | None
+    last: np.ndarray | None
+
+
+def lag_sums(centred: Iterator[np.ndarray], n_g: int) -> LagSums:
+    """The :class:`LagSums` of a piece's rows, given chunk by chunk in row order, already
+    less the mean of all rows (each chunk ``m × n_g``)."""
+    squares, products = np.zeros(n_g), np.zeros(n_g)
+    first: np.ndarray | None = None
+    last: np.ndarray | None = None
+    for c in centred:
+        if not len(c):
+            continue
+        squares += np.einsum("ma,ma->a", c, c)
+        products += np.einsum("ma,ma->a", c[1:], c[:-1])
+        if last is not None:
+            products += c[0] * last
+        if first is None:
+            first = c[0].copy()
+        last = c[-1].copy()
+    return LagSums(squares, products, first, last)
+
+
+def lag_one_of(parts: Iterable[LagSums]) -> tuple[float, ...]:
+    """The lag-1 autocorrelations of all rows from their pieces' sums, in row order (as
+    :func:`lag_one`)."""
+    squares: np.ndarray | None = None
+    products: np.ndarray | None = None
+    last: np.ndarray | None = None
+    for p in parts:
+        squares = p.squares.copy() if squares is None else squares + p.squares
+        products = p.products.copy() if products is None else products + p.products
+        if last is not None and p.first is not None:
+            products += p.first * last
+        last = p.last if p.last is not None else last
+    if squares is None or products is None:
+        return ()
+    return tuple(float(b) / float(a) if a > 0 else 0.0
+                 for a, b in zip(squares, products, strict=True))
 
 
 def bandwidth(rho: float, rows: int) -> int:
@@ -114,6 +170,59 @@ def bandwidth(rho: float, rows: int) -> int:
     alpha = 4.0 * r * r / ((1.0 - r) ** 2 * (1.0 + r) ** 2)
     lags = int(math.ceil(1.1447 * (alpha * rows) ** (1.0 / 3.0)))
     return max(1, min(lags, rows // 4))
+
+
+@dataclass(frozen=True)
+class HacPart:
+    """One piece's share of the Newey-West sum: the sum within it (:func:`hac_meat`), and
+    its first and last ``lags`` rows of scores, for the pairs across pieces."""
+
+    meat: np.ndarray
+    head: np.ndarray
+    tail: np.ndarray
+
+
+def hac_part(scores: Iterator[np.ndarray], lags: int, n_free: int) -> HacPart:
+    """The :class:`HacPart` of a piece's per-row scores, given chunk by chunk in row order."""
+    head: list[np.ndarray] = []
+    held = [0]
+    tail = [np.zeros((0, n_free))]
+
+    def seen() -> Iterator[np.ndarray]:
+        for chunk in scores:
+            if held[0] < lags:
+                head.append(chunk[:lags - held[0]])
+                held[0] += head[-1].shape[0]
+            tail[0] = _last(np.vstack([tail[0], chunk]), lags)
+            yield chunk
+
+    meat = hac_meat(seen(), lags, n_free)
+    return HacPart(meat, np.vstack(head) if head else np.zeros((0, n_free)), tail[0])
+
+
+def hac_combine(parts: Iterable[HacPart], lags: int, n_free: int) -> np.ndarray:
+    """:func:`hac_meat` of all rows from their pieces' parts, in row order: the sums within
+    the pieces, and the pairs (at most ``lags`` apart) that straddle their boundaries."""
+    meat = np.zeros((n_free, n_free))
+    tail = np.zeros((0, n_free))
+    for part in parts:
+        meat += part.meat
+        rows = np.vstack([tail, part.head])
+        start = tail.shape[0]
+        for lag in range(1, lags + 1):
+            # pairs (i - lag, i): i in this piece's head, i - lag among the rows before it
+            first, stop = max(start, lag), min(rows.shape[0], start + lag)
+            if first >= stop:
+                continue
+            cross = rows[first - lag:stop - lag].T @ rows[first:stop]
+            meat += (1.0 - lag / (lags + 1.0)) * (cross + cross.T)
+        tail = _last(np.vstack([tail, part.tail]), lags)
+    return meat
+
+
+def _last(rows: np.ndarray, k: int) -> np.ndarray:
+    """The last ``k`` rows (none for 0)."""
+    return rows[max(rows.shape[0] - k, 0):] if k > 0 else rows[:0]
 
 
 def hac_meat(scores: Iterator[np.ndarray], lags: int, n_free: int) -> np.ndarray:
@@ -143,7 +252,12 @@ def hac_meat(scores: Iterator[np.ndarray], lags: int, n_free: int) -> np.ndarray
         windows[has] -= run[earlier[has]]
         meat += windows.T @ windows
         tail = rows[-lags:] if lags else rows[:0]
-    # windows overhanging the end: the sums of the last L, L - 1, ..., 1 rows
+    # windows overhanging the end: the sums of the last L, L - 1, ..., 1 rows; with fewer
+    # than L rows in all, the L + 1 - rows windows that hold every row (and overhang both
+    # ends) are all the sum of every row
     suffix = np.cumsum(tail[::-1], axis=0)
     meat += suffix.T @ suffix
+    if 0 < tail.shape[0] < lags:
+        total = suffix[-1]
+        meat += (lags - tail.shape[0]) * np.outer(total, total)
     return meat / width

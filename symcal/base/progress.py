@@ -1,18 +1,34 @@
-"""The progress seam: counted work shown as a bar on a terminal, and nothing elsewhere.
+"""The progress seam: lines of progress, and counted work shown as a bar on a terminal.
 
-Library code that does counted work (units of a fleet, chunks of a pass over a huge log)
-takes an optional :data:`Bars` factory and opens one :class:`Meter` per piece of work::
+Every public function that works for a while takes the same two arguments, with the same
+meaning (:func:`symcal.solve`, :func:`symcal.solve_partitioned`,
+:func:`symcal.solve_fleet`, :func:`symcal.improve`, :func:`symcal.design`):
 
-    with meter(bars, "fleet", total=len(units), unit="unit") as m:
+``progress``
+    A :data:`Progress` callback, called with one line of text (no newline) per step of
+    the work and per note about it: a solver's iterations, a fleet's units, an
+    improvement's rounds.  None (the default): no lines.
+``bars``
+    A :data:`Bars` factory of meters (:func:`terminal_bars` draws them on a terminal),
+    one meter per counted piece of work: a solve counts its solver iterations, a log kept
+    as shards the shards each pass has done, a fleet its units, ``improve`` its rounds,
+    ``design`` its optimisation rounds.  None (the default): no meters, at no cost.
+
+With both, what a meter counts is shown on it and not written as a line: each counted
+step advances the meter and its line (a solver's iteration line, a unit's outcome) is
+shown beside the bar; every other line (a note, a gauge found before a solve, a round
+of ``improve``) still goes to ``progress``.  Without ``bars`` every line goes to
+``progress``.  The command line passes ``progress`` (lines on stderr) and
+:func:`terminal_bars`, and neither under ``--quiet``.  Library code opens the seam with
+:func:`reporting`; a :class:`Meter` is one bar::
+
+    with reporting(progress, bars, "fleet", total=len(units), unit="unit") as report:
         for ... in ...:
-            m.advance()            # one more done
-            m.note("failed=1")     # a short status beside the bar
+            report.step("fleet: 3/10 unit A: solved")   # counted: a bar or a line
+            report.line("a note")                       # always a line
 
-``bars=None`` (the default everywhere) is silent and costs nothing.  The command line
-passes :func:`terminal_bars`, which draws `tqdm <https://tqdm.github.io>`_ bars on
-stderr only when stderr is a terminal, and passes None under ``--quiet``.  Lines that
-must not be torn by a bar go through :func:`write_line`.  tqdm is imported only when a
-bar is drawn.
+Lines that must not be torn by a bar go through :func:`write_line`.  tqdm is imported
+only when a bar is drawn.
 """
 
 from __future__ import annotations
@@ -142,3 +158,94 @@ def write_line(line: str, stream: TextIO | None = None) -> None:
         tqdm.write(line, file=out)
         return
     print(line, file=out, flush=True)
+
+
+#: Where the lines of progress go: called with one line of text (no newline); see the
+#: module.
+Progress = Callable[[str], None]
+
+
+def is_step(line: str) -> bool:
+    """Whether a solver's progress line is one of its counted steps (an iteration of
+    ``lm`` or IPOPT: ``STAGE: iteration K ...``)."""
+    return " iteration " in line
+
+
+class Report:
+    """The progress of one piece of work, as ``progress`` and ``bars`` ask for it (see
+    the module).  Callable as a :data:`Progress` for code that reports lines only (the
+    solvers): their counted steps (:func:`is_step`) go to the meter, the rest are lines.
+
+    Attributes
+    ----------
+    meter
+        The work's meter (a :class:`NullMeter` without bars).
+    progress
+        Where the lines go (None: nowhere).
+    counts
+        Whether a step advances the meter (False where the meter counts something else,
+        the shards of a log, and the steps are only shown beside it).
+    """
+
+    def __init__(self, progress: Progress | None, m: Meter | None, counts: bool = True
+                 ) -> None:
+        self.progress = progress
+        self.bar = m
+        self.meter: Meter = m if m is not None else NullMeter()
+        self.counts = counts
+
+    @property
+    def silent(self) -> bool:
+        """Whether nothing is shown (no lines and no bar): callers may skip formatting."""
+        return self.progress is None and self.bar is None
+
+    def line(self, text: str) -> None:
+        """A line of progress: written to ``progress``."""
+        if self.progress is not None:
+            self.progress(text)
+
+    def step(self, text: str, n: int = 1) -> None:
+        """A counted step: with a bar, the meter advances and shows ``text`` beside it;
+        without one, ``text`` is a line."""
+        if self.bar is None:
+            self.line(text)
+            return
+        if self.counts:
+            self.bar.advance(n)
+        self.bar.note(text.strip())
+
+    def __call__(self, text: str) -> None:
+        """A solver's line: a step if :func:`is_step`, else a line."""
+        if is_step(text):
+            self.step(text)
+        else:
+            self.line(text)
+
+    def callback(self) -> Progress | None:
+        """This report as a solver's callback, None when it shows nothing."""
+        return None if self.silent else self
+
+
+@contextlib.contextmanager
+def reporting(progress: Progress | None, bars: Bars | None, label: str,
+              total: int | None = None, unit: str = "it", counts: bool = True
+              ) -> Iterator[Report]:
+    """The progress of one piece of work (see the module), its meter closed when the
+    block ends.
+
+    Parameters
+    ----------
+    progress
+        Where the lines go (None: nowhere).
+    bars
+        The factory of meters (None: no meter).
+    label, total, unit
+        The meter's label, its total (None: unknown) and the name of one step.
+    counts
+        Whether a step advances the meter (see :class:`Report`).
+    """
+    if bars is None:
+        yield Report(progress, None, counts)
+        return
+    with meter(bars, label, total, unit) as m:
+        yield Report(progress, m, counts)

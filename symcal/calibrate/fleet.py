@@ -32,7 +32,7 @@ from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, SymcalError, excerpt
 from symcal.base.files import display_path
 from symcal.base.options import SolveOptions
-from symcal.base.progress import Bars, meter
+from symcal.base.progress import Bars, Progress, reporting
 from symcal.calibrate.fleet_summary import failure_reason, summarise
 from symcal.calibrate.result import Result, file_hashes
 from symcal.calibrate.solve import solve
@@ -344,7 +344,7 @@ def _workers_of(client: Client) -> int:
         return 0
 
 
-def _run(client: Client, tasks: Mapping[str, UnitTask], bars: Bars | None,
+def _run(client: Client, tasks: Mapping[str, UnitTask],
          finish: Callable[[str, dict[str, Any]], None]) -> None:
     """Submit the units in batches (:func:`batches`); hand each unit's outcome to
     ``finish`` as its batch completes."""
@@ -357,26 +357,19 @@ def _run(client: Client, tasks: Mapping[str, UnitTask], bars: Bars | None,
     futures = {client.submit(solve_units, tuple(tasks[u] for u in group),
                              key=f"symcal-units-{i}-{token}", pure=False): group
                for i, group in enumerate(groups)}
-    failed = 0
     try:
-        with meter(bars, "fleet", total=len(names), unit="unit") as m:
-            for future in as_completed(futures):
-                group = futures[future]
-                try:
-                    outcomes = future.result()
-                except Exception as exc:  # noqa: BLE001 - a worker died, a task was lost
-                    why = f"{exc.__class__.__name__}: {excerpt(exc, 200)}"
-                    outcomes = [{"error": f"the Dask task of unit '{unit}' failed: {why}"}
-                                for unit in group]
-                finally:
-                    future.release()
-                for unit, outcome in zip(group, outcomes, strict=True):
-                    finish(unit, outcome)
-                    doc = outcome.get("document", outcome)
-                    failed += failure_reason(doc) is not None
-                    m.advance()
-                if failed:
-                    m.note(f"failed={failed}")
+        for future in as_completed(futures):
+            group = futures[future]
+            try:
+                outcomes = future.result()
+            except Exception as exc:  # noqa: BLE001 - a worker died, a task was lost
+                why = f"{exc.__class__.__name__}: {excerpt(exc, 200)}"
+                outcomes = [{"error": f"the Dask task of unit '{unit}' failed: {why}"}
+                            for unit in group]
+            finally:
+                future.release()
+            for unit, outcome in zip(group, outcomes, strict=True):
+                finish(unit, outcome)
     except BaseException:
         client.cancel(list(futures))
         raise
@@ -394,6 +387,7 @@ def solve_fleet(
     bars: Bars | None = None,
     on_unit: UnitCallback | None = None,
     report: Callable[[Result], str] | None = None,
+    progress: Progress | None = None,
 ) -> FleetResult:
     """Calibrate every unit of a fleet folder on Dask.
 
@@ -424,13 +418,18 @@ def solve_fleet(
         Worker processes of the embedded cluster: at most one per usable core, and never
         more than there are units to solve.
     bars
-        Progress bars (:func:`symcal.base.progress.terminal_bars`); None: silent.
+        Progress bars (:func:`symcal.base.progress.terminal_bars`): one meter counting
+        the units done, the latest unit's outcome beside it (then not passed to
+        ``progress``).  None: no bars.
     on_unit
         Called on this process as each unit finishes, with the unit's name, its
         document (or ``{"error": MESSAGE}``) and its text report (or None).
     report
         Renders a unit's text report on its worker (the command line passes
         :func:`symcal.report.text.text_report`); None: no text reports.
+    progress
+        Called with each line of progress (:mod:`symcal.base.progress`): one per unit
+        done, ``fleet: K/N unit NAME: solved`` (or ``FAILED: REASON``).  None: no lines.
 
     Returns
     -------
@@ -463,6 +462,8 @@ def solve_fleet(
     docs: dict[str, Mapping[str, Any]] = {}
     results: dict[str, Result] = {}
 
+    failed: list[str] = []
+
     def finish(unit: str, outcome: dict[str, Any]) -> None:
         doc = outcome["document"] if "document" in outcome else {"error": outcome["error"]}
         docs[unit] = doc
@@ -470,19 +471,26 @@ def solve_fleet(
             results[unit] = Result.from_document(doc, problem)
         if on_unit is not None:
             on_unit(unit, doc, outcome.get("report"))
+        reason = failure_reason(doc)
+        if reason is not None:
+            failed.append(unit)
+        state = "solved" if reason is None else f"FAILED: {reason}"
+        more = f" (failed={len(failed)})" if failed and shown.bar is not None else ""
+        shown.step(f"  fleet: {len(docs)}/{len(units)} unit {unit}: {state}{more}")
 
-    for unit in units:
-        if unit.error is not None:
-            finish(unit.name, {"error": unit.error})
-    if tasks:
-        if isinstance(executor, DaskExecutor):
-            _run(executor.client, tasks, bars, finish)
-        elif executor is not None and not isinstance(executor, str):
-            _run(executor, tasks, bars, finish)
-        else:
-            local = min(workers or usable_cores(), len(tasks))
-            with fleet_client(executor, local) as client:
-                _run(client, tasks, bars, finish)
+    with reporting(progress, bars, "fleet", total=len(units), unit="unit") as shown:
+        for unit in units:
+            if unit.error is not None:
+                finish(unit.name, {"error": unit.error})
+        if tasks:
+            if isinstance(executor, DaskExecutor):
+                _run(executor.client, tasks, finish)
+            elif executor is not None and not isinstance(executor, str):
+                _run(executor, tasks, finish)
+            else:
+                local = min(workers or usable_cores(), len(tasks))
+                with fleet_client(executor, local) as client:
+                    _run(client, tasks, finish)
     ordered = {u.name: docs[u.name] for u in units}
     results = {u: results[u] for u in ordered if u in results}
     errors = {u: str(doc["error"]) for u, doc in ordered.items() if "error" in doc}

@@ -2,22 +2,24 @@
 
 The log stays on disk as shards (:mod:`symcal.data.shards`: partitioned Parquet, NPZ
 shards or CSV shards); every pass of the solve over it (cost, normal equations, TSQR,
-residual covariance) is one task per shard on an executor
+residual covariance, the analyses' sums) is one task per shard on an executor
 (:mod:`symcal.solvers.executor`: Dask workers, threads or this process), each returning a
-small reduction, so memory is bounded per worker and the lead never holds the log.  The
-solvers are the ones of :func:`symcal.solve`, with the same choice of method per stage,
-so the estimate equals the one of the same solve on the log in memory (to rounding: the
-shards are reduced in another grouping).
+small reduction, so memory is bounded per worker and the lead never holds the log, nor
+anything of its size.  The solvers are the ones of :func:`symcal.solve`, with the same
+choice of method per stage, so the estimate equals the one of the same solve on the log
+in memory (to rounding: the shards are reduced in another grouping).
 
-It returns a :class:`~symcal.calibrate.result.Result` like :func:`symcal.solve`: every
-stage's outcome, costs, conditioning, identifiability and standard errors from the R
-factor (sandwich included); the gauges, found on a bounded sample of the log; the
-before/after statistics of every residual and comparison, on the log shard by shard
-(exact: the moments of the shards combined) and on the held-out datasets, which are read
-into memory as usual; the implicit definitions' checks.  What needs every row at once is
-not computed on the log, and the result says so in its notes: the outliers, per-row
-weights (``propagated`` weighting and robust losses: refused, or equal weights with a
-note) and the noise floor of the log.
+It returns a :class:`~symcal.calibrate.result.Result` like :func:`symcal.solve`, every
+stage run by :func:`symcal.calibrate.log_stage.run_stage_passes`: its outcome, costs,
+conditioning, identifiability and standard errors from the R factor (the sandwich, the
+robust losses' and, on time-ordered rows, the Newey-West one included); robust losses by
+IRLS and ``propagated`` weights computed in the passes; the gauges, found on a bounded
+sample of the log; the outliers (exact medians by passes); the serial correlation; the
+before/after statistics of every residual and comparison on the log (the moments of the
+shards combined) and on the held-out datasets, which are read into memory as usual; the
+noise floors and the global tests of the log (sums over its shards,
+:mod:`symcal.analysis.floor_passes`) and of the held-out datasets; the implicit
+definitions' checks.
 """
 
 from __future__ import annotations
@@ -31,14 +33,13 @@ from typing import TYPE_CHECKING, Any, TypeVar, cast
 import numpy as np
 
 from symcal.analysis.fit import SeriesStats, Spread, series_statistics
-from symcal.analysis.floors import floor_tests
-from symcal.analysis.gauges import find_gauges
-from symcal.analysis.identifiability import analyse, conditioning
+from symcal.analysis.floor_passes import floor_tests_passes
 from symcal.analysis.implicit import ImplicitCheck, implicit_checks
-from symcal.base.errors import DataError, SolveError
-from symcal.base.linalg import is_singular, numerical_rank, sqrt_psd, whitening
+from symcal.analysis.serial_passes import time_ordered_passes
+from symcal.base.errors import DataError
 from symcal.base.options import SolveOptions
-from symcal.base.progress import Bars, Meter, meter
+from symcal.base.progress import Bars, Meter, reporting
+from symcal.calibrate.log_stage import run_stage_passes
 from symcal.calibrate.result import (
     DatasetInfo,
     ParameterResult,
@@ -47,8 +48,6 @@ from symcal.calibrate.result import (
     parameter_table,
 )
 from symcal.calibrate.solve import (
-    _constraint_costs,
-    _diverged,
     _fit,
     _hashes,
     _info,
@@ -60,11 +59,8 @@ from symcal.data.dataset import Dataset
 from symcal.data.loading import load_datasets, needed_columns
 from symcal.data.shards import ShardedDataset, open_shards
 from symcal.problem.build import load_problem
-from symcal.problem.symbolic import Problem, Stage
-from symcal.solvers.base import SolverOutput
+from symcal.problem.symbolic import Problem
 from symcal.solvers.executor import Executor, SerialExecutor, current, using
-from symcal.solvers.objective import Objective, Source
-from symcal.solvers.stage import solve_stage
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -86,81 +82,6 @@ class _Metered:
         for value in self.inner.map(task, pieces):
             self.meter.advance()
             yield value
-
-
-def _reweighted(problem: Problem, stage: Stage, objective: Objective, out: SolverOutput,
-                data: Source, method: str, progress: Callable[[str], None] | None,
-                options: SolveOptions) -> tuple[Objective, SolverOutput, list[str]]:
-    """``estimated`` weighting on the log: again, whitened by the residual covariance."""
-    rank = numerical_rank(out.r_factor, out.rows, objective.scales)
-    cov = objective.residual_covariance(data, out.theta, rank)
-    if is_singular(cov):
-        return objective, out, ["weighting: the constraints' residual covariance is "
-                                "singular; kept equal weights"]
-    whitened = Objective(problem, stage.constraints, objective.free, whitening(cov)[0])
-    second, more = solve_stage(whitened, data, out.theta, method, progress, stage.name,
-                               options)
-    merged = SolverOutput(second.theta, second.free, second.method, second.success,
-                          second.status, second.message + "; weighted by the estimated "
-                          "covariance of the constraints", second.r_factor, second.rows,
-                          second.rss, out.iterations + second.iterations,
-                          out.seconds + second.seconds)
-    return whitened, merged, more + ["weighting: solved with equal weights, then again "
-                                     "whitened by the constraints' covariance estimated "
-                                     "from those residuals"]
-
-
-def _run_stage(problem: Problem, stage: Stage, data: Source, sample: Dataset,
-               theta: np.ndarray, options: SolveOptions,
-               progress: Callable[[str], None] | None) -> tuple[np.ndarray, StageResult]:
-    free = np.array([p.name in stage.free for p in problem.parameters])
-    robust = [n for n in stage.constraints if problem.constraint(n).loss is not None]
-    if robust:
-        raise SolveError(f"stage '{stage.name}': constraint(s) {', '.join(robust)} have a "
-                         "robust loss, which reweights every row; a partitioned log is "
-                         "solved with squared losses only")
-    plain = Objective(problem, stage.constraints, free)
-    r_start, _, _, rows0 = plain.accumulate_r(data, theta)
-    gauges = find_gauges(plain, sample, theta)
-    method = options.method or stage.method
-    out, notes = solve_stage(plain, data, theta, method, progress, stage.name, options)
-    if problem.weighting == "propagated":
-        notes.append("weighting: 'propagated' weights each observation, which a "
-                     "partitioned log does not support yet: solved with equal weights")
-    out = _diverged(out, problem, theta, plain)
-    collapse = gauges.collapse(theta, out.theta, plain) if out.success else None
-    if collapse is not None:
-        out = replace(out, success=False, status="Collapsed", message=collapse)
-    objective = plain
-    if problem.weighting == "estimated" and len(stage.constraints) > 1 and out.success:
-        objective, out, more = _reweighted(problem, stage, plain, out, data, method,
-                                           progress, options)
-        notes += more
-    names, scales, idx = objective.names, objective.scales, objective.index
-    meat = None
-    if len(stage.constraints) > 1:
-        rank = numerical_rank(out.r_factor, out.rows, scales)
-        cov_g = objective.residual_covariance(data, out.theta, rank)
-        meat = objective.accumulate_r(data, out.theta, sqrt_psd(cov_g).T)[0]
-    exact_null, held = gauges.confirmed(plain, sample, out.theta)
-    gauges = held
-    ident, unc = analyse(out.r_factor, out.rows, out.rss, names, scales, out.theta[idx],
-                         meat, exact_null)
-    moved = np.abs(out.theta[idx] - theta[idx]) > 1e-12 * scales
-    at_bound = [p.name for p in (problem.parameters[i] for i in idx)
-                if min(abs(out.theta[problem.index[p.name]] - b) for b in (p.lower, p.upper))
-                <= 1e-7 * p.scale]
-    notes.append(f"the outliers and the serial correlation of the residuals are not looked "
-                 f"for on the partitioned log '{data.name}' (they need every row's residual "
-                 "at once)")
-    result = StageResult(
-        stage.name, stage.doc, out.method, out.success, out.status, out.message,
-        out.iterations, out.seconds, names, _constraint_costs(plain, data, theta, out.theta),
-        tuple(n for n, m in zip(names, moved, strict=True) if not m), tuple(at_bound),
-        conditioning(r_start, rows0, names, scales),
-        conditioning(out.r_factor, out.rows, names, scales, gauges=exact_null), ident, unc,
-        tuple(notes), None, gauges)
-    return out.theta, result
 
 
 def _combined(parts: list[SeriesStats]) -> SeriesStats:
@@ -233,23 +154,29 @@ def solve_partitioned(
         Worker processes of an embedded local cluster (``executor="local"``; default one
         per core).
     progress
-        Called with one line per solver iteration (None: silent).
+        Called with each line of progress, as for :func:`symcal.solve`: one per solver
+        iteration, and notes (None: no lines).  See :mod:`symcal.base.progress`.
     bars
-        Progress bars: one meter counting the shards done.
+        Progress bars (:func:`symcal.base.progress.terminal_bars`): one meter counting
+        the shards each pass has done, the stage and the latest iteration's line beside
+        it (then not passed to ``progress``).  None: no bars.
 
     Returns
     -------
     Result
-        As :func:`symcal.solve` gives it (see the module's docstring for what is not
-        computed on the log, said in its notes).
+        As :func:`symcal.solve` gives it on the same data in memory (see the module).
 
     Raises
     ------
     DataError
-        If the shards cannot be read or lack a needed column (named by file).
+        If the shards cannot be read or lack a needed column (named by file), or hold
+        too few observations for the stage's parameters.
     SolveError
-        If a stage asks for the closed form on constraints that are not linear, or has a
-        constraint with a robust loss.
+        If a stage asks for the closed form on constraints that are not linear.
+    SymcalError
+        If a constraint is not finite at the start (named with its observation), a
+        robust loss meets ``estimated`` or ``propagated`` weighting, or ``propagated``
+        weighting lacks a reading's declared noise (as :func:`symcal.solve`).
     """
     problem = problem if isinstance(problem, Problem) else load_problem(problem)
     options = options or problem.options
@@ -288,16 +215,22 @@ def _solve(problem: Problem, log: ShardedDataset | Dataset, held: dict[str, Data
     theta = theta0
     stages: list[StageResult] = []
     with contextlib.ExitStack() as stack:
-        m = stack.enter_context(meter(bars, "log", None, "shard"))
+        report = stack.enter_context(reporting(progress, bars, "log", None, "shard",
+                                               counts=False))
         if inner is not None:           # in memory without one: the default policy
-            stack.enter_context(using(_Metered(inner, m)))
+            stack.enter_context(using(_Metered(inner, report.meter)))
+        ordered = time_ordered_passes(problem, log, sample.columns)
         for stage in problem.stages:
-            m.note(stage.name)
-            theta, outcome = _run_stage(problem, stage, log, sample, theta, options, progress)
+            report.meter.note(stage.name)
+            theta, outcome = run_stage_passes(problem, stage, log, sample, theta, options,
+                                              report.callback(), ordered)
             stages.append(outcome)
             if not outcome.success:
                 break
-    last = stages[-1]
+        last = stages[-1]
+        fit = _fit(problem, cast("dict[str, Dataset]", {log.name: log, **held}), theta, last)
+        found, tests = floor_tests_passes(problem, log, sample, held, theta, fit, ordered,
+                                          theta0)
     params = parameter_table(
         ParameterResult(p.name, float(theta[i]), float(theta0[i]), p.unit, p.fixed,
                         last.uncertainty.se.get(p.name),
@@ -308,26 +241,30 @@ def _solve(problem: Problem, log: ShardedDataset | Dataset, held: dict[str, Data
     notes: list[str] = []
     if isinstance(log, ShardedDataset):
         stats, notes, checks = _log_analysis(problem, log, theta0, theta)
-        notes.append(f"the noise floor of the partitioned log '{log.name}' is not computed "
-                     "(its residuals are summarised shard by shard)")
         info = DatasetInfo(log.name, log.source, log.n, 0,
                            str(Path(str(given)).resolve()) if isinstance(given, str | Path)
                            else None, log.manifest())
-        tests: tuple = ()
     else:
         stats_t, skipped = series_statistics(problem, {log.name: log}, theta0, theta)
         stats, notes = list(stats_t), list(skipped)
         checks = list(implicit_checks(problem, {log.name: log}, theta))
         info = _info(log, None, None)
-        tests = ()
     more, skipped = series_statistics(problem, held, theta0, theta)
     notes += [n for n in skipped if n not in notes]
-    found, held_tests = floor_tests(problem, held, theta, _fit(problem, held, theta, last))
-    stats += [replace(s, noise=found.get((s.dataset, s.name))) for s in more]
+    stats = [replace(s, noise=found.get((s.dataset, s.name))) for s in (*stats, *more)]
     checks += list(implicit_checks(problem, held, theta))
+    notes += [_contraction_note(c) for c in checks if not c.contracts]
     infos = (info, *(_info(d, data.get(d.name), problem.datasets[d.name].path)
                      for d in held.values()))
     datasets: dict[str, Any] = {log.name: log, **held}
     return Result(problem, theta0, theta, tuple(stages), params, last.identifiability,
                   last.uncertainty, tuple(stats), infos, tuple(notes), tuple(checks),
-                  tuple(tests) + tuple(held_tests), _hashes(problem), datasets)
+                  tests, _hashes(problem), datasets)
+
+
+def _contraction_note(c: ImplicitCheck) -> str:
+    """The note of an implicit definition that is not a contraction (as ``symcal.solve``'s)."""
+    return (f"'{c.name}' is not a contraction on dataset '{c.dataset}': max |dF/dx| = "
+            f"{c.contraction:.3g} >= 1, so its fixed-point steps do not converge and the "
+            "result is not to be trusted (the errors are too large for this form of the "
+            "model)")

@@ -26,6 +26,7 @@ from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, SolveError, SymcalError
 from symcal.base.linalg import is_singular, numerical_rank, sqrt_psd, whitening
 from symcal.base.options import METHODS, SolveOptions
+from symcal.base.progress import Bars, reporting
 from symcal.base.units import DISPLAY_UNITS, symbol
 from symcal.calibrate.result import (
     ConstraintCost,
@@ -406,6 +407,7 @@ def solve(
     drop_invalid: bool = False,
     progress: Progress = None,
     initial: Mapping[str, float] | None = None,
+    bars: Bars | None = None,
 ) -> Result:
     """Calibrate: estimate the parameters on the ``calibration`` dataset, stage by stage.
 
@@ -422,9 +424,15 @@ def solve(
     drop_invalid
         Drop rows with NaN/inf instead of refusing them.
     progress
-        Called with one line per solver iteration (None: silent).
+        Called with each line of progress: one per solver iteration, and notes such as
+        the gauges found before a stage's solve (None: no lines).  See
+        :mod:`symcal.base.progress`.
     initial
         Initial values by parameter name, replacing those of the problem file.
+    bars
+        Progress bars (:func:`symcal.base.progress.terminal_bars`): one meter counting
+        the solver's iterations, the latest iteration's line beside it (then not passed
+        to ``progress``).  None: no bars.
 
     Returns
     -------
@@ -451,12 +459,13 @@ def solve(
     theta0 = _initial(problem, initial or {})
     theta = theta0
     stages: list[StageResult] = []
-    for stage in problem.stages:
-        theta, result = run_stage(problem, stage, datasets[problem.fit_dataset], theta, options,
-                                  progress)
-        stages.append(result)
-        if not result.success:
-            break
+    with reporting(progress, bars, "solve", None, "it") as report:
+        for stage in problem.stages:
+            theta, result = run_stage(problem, stage, datasets[problem.fit_dataset], theta,
+                                      options, report.callback())
+            stages.append(result)
+            if not result.success:
+                break
     return _result(problem, datasets, data or {}, theta0, theta, tuple(stages))
 
 

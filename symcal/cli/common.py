@@ -104,31 +104,13 @@ def progress_bars(args: argparse.Namespace) -> Bars | None:
     return terminal_bars(sys.stderr)
 
 
-@contextlib.contextmanager
-def solve_progress(args: argparse.Namespace, label: str = "solve"
-                   ) -> Iterator[Callable[[str], None] | None]:
-    """The progress callback of a solve: None under ``--quiet``; on a terminal, a bar
-    counting the solver's iterations with its latest iteration line beside it (other
-    lines, such as notes, are printed above the bar); else every line on stderr
-    (:func:`progress`)."""
+def progress_of(args: argparse.Namespace) -> tuple[Callable[[str], None] | None,
+                                                   Bars | None]:
+    """A command's ``progress`` and ``bars`` (:mod:`symcal.base.progress`): lines on
+    stderr and, on a terminal, bars; neither under ``--quiet``."""
     if getattr(args, "quiet", False):
-        yield None
-        return
-    bars = progress_bars(args)
-    if bars is None:
-        yield progress
-        return
-    from symcal.base.progress import meter
-
-    with meter(bars, label, None, "it") as m:
-        def show(line: str) -> None:
-            if " iteration " not in line:
-                progress(line)
-                return
-            m.advance()
-            m.note(escape_controls(line.strip()))
-
-        yield show
+        return None, None
+    return progress, progress_bars(args)
 
 
 def out_lock(folder: str | Path | None, option: str) -> contextlib.AbstractContextManager:

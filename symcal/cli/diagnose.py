@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from symcal.base.errors import SymcalError
-from symcal.cli.common import data_map, data_options, inputs_of, out_lock, progress, write_stdout
+from symcal.cli.common import data_map, data_options, inputs_of, out_lock, progress_of, write_stdout
 
 HELP = "solve, then show where the model fails and which effect is missing"
 
@@ -57,8 +57,9 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         check_outputs([Path(args.out) / name for name in OUTPUTS], inputs, f"--out {args.out}")
     with out_lock(args.out, f"--out {args.out}"):
-        result = solve(problem, data, drop_invalid=args.drop_invalid,
-                       progress=None if args.quiet else progress)
+        lines, bars = progress_of(args)
+        result = solve(problem, data, drop_invalid=args.drop_invalid, progress=lines,
+                       bars=bars)
         return _diagnosed(args, result, formats, inputs)
 
 

@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 from symcal.base.errors import SymcalError, escape_controls
-from symcal.calibrate.fleet_summary import failure_reason
 from symcal.cli.common import data_map, inputs_of, out_lock, progress, progress_bars, write_stdout
 
 #: What ``--out DIR`` holds for the fleet, beside one folder per unit.
@@ -57,19 +56,6 @@ def _unit_writer(out: Path, inputs: set[Path]) -> Any:
     return write
 
 
-def _announce(total: int) -> Any:
-    """One line on stderr per finished unit (when no bar is drawn)."""
-    done = [0]
-
-    def say(unit: str, doc: Mapping[str, Any], report: str | None) -> None:
-        done[0] += 1
-        reason = failure_reason(doc)
-        state = "solved" if reason is None else f"FAILED: {reason}"
-        progress(f"  fleet: {done[0]}/{total} unit {unit}: {state}")
-
-    return say
-
-
 def run_fleet(args: argparse.Namespace) -> int:
     """Solve the fleet of ``args.fleet``; print the summary (or ``--json``); write
     ``--out``; return the exit code."""
@@ -101,12 +87,9 @@ def run_fleet(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else None
     if out is not None:
         _check_out(out, fleet, [u.name for u in units], inputs)
-    bars = progress_bars(args)
     callbacks = []
     if out is not None:
         callbacks.append(_unit_writer(out, inputs))
-    if bars is None and not args.quiet:
-        callbacks.append(_announce(len(units)))
 
     def on_unit(unit: str, doc: Mapping[str, Any], report: str | None) -> None:
         for call in callbacks:
@@ -114,8 +97,9 @@ def run_fleet(args: argparse.Namespace) -> int:
 
     with out_lock(out, f"--out {out}"):
         result = solve_fleet(problem, fleet, data, options, drop_invalid=args.drop_invalid,
-                             executor=args.scheduler, workers=args.workers, bars=bars,
-                             on_unit=on_unit, report=text_report)
+                             executor=args.scheduler, workers=args.workers,
+                             bars=progress_bars(args), on_unit=on_unit, report=text_report,
+                             progress=None if args.quiet else progress)
         document = json_text(result.to_dict())
         text = fleet_text(result.summary, str(fleet))
         if out is not None:

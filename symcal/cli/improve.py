@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from symcal.base.errors import SymcalError
-from symcal.cli.common import data_map, data_options, inputs_of, out_lock, progress
+from symcal.cli.common import data_map, data_options, inputs_of, out_lock, progress_of
 
 HELP = "improve the model round by round until the diagnosis is quiet"
 #: The most rounds one run may take.
@@ -54,8 +54,9 @@ def run(args: argparse.Namespace) -> int:
     check_outputs([out / n for n in ("final.yaml", "ladder.txt", "ladder.json", "ladder.png")],
                   inputs_of(args), option)
     with out_lock(out, option):
+        shown, bars = progress_of(args)
         result = improve(args.problem, out, data_map(args), args.max_rounds, args.alpha,
-                         args.drop_invalid, None if args.quiet else progress)
+                         args.drop_invalid, shown, bars)
         rungs = compare([r.result for r in result.rounds])
         with OutputSet(out, inputs_of(args), option) as stage:
             atomic_write_text(stage / "ladder.txt", ladder_report(rungs))
@@ -70,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
         for r in result.rounds:
             what = r.added or "(the starting problem)"
             lines.append(f"  round {r.index}: {what}  [{r.problem_file}]")
+            lines += [f"    {note}" for note in r.notes()]
         for label, why in result.rejected:
             lines.append(f"  not kept: {label}: {why}")
         for label, why in result.aliased:

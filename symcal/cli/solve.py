@@ -12,7 +12,7 @@ from symcal.cli.common import (
     data_options,
     inputs_of,
     out_lock,
-    solve_progress,
+    progress_of,
     write_stdout,
 )
 
@@ -102,19 +102,19 @@ def _solve(args: argparse.Namespace, problem: Any, data: dict[str, str], inputs:
 
     options = problem.options.over(method=args.method, max_iter=args.max_iter)
     fit = problem.fit_dataset
-    with solve_progress(args) as shown:
-        if fit in data and Path(data[fit]).is_dir():      # a log kept as shards
-            from symcal.calibrate.partitioned import solve_partitioned
+    lines, bars = progress_of(args)
+    if fit in data and Path(data[fit]).is_dir():      # a log kept as shards
+        from symcal.calibrate.partitioned import solve_partitioned
 
-            if args.drop_invalid:
-                raise SymcalError(f"--drop-invalid does not apply to the folder of shards "
-                                  f"{data[fit]}: every shard's needed columns must be finite")
-            result = solve_partitioned(problem, data[fit], options,
-                                       data={k: v for k, v in data.items() if k != fit},
-                                       progress=shown)
-        else:
-            result = solve(problem, data, options, drop_invalid=args.drop_invalid,
-                           progress=shown)
+        if args.drop_invalid:
+            raise SymcalError(f"--drop-invalid does not apply to the folder of shards "
+                              f"{data[fit]}: every shard's needed columns must be finite")
+        result = solve_partitioned(problem, data[fit], options,
+                                   data={k: v for k, v in data.items() if k != fit},
+                                   progress=lines, bars=bars)
+    else:
+        result = solve(problem, data, options, drop_invalid=args.drop_invalid,
+                       progress=lines, bars=bars)
     text = text_report(result)
     show = not args.quiet or not result.success
     if args.json:  # the document always, whatever --quiet says

@@ -17,6 +17,7 @@ from typing import Any
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError
 from symcal.data.dataset import Dataset, make_dataset, read_table
+from symcal.data.derived import sources, with_derived
 from symcal.language.problem_file import DatasetSpec
 from symcal.language.yamlio import display_path
 from symcal.problem.symbolic import Problem
@@ -124,12 +125,17 @@ def load_datasets(
                             f"{did_you_mean(name, problem.datasets)}; it has: "
                             f"{', '.join(problem.datasets)}")
     needed = needed_columns(problem)
+    read = sources(problem.column_specs, needed)   # derived columns: what they come from
     wanted = list(problem.datasets) if names is None else list(names)
     out: dict[str, Dataset] = {}
     for name in wanted:
         item = given.get(name)
         if isinstance(item, Dataset):
             out[name] = item
-        else:
+        elif item is not None and Path(item).is_dir():   # shards: derived columns refused
             out[name] = load_dataset(problem.datasets[name], needed, item, drop_invalid)
+        else:
+            out[name] = load_dataset(problem.datasets[name], read, item, drop_invalid)
+        if isinstance(out[name], Dataset):
+            out[name] = with_derived(problem.column_specs, out[name], needed)
     return out

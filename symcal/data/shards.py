@@ -97,6 +97,28 @@ class ShardedDataset:
         return make_dataset(self.name, f"{self.source} (a sample of {take.size} rows)",
                             {c: v[take] for c, v in merged.items()}, shard.needed)
 
+    def spread(self, count: int) -> Dataset:
+        """At most ``count`` observations spread evenly over the whole log (every shard
+        read once, in order; the rows kept in time order), as an in-memory dataset: what a
+        diagnosis of the log examines."""
+        total = self.n
+        every = max(1, -(-total // max(count, 1)))       # keep one row in `every`
+        parts: dict[str, list[np.ndarray]] = {}
+        start = 0
+        needed: tuple[str, ...] = ()
+        for shard in self.shards:
+            data = shard.dataset(self.name)
+            needed = shard.needed
+            take = np.arange((-start) % every, data.n, every)
+            for c, v in data.columns.items():
+                parts.setdefault(c, []).append(np.asarray(v)[take])
+            start += data.n
+        names = [c for c, v in parts.items() if len(v) == len(self.shards)]
+        merged = {c: np.concatenate(parts[c]) for c in names}
+        kept = len(next(iter(merged.values()))) if merged else 0
+        return make_dataset(self.name, f"{self.source} (one row in {every} of its {total}: "
+                            f"{kept} rows)" if every > 1 else self.source, merged, needed)
+
     def manifest(self) -> str:
         """A digest of the shards' paths, sizes and modification times: what a result
         checks to know that the log did not change (its bytes are not hashed: a day's

@@ -40,6 +40,7 @@ import numpy as np
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SymcalError
 from symcal.base.linalg import sqrt_psd, whitening
+from symcal.base.progress import Bars, Progress, Report, reporting
 from symcal.base.units import internal_unit, size
 from symcal.experiment.predict import Prediction, last_stage, operating_point, predict
 from symcal.problem.symbolic import Problem
@@ -534,7 +535,8 @@ def _met(prediction: Prediction, targets: tuple[Target, ...]) -> dict[str, bool]
 
 
 def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None,
-           targets: tuple[Target, ...] = (), seed: int = 0) -> Design:
+           targets: tuple[Target, ...] = (), seed: int = 0,
+           progress: Progress | None = None, bars: Bars | None = None) -> Design:
     """Optimise the motion of the scenario's ``design`` run within its limits.
 
     Parameters
@@ -550,6 +552,13 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
         the limits allow, or the best reachable errors with the limits that bind.
     seed
         Seed of the poses the predictions are evaluated on.
+    progress
+        Called with each line of progress (:mod:`symcal.base.progress`): the baseline's
+        prediction, each optimisation round's outcome (None: no lines).
+    bars
+        Progress bars (:func:`symcal.base.progress.terminal_bars`): one meter counting
+        the optimisation rounds (at most 2), the latest round's line beside it (then not
+        passed to ``progress``).  None: no bars.
 
     Returns
     -------
@@ -574,8 +583,17 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
     if criterion is not None and criterion not in CRITERIA:
         raise SymcalError(f"--criterion {criterion}: expected one of {', '.join(CRITERIA)}"
                           f"{did_you_mean(criterion, CRITERIA)}")
+    with reporting(progress, bars, "design", total=2, unit="round") as report:
+        return _design(problem, scenario, criterion, targets, seed, report)
+
+
+def _design(problem: Problem, scenario: Scenario, criterion: str | None,
+            targets: tuple[Target, ...], seed: int, report: Report) -> Design:
+    space = scenario.design
+    assert space is not None
     run = space.run
     baseline = predict(problem, scenario, run, seed)
+    report.line(f"design: the baseline run '{run}' predicted ({baseline.n} observations)")
     for tg in targets:
         if baseline.se.get(tg.name) is None:
             raise SymcalError(f"--target {tg.text}: '{tg.name}' is determined only in a "
@@ -592,7 +610,7 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
     active: list[str] = []
     message = "only n may change: no motion to optimise"
     designed = baseline
-    for _ in range(2):  # a second round with the design's own noise model, if needed
+    for round_ in range(2):  # a second round with the design's own noise model, if needed
         if variables:
             model = _Model(problem, scenario, run, current)
             solution, active, best, status = _optimise(model, variables, start, criterion,
@@ -615,6 +633,7 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
                 if fitted > n or all(_met(again, targets).values()):
                     n, values, designed = fitted, values_n, again
         current = designed
+        report.step(f"design: round {round_ + 1}: {message}; {n} observations")
         if not targets or all(_met(designed, targets).values()):
             break
     met = _met(designed, targets)

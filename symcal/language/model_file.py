@@ -9,6 +9,12 @@ from typing import Any
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SpecError, Where
 from symcal.language import expr
+from symcal.language.candidates import (
+    CandidatesSpec,
+    check_model_variables,
+    model_candidate_names,
+    parse_candidates,
+)
 from symcal.language.common import (
     ConstantSpec,
     ExprSpec,
@@ -33,7 +39,7 @@ from symcal.language.overlay import resolve_base
 from symcal.language.yamlio import load_yaml
 
 MODEL_KEYS = ["doc", "extends", "constants", "inputs", "parameters", "expressions", "outputs",
-              "implicit"]
+              "implicit", "candidates"]
 MAX_STEPS = 50
 BASE = "base."  # prefix under which an extending model sees the definitions it overrides
 
@@ -92,6 +98,9 @@ class ModelSpec:
     where: Where
     extends: ModelSpec | None = None
     implicit: dict[str, ImplicitSpec] = field(default_factory=dict)
+    #: The search space of candidate effects the model declares (``candidates:``, its own
+    #: or inherited); None: not declared.
+    candidates: CandidatesSpec | None = None
 
     def error_expression(self, output: str) -> str | None:
         """The expression E when ``output`` is ``input + E`` (or ``E + input``): the
@@ -211,7 +220,8 @@ def _extend(parent: ModelSpec, child: ModelSpec) -> ModelSpec:
     child_exprs = dict(child.expressions)
     child_exprs.update({k: o.expr for k, o in child.outputs.items()})
     merged = _merge_definitions(parent_exprs, child_exprs)
-    outputs = {**parent.outputs, **child.outputs}
+    outputs = {**parent.outputs, **{k: _inherit(parent.outputs.get(k), o)
+                                    for k, o in child.outputs.items()}}
     outputs = {k: replace(o, expr=merged[k]) for k, o in outputs.items()}
     expressions = {k: v for k, v in merged.items() if k not in outputs}
     model = ModelSpec(
@@ -219,10 +229,27 @@ def _extend(parent: ModelSpec, child: ModelSpec) -> ModelSpec:
         {**parent.constants, **child.constants}, {**parent.inputs, **child.inputs},
         {**parent.parameters, **child.parameters}, expressions, outputs, child.where, parent,
         {**parent.implicit, **child.implicit},
+        child.candidates if child.candidates is not None else parent.candidates,
     )
     _check_sections(model)
     _check_implicit(model)
+    _check_candidates(model)
     return model
+
+
+def _inherit(parent: OutputSpec | None, child: OutputSpec) -> OutputSpec:
+    """An output the child redefines: a unit or doc it does not write is the parent's
+    (``p_hat: base.p_hat + c*u`` keeps the output's declared unit)."""
+    if parent is None:
+        return child
+    return replace(child, unit=child.unit or parent.unit, doc=child.doc or parent.doc)
+
+
+def _check_candidates(model: ModelSpec) -> None:
+    """The variables of the model's ``candidates:`` are its own names."""
+    if model.candidates is not None:
+        known = model_candidate_names(model.inputs, model.outputs, model.expressions)
+        check_model_variables(model.candidates, known, model.name)
 
 
 def _check_sections(model: ModelSpec) -> None:
@@ -284,11 +311,14 @@ def load_model(path: str | Path, _chain: tuple[Path, ...] = ()) -> ModelSpec:
         if key.startswith(BASE):
             raise SpecError(expressions[key].where, f"'{key}' cannot be defined: 'base.' "
                                                     "names refer to an extended model")
+    candidates = (parse_candidates(doc["candidates"], child_where(doc, where, "candidates"))
+                  if "candidates" in doc else None)
     model = ModelSpec(name, text, path.resolve(), constants, inputs, parameters, expressions,
-                      outputs, where, None, entries("implicit", parse_implicit))
+                      outputs, where, None, entries("implicit", parse_implicit), candidates)
     _check_sections(model)
     if "extends" not in doc:
         _check_implicit(model)
+        _check_candidates(model)
         return model
     at = child_where(doc, where, "extends")
     chain = (*_chain, path.resolve())

@@ -20,6 +20,7 @@ from typing import Any
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SpecError, Where
 from symcal.base.files import LINK_LOOP, input_refusal, resolve
+from symcal.language.courier import PRESETS
 from symcal.language.fields import child_where, expect_str
 from symcal.language.yamlio import MAX_BYTES, YList, YMap, display_path, load_yaml
 
@@ -35,7 +36,7 @@ EntryRule = Callable[[Any, Any, Any], Any]
 KEYED_SECTIONS = ("constants", "parameters", "columns", "instances", "expressions",
                   "constraints", "comparisons", "datasets", "implicit", "noise")
 #: Keys of an instance merged entry by entry.
-INSTANCE_SECTIONS = ("inputs", "parameters", "noise")
+INSTANCE_SECTIONS = ("inputs", "parameters", "noise", "constants")
 #: Problem keys holding paths relative to the file, per keyed section.
 PATH_KEYS = {"instances": ("model",), "datasets": ("path", "simulate")}
 
@@ -271,11 +272,31 @@ def merge_problem(base: YMap, overlay: YMap, base_path: Path) -> YMap:
     YMap
         The merged document.
     """
-    return merge_keyed(_rebase_paths(base, base_path), overlay, _merge_section)
+    return _redeclared(merge_keyed(_rebase_paths(base, base_path), overlay, _merge_section),
+                       overlay)
+
+
+def _redeclared(merged: YMap, overlay: YMap) -> YMap:
+    """A name the overlay declares as a parameter that the base declares as a constant
+    (or the other way round) leaves the base's section: an overlay may make a constant a
+    parameter (``parameters: {l_s: {value: 9.7, unit: mm}}``), or fix one as a constant."""
+    for new, old in (("parameters", "constants"), ("constants", "parameters")):
+        added, section = overlay.get(new), merged.get(old)
+        if not (isinstance(added, YMap) and isinstance(section, YMap)):
+            continue
+        mine = overlay.get(old)
+        moved = [k for k, v in added.items() if v is not None and k in section
+                 and not (isinstance(mine, YMap) and k in mine)]
+        if moved:
+            put(merged, merged, old, without(section, moved), same=False)
+    return merged
 
 
 def _merge_section(key: Any, base: Any, overlay: Any) -> Any:
     """One top-level key of a problem that both files declare."""
+    if key == "columns" and isinstance(base, str) and base in PRESETS \
+            and isinstance(overlay, YMap):   # columns added to a preset's
+        return merge_keyed(_preset(base, overlay.line), overlay)
     if key == "instances":
         return merge_keyed(base, overlay, lambda _, b, o: merge_keyed(b, o, _merge_instance))
     if key in KEYED_SECTIONS:
@@ -283,6 +304,18 @@ def _merge_section(key: Any, base: Any, overlay: Any) -> Any:
     if key == "stages":
         return _merge_stages(base, overlay)
     return overlay
+
+
+def _preset(name: str, line: int | None) -> YMap:
+    """The columns of preset ``name`` as the mapping a file would write."""
+    out = new_map(line)
+    for column, (unit, role, doc, noise) in PRESETS[name].items():
+        entry = new_map(line)
+        for k, v in (("unit", unit), ("role", role), ("doc", doc), ("noise", noise)):
+            if v:
+                entry[k] = v
+        out[column] = entry
+    return out
 
 
 def _merge_instance(key: Any, base: Any, overlay: Any) -> Any:

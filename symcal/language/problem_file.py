@@ -11,6 +11,12 @@ from symcal.base.errors import SpecError, Where, excerpt
 from symcal.base.files import LINK_LOOP, input_refusal, resolve
 from symcal.base.options import METHODS, SolveOptions
 from symcal.language import expr
+from symcal.language.candidates import (
+    CandidatesSpec,
+    ProblemCandidatesSpec,
+    parse_candidates,
+    parse_problem_candidates,
+)
 from symcal.language.common import (
     ConstantSpec,
     ExprSpec,
@@ -23,6 +29,7 @@ from symcal.language.common import (
     section,
 )
 from symcal.language.courier import PRESETS
+from symcal.language.dimensions import same_dimension
 from symcal.language.fields import (
     MAX_SAMPLES,
     check_keys,
@@ -51,13 +58,19 @@ from symcal.language.solver import parse_solver
 from symcal.language.yamlio import MAX_BYTES, YMap, display_path
 
 PROBLEM_KEYS = ["doc", "extends", "constants", "parameters", "columns", "expressions",
-                "comparisons", "stages", "weighting", "implicit", "solver", "noise"]
+                "comparisons", "stages", "weighting", "implicit", "solver", "noise",
+                "candidates"]
 #: ``auto`` (not written): ``propagated`` where every reading of the constraints declares
 #: its noise and no constraint has a robust loss, else ``equal``.
 WEIGHTINGS = ("equal", "estimated", "propagated")
-#: What a column may be declared as (``role:``): the time of an observation, or a raw
-#: position reading along which residuals are plotted.
-ROLES = ("time", "axis")
+#: What a column may be declared as (``role:``): the time of an observation, a raw
+#: position reading along which residuals are plotted, a category (a pose or window
+#: index), a sample counter, an external reference reading, or a measured state of the
+#: system or its environment any sensor may depend on (an ambient temperature).
+ROLES = ("time", "axis", "label", "index", "reference", "state")
+#: Roles of columns that are never an effect on a sensor (nor is any column a comparison
+#: uses as its reference).
+NOT_EFFECTS = ("label", "index", "reference")
 
 
 #: A dataset's roles: the data a problem is fitted on, and data held out to check it.
@@ -70,8 +83,10 @@ DEFAULT_FIT = "calibration"
 
 @dataclass(frozen=True)
 class ColumnSpec:
-    """A data column the problem may refer to by name; ``role`` is "", "time" or "axis";
-    ``noise`` is the declared standard deviation of its readings (None: not declared)."""
+    """A data column the problem may refer to by name; ``role`` is "" or one of
+    :data:`ROLES`; ``noise`` is the declared standard deviation of its readings (None: not
+    declared); ``rate_of`` names the column whose time derivative this one is, computed
+    when a dataset is loaded (:mod:`symcal.data.derived`; "": read from the data)."""
 
     name: str
     unit: str
@@ -79,6 +94,7 @@ class ColumnSpec:
     where: Where
     role: str = ""
     noise: NoiseSpec | None = None
+    rate_of: str = ""
 
 
 @dataclass(frozen=True)
@@ -93,6 +109,12 @@ class InstanceSpec:
     doc: str
     where: Where
     noise: dict[str, NoiseSpec] = field(default_factory=dict)
+    #: Model constants bound to a problem expression (``constants: {rho: rho}``): the
+    #: instance uses the expression's value instead of the model's.
+    constants: dict[str, ExprSpec] = field(default_factory=dict)
+    #: The instance's own search space (``candidates:``), over its model's; None: its
+    #: model's (which may be None too).
+    candidates: CandidatesSpec | None = None
 
 
 @dataclass(frozen=True)
@@ -178,6 +200,9 @@ class SystemSpec:
     #: The problem's ``noise:`` section: a column or an instance input (``s1.p``) → its
     #: noise, over every other declaration of it.
     noise: dict[str, NoiseSpec] = field(default_factory=dict)
+    #: The problem's ``candidates:`` section (which constants and fixed parameters the
+    #: search may test); None: not written.
+    candidates: ProblemCandidatesSpec | None = None
 
 
 @dataclass(frozen=True)
@@ -236,7 +261,7 @@ def _parse_instance(
 ) -> InstanceSpec:
     expect_symbol(name, where, "an instance's name")
     entry = check_keys(value, where, required=["model", "inputs"],
-                       optional=["parameters", "noise", "doc"])
+                       optional=["parameters", "noise", "constants", "candidates", "doc"])
     model_at = child_where(entry, where, "model")
     model = cache.get(_relative(base, entry["model"], model_at), model_at)
     inputs_at = child_where(entry, where, "inputs")
@@ -268,7 +293,18 @@ def _parse_instance(
         if key not in model.inputs:
             raise SpecError(at, _not_in(key, "an input", model.name, list(model.inputs)))
         noise[key] = parse_noise(val, at, model.inputs[key].unit)
-    return InstanceSpec(name, model, bindings, overrides, _doc(entry, where), where, noise)
+    consts_at = child_where(entry, where, "constants")
+    consts = expect_map(entry.get("constants"), consts_at)
+    constants: dict[str, ExprSpec] = {}
+    for key, val in consts.items():
+        at = child_where(consts, consts_at, key)
+        if key not in model.constants:
+            raise SpecError(at, _not_in(key, "a constant", model.name, list(model.constants)))
+        constants[key] = parse_expr(val, at)
+    candidates = (parse_candidates(entry["candidates"], child_where(entry, where, "candidates"))
+                  if "candidates" in entry else None)
+    return InstanceSpec(name, model, bindings, overrides, _doc(entry, where), where, noise,
+                        constants, candidates)
 
 
 def _not_in(key: str, what: str, model: str, names: list[str]) -> str:
@@ -408,13 +444,15 @@ def _parse_stages(doc: YMap, where: Where, constraints: dict) -> tuple[StageSpec
 
 def _parse_column(name: str, value: Any, where: Where) -> ColumnSpec:
     expect_symbol(name, where, "a column's name")
-    entry = check_keys(value, where, optional=["unit", "doc", "role", "noise"])
+    entry = check_keys(value, where, optional=["unit", "doc", "role", "noise", "rate_of"])
     role = (expect_choice(entry["role"], child_where(entry, where, "role"), ROLES, "role")
             if "role" in entry else "")
     unit = display_unit(entry.get("unit"), child_where(entry, where, "unit"))
     noise = (parse_noise(entry["noise"], child_where(entry, where, "noise"), unit)
              if "noise" in entry else None)
-    return ColumnSpec(name, unit, _doc(entry, where), where, role, noise)
+    rate_of = (expect_symbol(entry["rate_of"], child_where(entry, where, "rate_of"),
+                             "a column's name") if "rate_of" in entry else "")
+    return ColumnSpec(name, unit, _doc(entry, where), where, role, noise, rate_of)
 
 
 def _parse_columns(doc: YMap, where: Where) -> dict[str, ColumnSpec]:
@@ -430,7 +468,67 @@ def _parse_columns(doc: YMap, where: Where) -> dict[str, ColumnSpec]:
                               None if noise is None else parse_noise(noise, at, unit))
                 for k, (unit, role, text, noise) in PRESETS[value].items()}
     mapping = expect_map(value, at)
-    return {k: _parse_column(k, v, child_where(mapping, at, k)) for k, v in mapping.items()}
+    columns = {k: _parse_column(k, v, child_where(mapping, at, k)) for k, v in mapping.items()}
+    return {k: _check_rate(c, columns) if c.rate_of else c for k, c in columns.items()}
+
+
+def _check_rate(col: ColumnSpec, columns: dict[str, ColumnSpec]) -> ColumnSpec:
+    """A derived column (``rate_of: SOURCE``): its source is a column read from the data,
+    the problem declares one time column, and the unit is the source's per the time's
+    (written, or that by default)."""
+    from symcal.base.units import parse_unit, text_of
+
+    at = col.where.child("rate_of")
+    source = columns.get(col.rate_of)
+    if source is None or source.name == col.name:
+        others = [k for k in columns if k != col.name]
+        raise SpecError(at, f"'{excerpt(col.rate_of)}' is not another column of the problem"
+                            f"{did_you_mean(col.rate_of, others)}; 'rate_of' names the column "
+                            f"whose time derivative '{col.name}' is")
+    if source.rate_of:
+        raise SpecError(at, f"'{source.name}' is itself a rate (rate_of: {source.rate_of}); "
+                            "a rate is computed from a column read from the data")
+    times = [c for c in columns.values() if c.role == "time"]
+    if len(times) != 1:
+        found = ("no column declares 'role: time'" if not times else
+                 f"{len(times)} columns declare it ({', '.join(c.name for c in times)})")
+        raise SpecError(at, f"the rate of '{source.name}' is computed against the problem's "
+                            f"time column, and {found}: declare exactly one, e.g. "
+                            "columns: {t: {unit: s, role: time}}")
+    if times[0].name == source.name:
+        raise SpecError(at, f"'{source.name}' is the time column: its rate is 1")
+    rate = parse_unit(source.unit or "1") / parse_unit(times[0].unit or "1")
+    if not col.unit:
+        return replace(col, unit=text_of(rate) or "")
+    if not same_dimension(parse_unit(col.unit), rate):
+        raise SpecError(col.where.child("unit"),
+                        f"'{col.name}' is the rate of '{source.name}' ({source.unit or 'no unit'}"
+                        f" per {times[0].unit or 'unit of time'}), but its unit '{col.unit}' "
+                        f"measures something else")
+    return col
+
+
+def _check_candidates(instances: dict[str, InstanceSpec], columns: dict[str, ColumnSpec],
+                      expressions: dict[str, QuantitySpec]) -> None:
+    """The variables of an instance's ``candidates:``: its model's own names, the
+    problem's columns and expressions, and other instances' signals (``s3.p``)."""
+    signals = [f"{i}.{n}" for i, inst in instances.items()
+               for n in (*inst.model.inputs, *inst.model.outputs, *inst.model.expressions)
+               if not n.startswith("base.")]
+    for inst in instances.values():
+        if inst.candidates is None:
+            continue
+        model = inst.model
+        own = [n for n in (*model.inputs, *model.outputs, *model.expressions)
+               if not n.startswith("base.")]
+        for name, at in inst.candidates.variables or ():
+            if name in own or name in columns or name in expressions or name in signals:
+                continue
+            known = [*own, *columns, *expressions, *signals]
+            raise SpecError(at, f"'{excerpt(name)}' is not a name of instance '{inst.name}' "
+                                f"(an input, output or expression of model '{model.name}'), "
+                                f"a column, a problem expression or another instance's "
+                                f"signal{did_you_mean(name, known)}")
 
 
 #: Most expression nodes a problem may expand to: every expression of every instance's
@@ -559,8 +657,12 @@ def load_problem_spec(path: str | Path) -> ProblemSpec:
                                         "expressions can be declared implicit here")
     options = (parse_solver(doc["solver"], child_where(doc, where, "solver"))
                if "solver" in doc else SolveOptions())
+    _check_candidates(instances, columns, expressions)
+    candidates = (parse_problem_candidates(doc["candidates"],
+                                           child_where(doc, where, "candidates"))
+                  if "candidates" in doc else None)
     system = SystemSpec(constants, parameters, columns, instances, expressions, constraints,
-                        comparisons, implicit, noise)
+                        comparisons, implicit, noise, candidates)
     return ProblemSpec(name, _doc(doc, where), path, system,
                        StudySpec(datasets, stages, weighting), options, where,
                        extends_chain(path, "problem"))

@@ -38,7 +38,12 @@ from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SpecError, Where
 from symcal.base.files import input_refusal
 from symcal.base.units import Unit, size
-from symcal.language.common import ParameterSpec, apply_parameter_overrides, parse_expr
+from symcal.language.common import (
+    ConstantSpec,
+    ParameterSpec,
+    apply_parameter_overrides,
+    parse_expr,
+)
 from symcal.language.dimensions import describe, same_dimension
 from symcal.language.model_file import ModelSpec
 from symcal.language.problem_file import (
@@ -62,8 +67,15 @@ from symcal.problem.names import (
     unit_text,
 )
 from symcal.problem.readings import plan_noise
+from symcal.problem.space import (
+    check_spaces,
+    expressions_needed,
+    instance_space,
+    problem_candidates,
+)
 from symcal.problem.symbolic import (
     Comparison,
+    ConstantInfo,
     ImplicitOutput,
     Instance,
     Parameter,
@@ -116,6 +128,8 @@ class _Compiler:
         self.column_symbols: dict[str, ca.SX] = {}
         self.noise_plan = plan_noise(system)
         self.noise_symbols: dict[str, ca.SX] = {}    # reading -> its noise symbol
+        self.constant_info: list[ConstantInfo] = []  # each with its symbol δ
+        self.extra_signals = expressions_needed(system)
         for inst in system.instances.values():
             for pname, pspec in inst.model.parameters.items():
                 if pname in inst.overrides:
@@ -124,7 +138,12 @@ class _Compiler:
                 self._add_parameter(f"{inst.name}.{pname}", pspec)
         for pspec in system.parameters.values():
             self._add_parameter(pspec.name, pspec)
-        values = {k: ca.SX(c.value * size(c.unit)) for k, c in system.constants.items()}
+        values = {k: self._constant(k, c, None) for k, c in system.constants.items()}
+        # every model constant an instance does not bind, per instance: its value + δ
+        self.instance_constants = {
+            i.name: {k: self._constant(f"{i.name}.{k}", c, i) for k, c in
+                     i.model.constants.items() if k not in i.constants}
+            for i in system.instances.values()}
         values.update({p.name: self.scaled[p.name] for p in system.parameters.values()})
         values["pi"] = ca.SX(ca.pi)
         units = {k: declared(c.unit) for k, c in system.constants.items()}
@@ -141,6 +160,9 @@ class _Compiler:
         self.scope = Scope("", Symbols(values, units, defs, written), self, self.stack,
                            Implicits({}, []))
         self._build_all()
+        self.candidates = problem_candidates(
+            system, [c.key for c in self.constant_info],
+            [p.name for p in self.parameters if p.fixed])
 
     # ------------------------------------------------------------------ building
 
@@ -151,6 +173,56 @@ class _Compiler:
         self.symbols[name] = ca.SX.sym(name)
         self.scaled[name] = scaled(self.symbols[name], p.unit)
         self.param_units[name] = declared(p.unit)
+
+    def _constant(self, key: str, c: ConstantSpec, inst: InstanceSpec | None) -> ca.SX:
+        """A constant's value in internal units plus its symbol δ (open in the diagnostic
+        view, zero in every other: "this value is off"), recorded in ``constant_info``."""
+        delta = ca.SX.sym(f"const:{key}")
+        self.constant_info.append(ConstantInfo(
+            key, c.name, inst.name if inst is not None else None,
+            inst.model.path if inst is not None else None, c.value, c.unit, c.doc, c.where,
+            delta))
+        return ca.SX(c.value * size(c.unit)) + delta
+
+    def _at_start(self, value: ca.SX) -> ca.SX:
+        """``value`` with every constant's δ at zero and every parameter at its start."""
+        symbols = [c.symbol for c in self.constant_info]
+        values = [ca.SX(0)] * len(symbols)
+        symbols += [self.symbols[p.name] for p in self.parameters]
+        values += [ca.SX(p.value) for p in self.parameters]
+        return ca.substitute([value], symbols, values)[0]
+
+    def _bound_constants(self, inst: InstanceSpec) -> dict[str, ca.SX]:
+        """The instance's model constants: each bound one (``constants: {rho: rho}``) as
+        the problem expression it is bound to, checked (a constant expression of
+        parameters and constants, in the constant's dimension); the others as declared."""
+        out = dict(self.instance_constants[inst.name])
+        model = inst.model
+        allowed = {p.name for p in self.parameters} | {c.symbol.name()
+                                                       for c in self.constant_info}
+        for key, b in inst.constants.items():
+            if key not in model.constants:
+                raise SpecError(b.where, f"'{key}' is not a constant of model '{model.name}'"
+                                         f"{did_you_mean(key, model.constants)}")
+            enter(self.stack, f"{inst.name} (constants)", b.where)
+            try:
+                value = self.scope.build(b)
+            finally:
+                self.stack.pop()
+            want, found = declared(model.constants[key].unit), self.scope.unit(b)
+            if not same_dimension(want, found):
+                raise SpecError(b.where, f"constant '{key}' of model '{model.name}' is in "
+                                         f"{describe(want)}, but '{b.text}' bound to it is in "
+                                         f"{describe(found)}")
+            varying = [v.name() for v in ca.symvar(value) if v.name() not in allowed
+                       and not v.name().startswith(("noise:", "hook:"))]
+            if varying:
+                raise SpecError(b.where, f"constant '{key}' of model '{model.name}' is bound "
+                                         f"to '{b.text}', which varies with "
+                                         f"{', '.join(sorted(set(varying)))}: a constant is "
+                                         "bound to an expression of parameters and constants")
+            out[key] = value
+        return out
 
     # ------------------------------------------------------------------ Outside
 
@@ -173,7 +245,8 @@ class _Compiler:
             model = inst.model
             points = [model.evaluation_point(n) for n in model.inputs]
             names += [f"{i}.{n}" for n in (*model.outputs, *model.inputs,
-                                           *(p for p in points if p and p not in model.outputs))]
+                                           *(p for p in points if p and p not in model.outputs),
+                                           *self.extra_signals.get(i, ()))]
         return names
 
     def resolve(self, name: str, where: Where) -> ca.SX | None:
@@ -254,7 +327,7 @@ class _Compiler:
             else:
                 on_output.add(full)
         scope = instance_scope(inst, inputs, params, input_units, self.stack,
-                               self.model_level, on_error)
+                               self.model_level, on_error, self._bound_constants(inst))
         for name, out in model.outputs.items():
             full = f"{inst.name}.{name}"
             sx = scope.lookup(name, out.where)
@@ -269,7 +342,7 @@ class _Compiler:
             period = None
             unit = input_units[name]
             if inp.period is not None:
-                value = scope.build(inp.period)
+                value = self._at_start(scope.build(inp.period))
                 if not value.is_constant():
                     raise SpecError(inp.period.where, "a period must be a constant expression")
                 found = scope.unit(inp.period)
@@ -289,6 +362,12 @@ class _Compiler:
                 self.signals[f"{inst.name}.{point}"] = Quantity(
                     f"{inst.name}.{point}", sx, unit_text(inp.unit, scope.units.get(point)),
                     doc=f"where the model evaluates its error in {name}", period=period)
+        for name in self.extra_signals.get(inst.name, ()):   # named by a search space
+            sx = scope.lookup(name, model.expressions[name].where)
+            self.signal_units[f"{inst.name}.{name}"] = scope.units.get(name)
+            self.signals[f"{inst.name}.{name}"] = Quantity(
+                f"{inst.name}.{name}", sx, unit_text("", scope.units.get(name)),
+                doc=f"expression '{name}' of model '{model.name}'")
         self.built.add(inst.name)
 
     def _build_all(self) -> None:
@@ -311,6 +390,17 @@ class _Compiler:
             self.constraints.append(Quantity(k, sx, unit, sigma, q.doc, loss=q.loss))
         self.comparisons = [self._comparison(k, c) for k, c in system.comparisons.items()]
         self.problem_level = self._problem_implicit()
+        references = {v.name() for c in self.comparisons for v in ca.symvar(c.reference)
+                      if v.name() in system.columns}
+        check_spaces(system, references, self._sx_of, self.hooks)
+
+    def _sx_of(self, name: str) -> ca.SX | None:
+        """The SX of a signal or a problem expression (hooks open), None for a column."""
+        if name in self.signals:
+            return self.signals[name].sx
+        if name in self.spec.system.expressions:
+            return self.scope.lookup(name, self.spec.system.expressions[name].where)
+        return None
 
     def _comparison(self, name: str, c: ComparisonSpec) -> Comparison:
         estimate, reference = self.scope.build(c.estimate), self.scope.build(c.reference)
@@ -349,24 +439,43 @@ class _Compiler:
         """The problem in use, holding its views as values (:class:`Views`): the
         diagnostic view (hooks open) and, with implicit definitions, the explicit twin
         (every one at its start); all three by substitution from this one build."""
-        closed = close_unrolled(self.model_level, self.problem_level)
-        diagnostic = self._view(*closed, hooks_open=True)
+        diagnostic = self._view(*close_unrolled(self.model_level, self.problem_level),
+                                hooks_open=True, constants_open=True)
+        # the other views close definitions free of the constants' symbols, so that their
+        # implicit checks (derivatives taken before δ is zero) are those of a build
+        # without them, bit for bit
+        model, top = self._without_deltas(self.model_level), \
+            self._without_deltas(self.problem_level)
+        closed = close_unrolled(model, top)
         explicit = None
         if closed[0]:
-            explicit = self._view(*close_at_starts(self.model_level, self.problem_level),
-                                  hooks_open=False)
+            explicit = self._view(*close_at_starts(model, top), hooks_open=False)
         noisy = self._view(*closed, noise_open=True) if self.noise_symbols else None
         use = self._view(*closed, hooks_open=False)
         self._check_dependence(use.constraints)
         return replace(use, views=Views(diagnostic, explicit, noisy))
 
+    def _without_deltas(self, defs: list[OpenDefinition]) -> list[OpenDefinition]:
+        """Open definitions with every constant's symbol δ at zero."""
+        deltas = [c.symbol for c in self.constant_info]
+        if not deltas or not defs:
+            return defs
+        zeros = [ca.SX(0)] * len(deltas)
+        out = []
+        for d in defs:
+            start, fmap = ca.substitute([d.start, d.fmap], deltas, zeros)
+            out.append(replace(d, start=start, fmap=fmap))
+        return out
+
     def _view(self, symbols: list[ca.SX], values: list[ca.SX], checks: list[ImplicitOutput],
-              *, hooks_open: bool = False, noise_open: bool = False) -> Problem:
-        """The problem with the placeholders at ``values``, and the hooks and the noise
-        symbols open or zero."""
+              *, hooks_open: bool = False, noise_open: bool = False,
+              constants_open: bool = False) -> Problem:
+        """The problem with the placeholders at ``values``, and the hooks, the noise
+        symbols and the constants' symbols open or zero."""
         hooks = list(self.hooks.values())
         closing = ([] if hooks_open else hooks) + \
-            ([] if noise_open else list(self.noise_symbols.values()))
+            ([] if noise_open else list(self.noise_symbols.values())) + \
+            ([] if constants_open else [c.symbol for c in self.constant_info])
         if closing:
             zeros = [ca.SX(0)] * len(closing)
             if values:   # the implicit values and checks hold them too: close them first
@@ -394,14 +503,22 @@ class _Compiler:
         columns = tuple(c for c in system.columns if c in self.column_symbols)
         u = ca.vertcat(*(self.column_symbols[c] for c in columns)) if columns else ca.SX(0, 1)
         theta = ca.vertcat(*(self.symbols[p.name] for p in self.parameters))
-        instances = {k: Instance(k, i.model, {b: e.text for b, e in i.bindings.items()}, i.doc)
+        instances = {k: Instance(k, i.model, {b: e.text for b, e in i.bindings.items()}, i.doc,
+                                 {c: e.text for c, e in i.constants.items()},
+                                 instance_space(i))
                      for k, i in system.instances.items()}
         return Problem(
             self.spec.name, self.spec.doc, self.spec.path, tuple(self.parameters), theta,
             columns, u, tuple(cons), tuple(exprs), tuple(sig_closed[n] for n in order),
             tuple(comps), self._study(cons), self.spec.options, instances, dict(system.columns),
             tuple(checks), dict(self.hooks) if hooks_open else {}, self.spec,
-            readings=self._readings())
+            readings=self._readings(), constants=self._constants(),
+            candidates=self.candidates)
+
+    def _constants(self) -> tuple[ConstantInfo, ...]:
+        """Every constant, marked with whether the search may test it."""
+        tested = set(self.candidates.constants)
+        return tuple(replace(c, tested=c.key in tested) for c in self.constant_info)
 
     def _readings(self) -> tuple[Reading, ...]:
         """Every declared reading the problem reads, columns in ``u`` order, then inputs."""

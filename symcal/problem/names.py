@@ -237,12 +237,14 @@ class _ModelOutside:
 
 def instance_scope(inst: InstanceSpec, inputs: dict[str, ca.SX], params: dict[str, ca.SX],
                    input_units: Mapping[str, Unit | None], stack: list[str],
-                   opened: list[OpenDefinition], hooked: Mapping[str, ca.SX]) -> Scope:
-    """The scope of one model instance: its constants, inputs (bound), parameters,
-    expressions and outputs; ``hooked`` error expressions get their hook added."""
+                   opened: list[OpenDefinition], hooked: Mapping[str, ca.SX],
+                   constants: Mapping[str, ca.SX] | None = None) -> Scope:
+    """The scope of one model instance: its constants (``constants``: their values in
+    internal units, by default as declared), inputs (bound), parameters, expressions and
+    outputs; ``hooked`` error expressions get their hook added."""
     model = inst.model
-    values: dict[str, ca.SX] = {k: ca.SX(c.value * size(c.unit))
-                                for k, c in model.constants.items()}
+    values: dict[str, ca.SX] = dict(constants) if constants is not None else {
+        k: ca.SX(c.value * size(c.unit)) for k, c in model.constants.items()}
     values.update(inputs)
     values.update(params)
     values["pi"] = ca.SX(ca.pi)

@@ -3,6 +3,9 @@ expression.
 
 An input bound to a bare column (``p: p1``) reads that column: its declared noise is the
 column's, so every use of the column (in other expressions too) carries the same noise.
+So does an input bound to a column corrected for its latency, the column plus terms in
+its rate (``psi_x: psi_x + tau*psi_x_rate``, ``psi_x_rate`` declared ``rate_of: psi_x``,
+the other names parameters or constants): the rate's own noise is not propagated.
 An input bound to an expression (``q: py_raw - l_o*theta_raw``) carries its own noise,
 independent of its columns'.  Most specific first, a reading's noise is declared by
 
@@ -58,9 +61,18 @@ class NoisePlan:
 
 
 def bare_column(system: SystemSpec, binding: expr.Node) -> str | None:
-    """The column an input binding names alone, or None for any other expression."""
+    """The column an input binding reads: a column named alone, or a column plus terms in
+    its rate and in parameters or constants (a latency correction); None for any other
+    expression."""
     if isinstance(binding, expr.Name) and binding.name in system.columns:
         return binding.name
+    if isinstance(binding, expr.Binary) and binding.op == "+" and \
+            isinstance(binding.left, expr.Name) and binding.left.name in system.columns:
+        column = binding.left.name
+        rates = {k for k, c in system.columns.items() if c.rate_of == column}
+        names = {n.name for n in expr.names(binding.right)}
+        if names & rates and names <= rates | set(system.parameters) | set(system.constants):
+            return column
     return None
 
 

@@ -21,7 +21,7 @@ from symcal.base.errors import Where
 from symcal.base.options import SolveOptions
 from symcal.language.loss import LossSpec
 from symcal.language.model_file import ModelSpec
-from symcal.language.problem_file import ColumnSpec, DatasetSpec, ProblemSpec
+from symcal.language.problem_file import NOT_EFFECTS, ColumnSpec, DatasetSpec, ProblemSpec
 
 
 @dataclass(frozen=True)
@@ -111,13 +111,86 @@ class Stage:
 
 
 @dataclass(frozen=True)
+class CandidateSpace:
+    """The search space of candidate effects declared for one instance (``candidates:``
+    in its model file, or in its instance entry, which replaces the model's).
+
+    ``variables`` are the problem's names (``s1.p``, columns as named, problem
+    expressions, ``s3.p``), ``kinds`` a subset of
+    :data:`~symcal.language.candidates.KINDS` (``()``: never add a term to this sensor),
+    ``harmonics`` the harmonic orders; each None where the file does not say (the
+    search's default applies).  ``where`` is where it is declared, ``declared_in``
+    ``"model"`` or ``"instance"``.
+    """
+
+    variables: tuple[str, ...] | None
+    kinds: tuple[str, ...] | None
+    harmonics: tuple[int, ...] | None
+    where: Where
+    declared_in: str
+
+    @property
+    def none(self) -> bool:
+        """Whether no term may be added to this sensor."""
+        return self.kinds == ()
+
+    @property
+    def origin(self) -> str:
+        """Where it is declared, for a report: ``"the space declared at
+        models/x.yaml:12"``."""
+        place = self.where.file if self.where.line is None else \
+            f"{self.where.file}:{self.where.line}"
+        return f"the space declared at {place}"
+
+
+@dataclass(frozen=True)
 class Instance:
-    """A sensor instance of the problem: its model, its input bindings (as written)."""
+    """A sensor instance of the problem: its model, its input bindings (as written), the
+    model constants it binds to problem expressions (as written) and its declared search
+    space of candidate effects (None: not declared, the search's default applies)."""
 
     name: str
     model: ModelSpec
     bindings: Mapping[str, str]
     doc: str
+    constants: Mapping[str, str] = field(default_factory=dict)
+    candidates: CandidateSpace | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class ConstantInfo:
+    """A constant of the problem (``l_s``) or of an instance's model (``s1.rho``), as a
+    candidate: "this value is off".
+
+    ``value`` and ``unit`` are as declared; ``symbol`` is added to its value (internal
+    units) in :attr:`Problem.diagnostic` and is zero in every other view, so that the
+    derivative of a residual by it is the residual's sensitivity to the constant.
+    ``tested`` says whether the problem's ``candidates: {constants: ...}`` lets the
+    search test it.  A model constant an instance binds to a problem expression
+    (``constants: {rho: rho}``) is not a constant of that instance.
+    """
+
+    key: str
+    name: str
+    instance: str | None
+    model_file: Path | None
+    value: float
+    unit: str
+    doc: str
+    where: Where
+    symbol: ca.SX
+    tested: bool = True
+
+
+@dataclass(frozen=True)
+class ProblemCandidates:
+    """What the problem's ``candidates:`` section lets the search test: the keys of the
+    constants (``Problem.constants``) and the names of the fixed parameters; every one of
+    each when the section does not restrict it (``where`` None: not written)."""
+
+    constants: tuple[str, ...] = ()
+    fixed: tuple[str, ...] = ()
+    where: Where | None = None
 
 
 @dataclass(frozen=True)
@@ -174,6 +247,12 @@ class Problem:
         Definitions solved by fixed-point steps, with their convergence checks.
     hooks
         Instance output → its hook symbol (see :attr:`diagnostic`).
+    constants
+        Every constant of the problem and of each instance's model
+        (:class:`ConstantInfo`); its symbol is open in :attr:`diagnostic`.
+    candidates
+        Which constants and fixed parameters the search may test
+        (:class:`ProblemCandidates`).
     readings
         Every reading with a declared noise (:class:`Reading`); its symbol is open in
         :attr:`noisy`.
@@ -203,6 +282,8 @@ class Problem:
     spec: ProblemSpec = field(repr=False)
     views: Views | None = field(default=None, repr=False)
     readings: tuple[Reading, ...] = ()
+    constants: tuple[ConstantInfo, ...] = ()
+    candidates: ProblemCandidates = field(default_factory=ProblemCandidates)
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -239,6 +320,23 @@ class Problem:
     def weighting(self) -> str:
         """``"equal"``, ``"estimated"`` or ``"propagated"`` (``study.weighting``)."""
         return self.study.weighting
+
+    def column_role(self, name: str) -> str:
+        """The declared role of column ``name`` (``"time"``, ``"axis"``, ``"label"``,
+        ``"index"``, ``"reference"``, ``"state"``), or ``""`` (none declared, or not a
+        column)."""
+        spec = self.column_specs.get(name)
+        return spec.role if spec is not None else ""
+
+    @cached_property
+    def never_effects(self) -> frozenset[str]:
+        """The columns that are never an effect on a sensor: those declared ``label``,
+        ``index`` or ``reference``, and every column a comparison uses as its
+        reference."""
+        out = {k for k, c in self.column_specs.items() if c.role in NOT_EFFECTS}
+        for comp in self.comparisons:
+            out.update(self.columns_of(comp.reference))
+        return frozenset(out)
 
     def constraint(self, name: str) -> Quantity:
         """The constraint called ``name``."""

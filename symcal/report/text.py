@@ -663,6 +663,12 @@ def detectable_text(result: Result, cand: Any) -> str:
     mde = getattr(cand, "mde", None)
     if mde is None:
         return "—"
+    kind = cand.basis.kind
+    if kind == "fixed":        # a fixed parameter's change, in its declared unit
+        return _spread_text(mde, cand.basis.unit)
+    if kind in ("constant", "latency"):   # a constant's or a delay's, internal units
+        unit = cand.basis.unit
+        return _spread_text(mde / DISPLAY_UNITS[unit], unit)
     unit = output_unit(result, cand.output)
     return _spread_text(mde / DISPLAY_UNITS[unit], unit)
 
@@ -878,7 +884,30 @@ def diagnosis_report(diag: Diagnosis) -> str:
         lines += ["", "Absorbed by the current parameters (invisible in these residuals; if "
                   "present, such an effect biases the parameters named):"]
         lines += [f"  {c.label}: would bias {', '.join(c.biases)}" for c in absorbed]
+    lines += _space_lines(diag)
     return "\n".join(lines) + "\n"
+
+
+def _space_lines(diag: Diagnosis) -> list[str]:
+    """Which candidates were searched, which fixed parameters fix a gauge, and the
+    candidates never proposed because they would re-open one."""
+    lines = []
+    spaces = tuple(getattr(diag, "spaces", ()) or ())
+    if spaces:
+        lines += ["", "Searched (each sensor's candidate effects; a `candidates:` section on "
+                  "the model, the instance or the problem changes it)"]
+        lines += [f"  {text}" for text in spaces]
+    fixes = dict(getattr(diag, "gauge_fixes", {}) or {})
+    if fixes:
+        lines += ["", "Fixed parameters that fix a gauge (never tested as off; no candidate "
+                  f"that re-opens one is proposed): {', '.join(sorted(fixes))}"]
+    reopened = tuple(getattr(diag, "reopened", ()) or ())
+    if reopened:
+        lines += ["", "Never proposed:"]
+        lines += [f"  {c.label}: {c.reopens}" for c in reopened[:8]]
+        if len(reopened) > 8:
+            lines.append(f"  and {len(reopened) - 8} more")
+    return lines
 
 
 def variable_units(result: Result) -> dict[str, str]:

@@ -29,7 +29,14 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from symcal.analysis.discovery import Basis, Candidate, Design, test_candidates
+from symcal.analysis.discovery import (
+    Basis,
+    Candidate,
+    Design,
+    gauge_fixes,
+    redundant_columns,
+    test_candidates,
+)
 from symcal.analysis.outliers import Outliers, remedy_yaml
 from symcal.analysis.residuals import (
     Binned,
@@ -40,18 +47,32 @@ from symcal.analysis.residuals import (
     structure,
     what_is_left,
 )
-from symcal.base.linalg import range_basis, whitening
 from symcal.base.numeric import mapped
-from symcal.base.units import ANGLE_UNITS, DISPLAY_UNITS
+from symcal.base.units import DISPLAY_UNITS
 from symcal.calibrate.result import Result
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
+from symcal.revise.blocks import Block, distinct, evaluate
 from symcal.revise.effects import effect_yaml
+from symcal.revise.library import (
+    Entry,
+    Raw,
+    constant_entries,
+    fixed_entries,
+    latency_entries,
+    output_entries,
+)
+from symcal.revise.library import (
+    own_names as own_names_of,
+)
 from symcal.revise.variants import Variant, implicit_variant
+from symcal.revise.whitened import design, predict, whiten
 
-HARMONICS = 8
 #: How many leading candidates get a prediction and a suggestion.
 TOP = 10
+#: How many members of a group (the lead included) get a prediction: those `improve`
+#: may try.
+GROUP = 4
 #: Label of the model's own approximation as a candidate.
 APPROXIMATION = "the model's approximation: errors evaluated at the raw readings"
 
@@ -104,6 +125,9 @@ class Diagnosis:
     ``variant`` is the implicit variant tested as the model's own approximation.
     ``pointer`` names, when a comparison with a reference is above its noise floor, a
     problem beside this one with more constraints on the same sensors (or "").
+    ``spaces`` says, per instance, which space of candidates was searched;
+    ``gauge_fixes`` names the fixed parameters that fix a gauge (never tested as "off",
+    and no candidate that re-opens one is proposed: :attr:`reopened`).
     """
 
     result: Result
@@ -117,6 +141,14 @@ class Diagnosis:
     variant: Variant | None = None
     own: dict[str, tuple[str, ...]] = field(default_factory=dict)
     pointer: str = ""
+    spaces: tuple[str, ...] = ()
+    gauge_fixes: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def reopened(self) -> tuple[Candidate, ...]:
+        """Candidates never proposed: each would re-open a gauge (a direction the user, or
+        the problem, fixed because no data can determine it)."""
+        return tuple(c for c in self.candidates if c.reopens)
 
     @property
     def outliers(self) -> Outliers | None:
@@ -176,6 +208,9 @@ class Diagnosis:
                  "needs": self.needs.get(c.label, ""), "text": self.candidate_text(c)}
                 for c in self.uncalibratable],
             "regressions": [r.to_dict() for r in self.result.regressions],
+            "searched": list(self.spaces),
+            "reopened": [{"label": c.label, "reason": c.reopens} for c in self.reopened],
+            "gauge_fixes": dict(self.gauge_fixes),
             "absorbed": [{"label": c.label, "biases": list(c.biases)}
                          for c in self.candidates if c.absorbed and c.biases][:20],
             "outliers": None if self.outliers is None else {
@@ -190,7 +225,7 @@ def _leads(candidates: tuple[Candidate, ...]) -> tuple[Candidate, ...]:
     seen: set[str] = set()
     out = []
     for c in candidates:
-        if c.absorbed or c.label in seen:
+        if c.absorbed or c.reopens or c.label in seen:
             continue
         out.append(c)
         seen.update(c.indistinguishable)
@@ -248,6 +283,8 @@ def _words(cand: Candidate, alpha: float, tested: int, variant: Variant | None,
                 f"{cand.share:.0%} of what the model cannot yet explain ({_falls(cand)} if "
                 f"the calibration is solved again with it){coef}; {stats}. Switch to the "
                 "implicit model rather than adding harmonics." + _group_words(cand, own))
+    if cand.basis.kind in ("fixed", "constant", "latency"):
+        return _value_words(cand, stats) + _group_words(cand, own)
     owner = cand.basis.variable.split(".", 1)[0] if "." in cand.basis.variable else None
     instance = cand.output.split(".", 1)[0]
     cross = ""
@@ -261,6 +298,30 @@ def _words(cand: Candidate, alpha: float, tested: int, variant: Variant | None,
             f"{_falls(cand)}; {stats}." + _group_words(cand, own))
 
 
+def _value_words(cand: Candidate, stats: str) -> str:
+    """A value the model takes as known that the data say is off: a fixed parameter, a
+    constant, or the delay between a sensor's clock and the others'."""
+    basis = cand.basis
+    asks = ""
+    if cand.coefficient:
+        c, se = cand.coefficient[0], cand.coefficient_se[0]
+        if basis.kind == "latency":
+            asks = (f": the data ask for a delay of {c * 1e3:.4g} ± {se * 1e3:.2g} ms "
+                    "(readings stamped that much late)")
+        else:
+            size = 1.0 if basis.kind == "fixed" else DISPLAY_UNITS[basis.unit]
+            value, change = basis.centre / size, c / size
+            rel = (f" ({100 * change / value:+.3g} % ± {100 * se / size / abs(value):.2g} %)"
+                   if value else "")
+            asks = (f": the data ask for {value + change:.6g} ± {se / size:.2g} "
+                    f"{basis.unit} instead of {value:.6g}, a change of {change:+.3g}{rel}")
+    what = {"fixed": "Freeing it", "constant": "Making it a parameter",
+            "latency": "Allowing for the delay"}[basis.kind]
+    return (f"{basis.description[0].upper()}{basis.description[1:]}{asks}. {what} would "
+            f"remove {cand.share:.0%} of what the calibration's constraints cannot yet "
+            f"explain; solving again with it would give {_falls(cand)}; {stats}.")
+
+
 def _uncalibratable_words(cand: Candidate, needs: str,
                           own: Mapping[str, tuple[str, ...]]) -> str:
     return (f"{cand.output} varies with {cand.basis.description}: real (F = "
@@ -269,220 +330,7 @@ def _uncalibratable_words(cand: Candidate, needs: str,
             f"leaves them unchanged. {needs}" + _group_words(cand, own))
 
 
-@dataclass
-class _Block:
-    dataset: Dataset
-    names: list[str]
-    kinds: list[str]
-    units: list[str]
-    offsets: list[bool]
-    before: np.ndarray
-    after: np.ndarray
-    hooks: np.ndarray      # (N, n_q, n_h)
-    jac: np.ndarray        # (N, n_q, p)
-    variables: list[Variable]
-
-
-def _evaluate(hp: Problem, ds: Dataset, theta0: np.ndarray, theta: np.ndarray,
-              free: np.ndarray) -> _Block:
-    names, kinds, units, offsets, exprs = [], [], [], [], []
-    for c in hp.constraints:
-        names.append(c.name)
-        kinds.append("constraint")
-        units.append(c.unit)
-        offsets.append(False)
-        exprs.append(c.sx)
-    for comp in hp.comparisons:
-        if comp.datasets is not None and ds.name not in comp.datasets:
-            continue
-        if any(col not in ds.columns for col in hp.columns_of(comp.reference)):
-            continue
-        names.append(comp.name)
-        kinds.append("comparison")
-        units.append(comp.unit)
-        offsets.append(comp.remove_mean)
-        exprs.append(comp.estimate - comp.reference)
-    hooks = ca.vertcat(*hp.hooks.values())
-    u_ext = ca.vertcat(hp.u, hooks)
-    e = ca.vertcat(*exprs)
-    theta_free = hp.theta[np.flatnonzero(free).tolist()]
-    var_specs = _variable_specs(hp)
-    fn = mapped(hp.theta, u_ext, [e, ca.jacobian(e, hooks).T, ca.jacobian(e, theta_free).T,
-                                  ca.vertcat(*(sx for _, sx, _, _, _ in var_specs))], "diag")
-    u = np.vstack([ds.matrix(hp.columns), np.zeros((hooks.shape[0], ds.n))])
-    after, dh, dj, values = fn(theta, u)
-    before = fn(theta0, u)[0]
-    n, nq = after.shape
-    variables = [Variable(name, values[:, k], unit, period, kind, _role(hp, name))
-                 for k, (name, _, unit, period, kind) in enumerate(var_specs)]
-    variables += _unused_columns(hp, ds)
-    return _Block(ds, names, kinds, units, offsets, before, after,
-                  dh.reshape(n, nq, hooks.shape[0]),    # vec() of (n_h × n_q) is
-                  dj.reshape(n, nq, int(free.sum())), variables)  # column-major
-
-
-def _variable_specs(hp: Problem) -> list[tuple[str, ca.SX, str, float | None, str]]:
-    """(name, SX, unit, period, kind) of every variable: columns (but the references),
-    sensor inputs and outputs, and named expressions.
-
-    Variables computed from sensor outputs have kind ``"derived"``: the residuals are
-    examined along them, but no candidate term uses them (a sensor input would then
-    depend on sensor outputs, a cycle in the model).
-    """
-    references = _references(hp)
-    hooks = ca.vertcat(*hp.hooks.values())
-    out: list[tuple[str, ca.SX, str, float | None, str]] = []
-    for k, col in enumerate(hp.columns):
-        if col not in references:
-            spec = hp.column_specs.get(col)
-            unit = spec.unit if spec is not None else ""
-            factor = DISPLAY_UNITS[unit]    # a column in its declared unit → internal units
-            out.append((col, hp.u[k] * factor if factor != 1.0 else hp.u[k], unit, None,
-                        _column_kind(hp, col)))
-    for sig in hp.signals:
-        derived = ca.depends_on(sig.sx, hooks)
-        period = sig.period
-        inst, _, name = sig.name.partition(".")
-        if inst in hp.instances:
-            model = hp.instances[inst].model
-            point = model.evaluation_point(name)
-            if point is not None and point in model.implicit:
-                period = None   # harmonics where the model evaluates its error, not here
-            if name in {model.evaluation_point(i) for i in model.inputs}:
-                derived = False  # its own evaluation point: a term there stays inside
-
-        out.append((sig.name, sig.sx, sig.unit, period, "derived" if derived else "signal"))
-    for q in hp.expressions:
-        kind = "angle" if q.unit in ANGLE_UNITS else "expression"
-        out.append((q.name, q.sx, q.unit, None,
-                    "derived" if ca.depends_on(q.sx, hooks) else kind))
-    return out
-
-
-def _references(hp: Problem) -> set[str]:
-    """Columns of reference sensors: never a variable a model may use."""
-    return {col for comp in hp.comparisons for col in hp.columns_of(comp.reference)}
-
-
-def _unused_columns(hp: Problem, ds: Dataset) -> list[Variable]:
-    """Data columns the problem does not use yet (but the references): an effect may
-    depend on them, e.g. a drift in time."""
-    references = _references(hp)
-    out = []
-    for col, spec in hp.column_specs.items():
-        if col in ds.columns and col not in hp.columns and col not in references:
-            factor = DISPLAY_UNITS[spec.unit]   # declared unit → internal units
-            values = np.asarray(ds.columns[col])
-            out.append(Variable(col, values * factor if factor != 1.0 else values, spec.unit,
-                                None, _column_kind(hp, col), spec.role))
-    return out
-
-
-def _role(hp: Problem, name: str) -> str:
-    spec = hp.column_specs.get(name)
-    return spec.role if spec is not None else ""
-
-
-def _column_kind(hp: Problem, col: str) -> str:
-    """``drift`` for the column declared as time (``role: time``), else ``column``."""
-    spec = hp.column_specs.get(col)
-    return "drift" if spec is not None and spec.role == "time" else "column"
-
-
-def _distinct(variables: list[Variable]) -> list[Variable]:
-    """Drop variables equal to another (e.g. an input bound to a column), keeping the one
-    that declares a period, else the first."""
-    kept: list[Variable] = []
-    for var in variables:
-        if np.ptp(var.values) <= 0 or not np.all(np.isfinite(var.values)):
-            continue
-        tol = 1e-12 * (1 + float(np.abs(var.values).max()))
-        same = next((i for i, k in enumerate(kept)
-                     if np.allclose(var.values, k.values, rtol=0, atol=tol)), None)
-        if same is None:
-            kept.append(var)
-        elif var.period and not kept[same].period:
-            kept[same] = var
-    return kept
-
-
-def _scale(values: np.ndarray) -> float:
-    """A coefficient that makes a term of shape ``values`` about 1 µm (internal mm)."""
-    spread = float(np.std(values))
-    return 0.001 / spread if spread > 0 else 0.001
-
-
-def _library(variables: list[Variable]) -> list[tuple[Basis, Callable]]:
-    """Candidate shapes φ(v), each with a function of the variables' values → (N, m)."""
-    lib: list[tuple[Basis, Callable]] = []
-    index = {v.name: i for i, v in enumerate(variables)}
-    periodic = [v for v in variables if v.period]
-    angles = [v for v in variables if v.kind == "angle"]
-    for v in periodic:
-        period = float(v.period or 1.0)
-        for n in range(1, HARMONICS + 1):
-            w = 2 * np.pi * n / period
-            shown = period / DISPLAY_UNITS[v.unit]   # the period in the variable's unit
-            lib.append((Basis("harmonic", v.name,
-                              f"harmonic {n} of {v.name} (period {shown:g} {v.unit})",
-                              (f"h{n}_sin", f"h{n}_cos"),
-                              (f"sin({2 * n}*pi*{{v}}/{{period}})",
-                               f"cos({2 * n}*pi*{{v}}/{{period}})"), order=n, unit=v.unit,
-                              scales=(0.0014, 0.0014), period=period),
-                        _harmonic(index[v.name], w)))
-    for v in variables:
-        if v.kind == "drift":
-            lib.append((Basis("drift", v.name, f"a slow drift in time ({v.name})", ("drift",),
-                              ("{v}",), unit=v.unit, scales=(_scale(v.values),)),
-                        _linear(index[v.name], 0.0)))
-            continue
-        mean = float(np.mean(v.values))
-        centred = v.values - mean
-        lib.append((Basis("linear", v.name, f"a term linear in {v.name}", ("lin",),
-                          ("({v} - {centre})",), unit=v.unit,
-                          scales=(_scale(centred),), centre=float(f"{mean:.6g}")),
-                    _linear(index[v.name], mean)))
-        lib.append((Basis("quadratic", v.name, f"a quadratic dependence on {v.name}",
-                          ("lin", "quad"), ("({v} - {centre})", "({v} - {centre})**2"),
-                          unit=v.unit, scales=(_scale(centred), _scale(centred ** 2)),
-                          centre=float(f"{mean:.6g}")),
-                    _quadratic(index[v.name], mean)))
-    for a in angles:
-        for v in periodic:
-            period = float(v.period or 1.0)
-            w = 2 * np.pi / period
-            scale = _scale(a.values) * 1.4
-            lib.append((Basis("angle_harmonic", v.name,
-                              f"the angle {a.name} times harmonic 1 of {v.name}",
-                              ("ah_sin", "ah_cos"),
-                              ("{a}*sin(2*pi*{v}/{period})",
-                               "{a}*cos(2*pi*{v}/{period})"), a.name, unit=v.unit,
-                              angle_unit=a.unit, scales=(scale, scale), period=period),
-                        _angle_harmonic(index[a.name], index[v.name], w)))
-    return lib
-
-
-def _harmonic(i: int, w: float) -> Callable:
-    return lambda vs: np.column_stack([np.sin(w * vs[i].values), np.cos(w * vs[i].values)])
-
-
-def _linear(i: int, centre: float) -> Callable:
-    return lambda vs: (vs[i].values - centre)[:, None]
-
-
-def _quadratic(i: int, centre: float) -> Callable:
-    return lambda vs: np.column_stack([vs[i].values - centre, (vs[i].values - centre) ** 2])
-
-
-def _angle_harmonic(ia: int, iv: int, w: float) -> Callable:
-    return lambda vs: vs[ia].values[:, None] * np.column_stack(
-        [np.sin(w * vs[iv].values), np.cos(w * vs[iv].values)])
-
-
-Raw = Callable[[int], np.ndarray]   # block index -> unwhitened regressor (N, n_q, m)
-
-
-def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
+def diagnose(result: Result, alpha: float = 0.01, *, views: bool = True) -> Diagnosis:
     """Find where a calibrated model fails and which effect is most likely missing.
 
     Nothing is solved again: the residuals, their sensitivities and the candidate terms
@@ -495,58 +343,72 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
         :meth:`~symcal.calibrate.result.Result.load`.
     alpha
         Family-wise significance level over all candidates (Bonferroni).
+    views
+        Whether to examine each residual along every variable (binned structure,
+        periodograms, what is left: what the report shows); ``False`` tests the
+        candidates only (the improve loop's rounds).
 
     Returns
     -------
     Diagnosis
     """
     problem = result.problem
-    hp = problem.diagnostic
-    data = result.data
+    data = _in_memory(result.data)
     free = np.array([n in result.stages[-1].free for n in problem.parameter_names])
-    blocks = [_evaluate(hp, ds, result.theta0, result.theta, free) for ds in data.values()]
+    blocks = [evaluate(problem, ds, result.theta0, result.theta, free)
+              for ds in data.values()]
     if result.outliers is not None and result.outliers.dominate:
         # outliers first: F-tests for missing effects mean nothing while they dominate
-        return Diagnosis(result, tuple(_views(blocks, result)), (), {}, alpha, 0)
-    cal = list(data).index(result.problem.fit_dataset)
+        return Diagnosis(result, tuple(_views(blocks, result)) if views else (), (), {},
+                         alpha, 0)
+    fit = list(data).index(problem.fit_dataset)
     own_names = [c.name for c in result.stages[-1].costs]
-    own_cols = [blocks[cal].names.index(n) for n in own_names]
-    own_blocks = [_subset(blocks[cal], own_cols)]
-    own, own_t = _whitened(own_blocks, problem, free)
-    full, full_t = _whitened(blocks, problem, free)
-    keep = {v.name for v in _distinct(blocks[cal].variables) if v.kind != "derived"}
-    raws = _library_regressors(hp, blocks, keep)
+    own_cols = [blocks[fit].names.index(n) for n in own_names]
+    own, own_t = design([blocks[fit].subset(own_cols)], problem, free)
+    full, full_t = design(blocks, problem, free)
+
+    def own_regressor(raw: Raw) -> np.ndarray:
+        return whiten(raw(fit)[:, own_cols, :], own_t[0])
+
+    def full_regressor(raw: Raw) -> np.ndarray:
+        return np.vstack([whiten(raw(i), t) for i, t in enumerate(full_t)])
+
+    fixed = [n for n, f in zip(problem.parameter_names, free, strict=True) if not f]
+    fixed_columns = {name: whiten(blocks[fit].jac_fixed[:, own_cols, k:k + 1], own_t[0])[:, 0]
+                     for k, name in enumerate(fixed)}
+    fixes = gauge_fixes(own, fixed_columns)
+    entries, found = output_entries(problem, blocks, fit)
+    entries += fixed_entries(problem, blocks, fit, free, set(fixes))
+    entries += latency_entries(problem, blocks, fit, found)
+    entries += constant_entries(problem, blocks, fit)
     variant = implicit_variant(problem)
     if variant is not None:
         diff = _variant_differences(variant, blocks, data, result.theta)
-        raws.append((Candidate("(model)", Basis("approximation", "(model)", APPROXIMATION,
-                                                ("approximation",), ())),
-                     lambda i, d=diff: d[i]))   # type: ignore[misc]
-
-    def own_regressor(raw: Raw) -> np.ndarray:
-        return _whiten(raw(cal)[:, own_cols, :], own_t[0])
-
-    def full_regressor(raw: Raw) -> np.ndarray:
-        return np.vstack([_whiten(raw(i), t) for i, t in enumerate(full_t)])
+        entries.append(Entry(Candidate("(model)", Basis(
+            "approximation", "(model)", APPROXIMATION, ("approximation",), ())),
+            lambda i, d=diff: d[i]))   # type: ignore[misc]
 
     def local(cand: Candidate) -> bool:
-        if cand.output not in hp.hooks:
+        if cand.output not in problem.diagnostic.hooks:
             return True
         instance = cand.output.split(".", 1)[0]
-        bindings = problem.instances[instance].bindings
-        return cand.basis.variable.startswith(f"{instance}.") or \
-            cand.basis.variable in set(bindings.values())
+        return cand.basis.variable in own_names_of(problem, instance)
 
-    candidates = [c for c, _ in raws]
-    by_label = {c.label: raw for c, raw in raws}
-    ranked = test_candidates(own, candidates, [own_regressor(r) for _, r in raws], alpha,
-                             local)
+    entries = [_without_redundant(e, own, own_regressor) for e in entries]
+    candidates = [e.candidate for e in entries]
+    by_label = {e.candidate.label: e for e in entries}
+    gauge_columns = {name: fixed_columns[name] for name in fixes}
+    ranked = test_candidates(
+        own, candidates, [own_regressor(e.raw) for e in entries], alpha, local,
+        [None if e.extra is None else own_regressor(e.extra) for e in entries],
+        gauge_columns)
     leads = [c for c in _leads(tuple(ranked)) if c.significant][:TOP]
-    for cand in leads:
-        _predict(cand, own, own_regressor(by_label[cand.label]), blocks, free,
-                 by_label[cand.label])
-    uncal, needs = _uncalibratable(problem, full, raws, full_regressor, leads, ranked, alpha,
-                                   local)
+    members = {label for c in leads for label in c.indistinguishable[:GROUP - 1]}
+    for cand in [*leads, *(c for c in ranked if c.label in members)]:
+        predict(cand, own, own_regressor(by_label[cand.label].raw), blocks, free,
+                by_label[cand.label].raw)
+    uncal, needs = _uncalibratable(problem, full, entries, full_regressor, leads, ranked,
+                                   alpha, local)
     yaml = {c.label: (variant.overlay(Path(problem.path), f"{problem.name}_implicit",
                                       Path(problem.path).parent)
                       if c.basis.kind == "approximation" and variant is not None
@@ -556,31 +418,50 @@ def diagnose(result: Result, alpha: float = 0.01) -> Diagnosis:
                   for name, inst in problem.instances.items()}
     above = any(s.kind == "comparison" and s.noise is not None and s.noise.verdict == "above"
                 for s in result.statistics)
-    return Diagnosis(result, tuple(_views(blocks, result)), tuple(ranked), yaml, alpha,
+    return Diagnosis(result, tuple(_views(blocks, result)) if views else (), tuple(ranked),
+                     yaml, alpha,
                      len(candidates), tuple(uncal), needs, variant, own_inputs,
-                     _better_problem(problem) if above else "")
+                     _better_problem(problem) if above else "",
+                     tuple(sp.describe() for sp in found.values()), dict(fixes))
 
 
-def _library_regressors(hp: Problem, blocks: list[_Block], keep: set[str]
-                        ) -> list[tuple[Candidate, Raw]]:
-    """Every (sensor output × shape) candidate with its unwhitened regressor per block."""
-    cal = next(i for i, b in enumerate(blocks) if b.dataset.name == hp.fit_dataset)
-    shapes = _library([v for v in blocks[cal].variables if v.name in keep])
-    out: list[tuple[Candidate, Raw]] = []
-    for h, output in enumerate(hp.hooks):
-        if all(not np.any(b.hooks[:, :, h]) for b in blocks):
-            continue
-        for basis, phi in shapes:
-            def raw(i: int, h: int = h, phi: Callable = phi) -> np.ndarray:
-                b = blocks[i]
-                f = phi([v for v in b.variables if v.name in keep])
-                return b.hooks[:, :, h][:, :, None] * f[:, None, :]   # (N, n_q, m)
-
-            out.append((Candidate(output, basis), raw))
-    return out
+#: A log kept as shards is diagnosed on at most this many of its rows, spread evenly.
+LOG_ROWS = 100_000
 
 
-def _variant_differences(variant: Variant, blocks: list[_Block], data: Mapping[str, Dataset],
+def _in_memory(data: Mapping[str, Dataset]) -> dict[str, Dataset]:
+    """The datasets in memory: a log kept as shards by at most :data:`LOG_ROWS` of its
+    rows, spread evenly over the whole log (the dataset's source says so)."""
+    from symcal.data.shards import ShardedDataset
+
+    return {name: ds.spread(LOG_ROWS) if isinstance(ds, ShardedDataset) else ds
+            for name, ds in data.items()}
+
+
+def _without_redundant(entry: Entry, own: Design,
+                       regressor: Callable[[Raw], np.ndarray]) -> Entry:
+    """The candidate without the columns that add nothing on their own (a quadratic's
+    linear part the sensor's gain already is): the same hypothesis, written without a
+    parameter the data cannot determine."""
+    basis = entry.candidate.basis
+    if basis.kind != "quadratic" or len(basis.terms) != len(basis.columns):
+        return entry        # a harmonic's sine and cosine are one phase: both or none
+    drop = redundant_columns(own, regressor(entry.raw))
+    keep = [j for j in range(len(basis.columns)) if j not in drop]
+    if not drop or not keep:
+        return entry
+    reduced = replace(basis, columns=tuple(basis.columns[j] for j in keep),
+                      terms=tuple(basis.terms[j] for j in keep),
+                      scales=tuple(basis.scales[j] for j in keep) if basis.scales else ())
+
+    def pick(raw: Raw) -> Raw:
+        return lambda i: raw(i)[:, :, keep]
+
+    return Entry(Candidate(entry.candidate.output, reduced), pick(entry.raw),
+                 None if entry.extra is None else entry.extra)
+
+
+def _variant_differences(variant: Variant, blocks: list[Block], data: Mapping[str, Dataset],
                          theta: np.ndarray) -> list[np.ndarray]:
     """What the implicit variant changes in every residual at ``theta`` (N, n_q, 1): adding
     1 times it is exactly the switch to the variant."""
@@ -597,64 +478,8 @@ def _variant_differences(variant: Variant, blocks: list[_Block], data: Mapping[s
     return out
 
 
-def _whiten(x: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Whitened rows of a regressor (N, n_q, m) → (N·rank, m)."""
-    return np.einsum("ab,nbm->nam", t, x).reshape(-1, x.shape[2])
-
-
-def _subset(block: _Block, cols: list[int]) -> _Block:
-    """A block restricted to the quantities ``cols`` (e.g. the calibration's constraints)."""
-    return replace(block, names=[block.names[k] for k in cols],
-                   kinds=[block.kinds[k] for k in cols], units=[block.units[k] for k in cols],
-                   offsets=[block.offsets[k] for k in cols], before=block.before[:, cols],
-                   after=block.after[:, cols], hooks=block.hooks[:, cols, :],
-                   jac=block.jac[:, cols, :])
-
-
-def _whitened(blocks: list[_Block], problem: Problem, free: np.ndarray
-              ) -> tuple[Design, list[np.ndarray]]:
-    """The design of ``blocks`` whitened by the covariance of what the current parameters
-    cannot explain (not of the raw residuals: comparisons also carry the estimate's own
-    error, which a refit removes)."""
-    design, _ = _design(blocks, problem, free)
-    return _design(blocks, problem, free, _projected(design))
-
-
-def _predict(cand: Candidate, own: Design, x_own: np.ndarray, blocks: list[_Block],
-             free: np.ndarray, raw: Raw) -> None:
-    """What solving the calibration again with ``cand`` would give on every dataset: a
-    Gauss-Newton refit of the current parameters and the candidate's coefficients on the
-    calibration's constraints, applied to every residual; fills ``reduction`` (std now →
-    predicted, display units) and the coefficients of the term to add (regressors are the
-    change a term of coefficient 1 makes) with standard errors."""
-    a = np.column_stack([own.nuisance, x_own])
-    delta, *_ = np.linalg.lstsq(a, own.r, rcond=None)
-    m = x_own.shape[1]
-    rows = len(own.r)
-    rank = range_basis(a).shape[1]
-    s2 = float(np.sum((own.r - a @ delta) ** 2)) / max(rows - rank, 1)
-    cov = s2 * np.linalg.pinv(a.T @ a)
-    # the fit explains the residual as X·δ; the term to add to the model is -δ
-    cand.coefficient = tuple(-float(v) for v in delta[-m:])
-    cand.coefficient_se = tuple(float(np.sqrt(max(cov[k, k], 0.0)))
-                                for k in range(len(delta) - m, len(delta)))
-    n_params = int(free.sum())
-    out: dict[str, tuple[float, float]] = {}
-    for i, b in enumerate(blocks):
-        change = b.jac @ delta[:n_params] + raw(i) @ delta[-m:]
-        predicted = b.after - change
-        for k, name in enumerate(b.names):
-            now, new = b.after[:, k], predicted[:, k]
-            if b.offsets[k]:
-                now, new = now - now.mean(), new - new.mean()
-            scale = DISPLAY_UNITS[b.units[k]]
-            out[f"{b.dataset.name}/{name}"] = (float(np.std(now)) / scale,
-                                               float(np.std(new)) / scale)
-    cand.reduction = out
-
-
 def _uncalibratable(
-    problem: Problem, full: Design, raws: list[tuple[Candidate, Raw]],
+    problem: Problem, full: Design, entries: list[Entry],
     full_regressor: Callable[[Raw], np.ndarray], leads: list[Candidate],
     ranked: list[Candidate], alpha: float, local: Callable[[Candidate], bool],
 ) -> tuple[list[Candidate], dict[str, str]]:
@@ -663,19 +488,21 @@ def _uncalibratable(
     every dataset, reported apart with what would determine them."""
     if not problem.comparisons:
         return [], {}
-    own_significant = {c.label for c in ranked if c.significant}
+    own_significant = {c.label for c in ranked if c.significant or c.reopens}
     for c in ranked:
         if c.significant:
             own_significant.update(c.indistinguishable)
-    by_label = {c.label: raw for c, raw in raws}
-    extra = [full_regressor(by_label[c.label]) for c in leads]
+    by_label = {e.candidate.label: e for e in entries}
+    extra = [full_regressor(by_label[c.label].raw) for c in leads]
     nuisance = np.column_stack([full.nuisance, *extra]) if extra else full.nuisance
     names = tuple(f"{c.label} ({col})" for c in leads for col in c.basis.columns)
-    design = Design(full.r, nuisance, full.nuisance_names + names, full.blocks)
-    others = [Candidate(c.output, c.basis) for c, _ in raws
-              if c.label not in own_significant and c.basis.kind != "approximation"]
-    tested = test_candidates(design, others,
-                             [full_regressor(by_label[c.label]) for c in others], alpha, local)
+    design_ = Design(full.r, nuisance, full.nuisance_names + names, full.blocks)
+    others = [e for e in entries if e.candidate.label not in own_significant
+              and e.candidate.basis.kind != "approximation"]
+    tested = test_candidates(
+        design_, [Candidate(e.candidate.output, e.candidate.basis) for e in others],
+        [full_regressor(e.raw) for e in others], alpha, local,
+        [None if e.extra is None else full_regressor(e.extra) for e in others])
     found = [c for c in _leads(tuple(tested)) if c.significant][:3]
     pointer = _better_problem(problem) if found else ""
     needs = {c.label: ("It shows only against the reference sensor: calibrate it with the "
@@ -710,54 +537,7 @@ def _better_problem(problem: Problem) -> str:
     return best[1] if best else ""
 
 
-def _projected(design: Design) -> list[np.ndarray]:
-    """Per block, the residuals (N × n_q, unwhitened) left after the nuisance is fitted."""
-    q = range_basis(design.nuisance)
-    r = design.r - q @ (q.T @ design.r)
-    return [r[rows].reshape(-1, unwhiten.shape[1]) @ unwhiten.T
-            for _, rows, unwhiten, _, _ in design.blocks]
-
-
-def _design(blocks: list[_Block], problem: Problem, free: np.ndarray,
-            residuals: list[np.ndarray] | None = None) -> tuple[Design, list[np.ndarray]]:
-    """Whitened residuals, nuisance and block bookkeeping; the per-observation covariance
-    is estimated from ``residuals`` (default: the calibrated residuals themselves)."""
-    rows, nuis_rows, block_info, whiteners = [], [], [], []
-    n_params = int(free.sum())
-    n_offsets = sum(sum(b.offsets) for b in blocks)
-    offset_index = 0
-    start = 0
-    for i, b in enumerate(blocks):
-        resid = b.after.copy()
-        for k, off in enumerate(b.offsets):
-            if off:
-                resid[:, k] -= resid[:, k].mean()
-        noise = resid if residuals is None else residuals[i]
-        t, t_inv = whitening(np.cov(noise, rowvar=False, bias=True).reshape(len(b.names), -1))
-        whiteners.append(t)
-        n, nq = resid.shape
-        rank = t.shape[0]
-        rows.append((resid @ t.T).reshape(-1))
-        nuis = np.zeros((n, nq, n_params + n_offsets))
-        nuis[:, :, :n_params] = b.jac
-        for k, off in enumerate(b.offsets):
-            if off:
-                nuis[:, k, n_params + offset_index] = 1.0
-                offset_index += 1
-        nuis_rows.append(np.einsum("ab,nbm->nam", t, nuis).reshape(n * rank, -1))
-        scales = tuple(DISPLAY_UNITS[u] for u in b.units)
-        block_info.append((b.dataset.name, slice(start, start + n * rank), t_inv,
-                           tuple(b.names), scales))
-        start += n * rank
-    free_names = [n for n, f in zip(problem.parameter_names, free, strict=True) if f]
-    offsets = [f"offset of {name} on {b.dataset.name}" for b in blocks
-               for name, off in zip(b.names, b.offsets, strict=True) if off]
-    design = Design(np.concatenate(rows), np.vstack(nuis_rows), tuple(free_names + offsets),
-                    tuple(block_info))
-    return design, whiteners
-
-
-def _axis(block: _Block) -> Variable | None:
+def _axis(block: Block) -> Variable | None:
     """What residuals are plotted against: the declared position reading (``role: axis``)
     that moves most on the dataset, else the time column, else None (the index)."""
     axes = [v for v in block.variables if v.role == "axis"]
@@ -778,10 +558,10 @@ def _floor_variance(result: Result, dataset: str, name: str) -> float | None:
     return test.floor**2 * test.dof / max(stats.n, 1)     # type: ignore[union-attr]
 
 
-def _views(blocks: list[_Block], result: Result) -> list[ResidualView]:
+def _views(blocks: list[Block], result: Result) -> list[ResidualView]:
     views = []
     for b in blocks:
-        variables = _distinct(b.variables)
+        variables = distinct(b.variables)
         periodic = [v for v in variables if v.period]
         moving = _axis(b)
         for k, name in enumerate(b.names):

@@ -1,39 +1,61 @@
-"""A candidate effect as files that load: a model that ``extends`` the instance's model with
-the missing term, and a problem overlay (``extends:``) that uses it.
+"""A candidate effect as files that load: a model that ``extends`` the instance's model
+with the missing term and/or a problem overlay (``extends:``) that uses it.
 
-The term goes where the physics is: into the model's error expression when the output is
-``reading + error`` (so that in an implicit model it is inside the fixed-point
-definition), else onto the output itself; a harmonic of the sensor's own reading is
-evaluated where the model evaluates its error (``u``: the raw reading in the explicit
-model, the true position in the implicit one).  Each coefficient's unit is the output's
-divided by the unit of what it multiplies (mm/s for a drift, mm/rad for an angle gain),
-and its scale makes the term about a micrometre; a number with a unit in the term (the
-period of a harmonic, the centre of a linear term) is a constant in the variable's
-internal unit, so that the extension passes the dimension check.  A new model input is
-bound to what the variable is in the problem (a data column or an expression of
+**Terms** (harmonic, linear, quadratic, drift, angle_harmonic, product) go where the
+physics is: into the model's error expression when the output is ``reading + error`` (so
+that in an implicit model it is inside the fixed-point definition), else onto the output
+itself (``c_y: base.c_y + ...``, which keeps the output's declared unit); a harmonic of
+the sensor's own reading is evaluated where the model evaluates its error (``u``: the raw
+reading in the explicit model, the true position in the implicit one).  A new model
+input is bound to what the variable is in the problem (a data column or an expression of
 columns), never to another instance's input, so no binding between instances, and no
-cycle, is created.
+cycle, is created; the instance's own outputs and expressions are used by name.
+
+**Units a person reads.**  Each coefficient's unit is the output's declared unit over
+the unit of what it multiplies, in the variable's declared unit (angles in rad),
+simplified by pint (``m/s^2/K``, ``mm/rad``, none for a plain ratio); its ``scale`` is
+:attr:`~symcal.analysis.discovery.Basis.scales` (internal units) written in that unit,
+within symcal's range of magnitudes.  A number with a unit in the term (the period of a
+harmonic, the centre of a linear term) is a constant in the variable's unit.
+
+**Other kinds** are overlays only: ``constant`` makes one or more constants one
+parameter started at their value (a problem constant is re-declared as a parameter of
+the same name; instances bind their model's constant to it: ``constants: {rho: rho}``);
+``fixed`` frees a fixed parameter (``fixed: false``); ``latency`` makes an instance read
+its columns late by one delay ``tau`` (``c + tau*c_rate``, with ``c_rate`` a derived
+column ``rate_of: c``).
+
+**Files.**  Every candidate has its own file names (kind, order, variable and output in
+them), and a file is never written over another candidate's: where a file of that name
+holds something else, the new one gets another name.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from symcal.analysis.discovery import Candidate
 from symcal.base.errors import escape_controls
 from symcal.base.files import write_output
-from symcal.base.units import internal_unit
+from symcal.base.units import internal_of, is_angle, parse_unit, registry, size, text_of
+from symcal.language import expr
+from symcal.language.common import MAGNITUDE
 from symcal.language.yamlio import dump_yaml
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
 
 _TAGS = {"harmonic": "h", "linear": "lin", "quadratic": "quad", "drift": "drift",
-         "angle_harmonic": "ah"}
+         "angle_harmonic": "ah", "product": "prod"}
+#: Kinds written as a term added to one output (a model extension).
+TERMS = tuple(_TAGS)
+#: Names of the constants a term's placeholders stand for, by placeholder.
+_CONSTANTS = {"period": "P", "centre": "c", "other_centre": "d"}
 
 
 def _ident(text: str) -> str:
@@ -42,6 +64,55 @@ def _ident(text: str) -> str:
 
 def _rel(path: Path, start: Path) -> str:
     return Path(os.path.relpath(Path(path).resolve(), Path(start).resolve())).as_posix()
+
+
+def _short(value: float, digits: int = 6) -> float:
+    return float(f"{value:.{digits}g}")
+
+
+# --------------------------------------------------------------------------- units
+
+
+def written_unit(unit: str) -> str:
+    """The unit a variable is written in: as declared, an angle in rad."""
+    return "rad" if unit and is_angle(unit) else unit
+
+
+def per(numerator: str, *denominators: tuple[str, int]) -> str:
+    """``numerator`` over each ``(unit, power)``, as a person reads it: the declared units
+    with what cancels cancelled (``m/s**2`` over ``K`` is ``m/K/s^2``, ``m/s`` over
+    ``rad/s`` is ``m/rad``), ``""`` for a plain ratio (``m/s**2`` over ``m/s**2``, ``um``
+    over ``mm``); two different units of one dimension left (``um*s/mm``) are written in
+    internal units (``s``)."""
+    unit = parse_unit(numerator or "1")
+    for den, power in denominators:
+        unit = unit / parse_unit(den or "1") ** power
+    if not internal_of(unit):
+        return ""
+    reg = registry()
+    signatures = [frozenset(reg.Quantity(1.0, name).to_root_units().unit_items())
+                  for name, _ in reg.Quantity(1.0, unit).unit_items()]
+    named = [s for s in signatures if s]
+    if len(set(named)) < len(named):
+        return internal_of(unit)
+    return text_of(unit).replace("µ", "u")
+
+
+def scale_in(value: float, unit: str) -> float:
+    """A coefficient's scale given in internal units, in ``unit``, within the magnitudes
+    symcal accepts (:data:`~symcal.language.common.MAGNITUDE`)."""
+    shown = abs(value) / size(unit)
+    if not math.isfinite(shown) or shown <= 0:
+        shown = 1.0
+    return _short(min(max(shown, 1.0 / MAGNITUDE), MAGNITUDE), 3)
+
+
+def _unit_key(unit: str) -> dict[str, str]:
+    """``{unit: U}`` for a declaration in unit ``U`` (nothing for none)."""
+    return {"unit": unit} if unit else {}
+
+
+# --------------------------------------------------------------------------- terms
 
 
 def _in_model(problem: Problem, instance: str, variable: str) -> str | None:
@@ -68,23 +139,9 @@ def _binding(problem: Problem, variable: str) -> str:
     return variable
 
 
-def _unit(out: str, per: str, power: int = 1) -> str:
-    per = internal_unit(per)
-    if not per:
-        return out or "1"
-    if "/" in per or "*" in per:
-        per = f"({per})"
-    return f"{out or '1'}/{per}" + (f"^{power}" if power > 1 else "")
-
-
-def _unit_key(unit: str) -> dict[str, str]:
-    """``{unit: U}`` for a declaration in internal unit ``U`` (nothing for none)."""
-    return {"unit": unit} if unit else {}
-
-
 @dataclass(frozen=True)
 class Suggestion:
-    """A candidate effect as a model extension and the instance's new bindings.
+    """A candidate term as a model extension and the instance's new bindings.
 
     ``body`` is the model file's document after ``model`` and ``extends`` (doc,
     constants, inputs, parameters, and expressions or outputs); every file is written by
@@ -97,10 +154,11 @@ class Suggestion:
     model_name: str
     body: Mapping[str, Any]
     new_inputs: dict[str, str]
+    tag: str = ""
 
-    def model_text(self, extends: str) -> str:
+    def model_text(self, extends: str, name: str | None = None) -> str:
         """The new model file, extending ``extends`` (a path as written in the file)."""
-        return dump_yaml({"model": self.model_name, "extends": extends, **self.body})
+        return dump_yaml({"model": name or self.model_name, "extends": extends, **self.body})
 
     def instance_entry(self, model: str) -> dict[str, Any]:
         """The overlay's entry that gives the instance the model file ``model``."""
@@ -117,123 +175,368 @@ class Suggestion:
 
 
 def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
-    """The model extension that adds ``cand``'s term to its output's model."""
+    """The model extension that adds ``cand``'s term to its output's model.
+
+    Raises
+    ------
+    ValueError
+        For a kind that is not a term on one output (``constant``, ``fixed``,
+        ``latency``: see :func:`revision`), or a term on an output in that output itself.
+    """
+    basis = cand.basis
+    if basis.kind not in TERMS:
+        raise ValueError(f"a '{basis.kind}' candidate is not a term on one output: "
+                         "see revision()")
     instance, output = cand.output.split(".", 1)
     model = problem.instances[instance].model
-    basis = cand.basis
     new_inputs: dict[str, str] = {}
     input_units: dict[str, str] = {}
 
-    def symbol(variable: str, unit: str) -> str:
+    def symbol(variable: str, unit: str, harmonic: bool = False) -> str:
         own = _in_model(problem, instance, variable)
         if own is not None:
-            point = model.evaluation_point(own) if basis.kind == "harmonic" else None
+            point = model.evaluation_point(own) if harmonic else None
             return point or own
         inst, _, local = variable.partition(".")
-        if inst == instance and local in model.expressions:   # its evaluation point
+        if inst == instance and local in model.expressions:   # its own expression
+            return local
+        if inst == instance and local in model.outputs:      # another of its outputs
+            if local == output:
+                raise ValueError(f"a term in {cand.output} cannot depend on "
+                                 f"{cand.output} itself")
             return local
         bound = _binding(problem, variable)
         for key, text in problem.instances[instance].bindings.items():
             if text == bound:                     # an input already bound to it
                 return key
         name = "v_" + _ident(variable)
-        while name in model.inputs or name in model.expressions or name in model.parameters:
+        while name in model.inputs or name in model.expressions or name in model.parameters \
+                or name in model.constants or name in model.outputs:
             name += "_"
         new_inputs[name] = bound
-        input_units[name] = internal_unit(unit)
+        input_units[name] = written_unit(unit)
         return name
 
-    v = symbol(basis.variable, basis.unit)
+    v = symbol(basis.variable, basis.unit, basis.kind == "harmonic")
     a = symbol(basis.angle, basis.angle_unit) if basis.angle else ""
+    w = symbol(basis.other, basis.other_unit) if basis.other else ""
+    local = _ident(basis.variable.replace(f"{instance}.", ""))
+    if basis.other:
+        local += "_" + _ident(basis.other.replace(f"{instance}.", ""))
     tag = _TAGS[basis.kind] + (str(basis.order) if basis.kind == "harmonic" else "")
-    tag += "_" + _ident(basis.variable.replace(f"{instance}.", ""))
-    params = [f"{col}_{_ident(basis.variable.replace(f'{instance}.', ''))}"
-              for col in basis.columns]
-    # numbers with a unit (a period, a centre) are constants in the variable's internal unit
-    constants = {key: (f"{key[0].upper() if key == 'period' else key[0]}_{tag}", value)
-                 for key, value in (("period", basis.period), ("centre", basis.centre))
-                 if "{" + key + "}" in "".join(basis.terms)}
-    for key in list(constants):
-        name, value = constants[key]
-        while name in model.constants or name in model.inputs or name in model.parameters \
-                or name in model.expressions:
+    if basis.angle:
+        tag += "_" + _ident(basis.angle.replace(f"{instance}.", ""))
+    tag += "_" + local
+    params = [f"{col}_{local}" for col in basis.columns]
+    text = "".join(basis.terms)
+    var_unit, other_unit = written_unit(basis.unit), written_unit(basis.other_unit)
+    # numbers with a unit (a period, centres) are constants in their variable's unit
+    numbers = {"period": (basis.period, var_unit, 12), "centre": (basis.centre, var_unit, 6),
+               "other_centre": (basis.other_centre, other_unit, 6)}
+    constants: dict[str, tuple[str, float, str]] = {}
+    taken = {*model.constants, *model.inputs, *model.parameters, *model.expressions,
+             *model.outputs, *new_inputs, *params}
+    for key, (value, unit, digits) in numbers.items():
+        if "{" + key + "}" not in text:
+            continue
+        name = f"{_CONSTANTS[key]}_{tag}"
+        while name in taken:
             name += "_"
-        constants[key] = (name, value)
-    terms = [t.format(v=v, a=a, **{k: n for k, (n, _) in constants.items()})
+        taken.add(name)
+        constants[key] = (name, _short(value / size(unit), digits), unit)
+    terms = [t.format(v=v, a=a, w=w, **{k: n for k, (n, _, _) in constants.items()})
              for t in basis.terms]
     signal = next((q for q in problem.signals if q.name == cand.output), None)
-    out_unit = internal_unit(signal.unit if signal is not None else
-                             model.outputs[output].unit if output in model.outputs else "")
-    units = {"harmonic": [out_unit or "1"] * 2,
-             "linear": [_unit(out_unit, basis.unit)], "drift": [_unit(out_unit, basis.unit)],
-             "quadratic": [_unit(out_unit, basis.unit), _unit(out_unit, basis.unit, 2)],
-             "angle_harmonic": [_unit(out_unit, basis.angle_unit)] * 2}[basis.kind]
-    scales = basis.scales or (0.001,) * len(params)
+    out_unit = (signal.unit if signal is not None else
+                model.outputs[output].unit if output in model.outputs else "")
+    angle_unit = written_unit(basis.angle_unit)
+    units = {"harmonic": [per(out_unit)] * 2,
+             "linear": [per(out_unit, (var_unit, 1))],
+             "drift": [per(out_unit, (var_unit, 1))],
+             "quadratic": [per(out_unit, (var_unit, 1)), per(out_unit, (var_unit, 2))],
+             "angle_harmonic": [per(out_unit, (angle_unit, 1))] * 2,
+             "product": [per(out_unit, (var_unit, 1), (other_unit, 1))] * len(params),
+             }[basis.kind]
+    if basis.kind == "quadratic" and len(basis.columns) == 1:   # one part left (the
+        units = units[1:] if basis.columns == ("quad",) else units[:1]   # other redundant)
+    if len(units) != len(params):
+        raise ValueError(f"a '{basis.kind}' term has {len(units)} coefficients, the "
+                         f"candidate names {len(params)}")
     body: dict[str, Any] = {"doc": f"{model.name} plus {basis.description} on {output} "
                                    "(found by symcal diagnose)"}
     if constants:
-        var_unit = internal_unit(basis.unit)
-        body["constants"] = {n: {"value": float(f"{val:g}"), **_unit_key(var_unit)}
-                             for n, val in constants.values()}
+        body["constants"] = {n: {"value": val, **_unit_key(u)}
+                             for n, val, u in constants.values()}
     if new_inputs:
         body["inputs"] = {k: {"doc": f"bound to {val} in the problem",
                               **_unit_key(input_units[k])} for k, val in new_inputs.items()}
-    body["parameters"] = {p: {"value": 0, "unit": u, "scale": float(f"{s:.3g}")}
-                          for p, u, s in zip(params, units, scales, strict=True)}
+    scales = basis.scales if len(basis.scales) == len(params) else (None,) * len(params)
+    body["parameters"] = {
+        p: {"value": 0, **_unit_key(u), **({"scale": scale_in(s, u)} if s else {})}
+        for p, u, s in zip(params, units, scales, strict=True)}
     terms_text = " + ".join(f"{p}*{t}" for p, t in zip(params, terms, strict=True))
     error = model.error_expression(output)
     if error is not None:
         body["expressions"] = {error: f"base.{error} + {terms_text}"}
     else:
         body["outputs"] = {output: f"base.{output} + {terms_text}"}
-    return Suggestion(instance, output, f"{model.name}_{tag}", body, new_inputs)
+    return Suggestion(instance, output, f"{model.name}_{_ident(output)}_{tag}", body,
+                      new_inputs, tag)
 
 
-def _overlay_name(problem: Problem, sug: Suggestion) -> str:
-    return f"{problem.name}_{sug.instance}_{sug.model_name.rsplit('_', 2)[-2]}"
+# --------------------------------------------------------------------------- overlays
+
+
+@dataclass(frozen=True)
+class Revision:
+    """What a candidate changes: model extensions (:class:`Suggestion`, each for one
+    instance) and the problem overlay's sections (``parameters``, ``constants``,
+    ``expressions``, ``columns``, ``instances``), and the overlay's name by default."""
+
+    name: str
+    models: tuple[Suggestion, ...] = ()
+    sections: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+def _free(problem: Problem, name: str) -> str:
+    """``name``, or ``name_2``, ... where the problem already uses it."""
+    spec = problem.spec.system
+    taken = {*spec.constants, *spec.parameters, *spec.columns, *spec.instances,
+             *spec.expressions, *spec.constraints, "pi"}
+    out, k = name, 1
+    while out in taken:
+        k += 1
+        out = f"{name}_{k}"
+    return out
+
+
+def _constant(problem: Problem, cand: Candidate) -> Revision:
+    """Constants (keys of ``Problem.constants``) made one parameter at their value."""
+    infos = {c.key: c for c in problem.constants}
+    missing = [k for k in cand.basis.targets if k not in infos]
+    if missing or not cand.basis.targets:
+        raise ValueError(f"no constant {', '.join(missing) or '(none named)'} in problem "
+                         f"'{problem.name}'; it has: {', '.join(infos)}")
+    targets = [infos[k] for k in cand.basis.targets]
+    first = targets[0]
+    internal = [c.value * size(c.unit) for c in targets]
+    if any(abs(x - internal[0]) > 1e-12 * max(abs(internal[0]), 1e-300) for x in internal):
+        raise ValueError(f"the constants {', '.join(cand.basis.targets)} have different "
+                         "values: one parameter cannot start at all of them")
+    tops = [c for c in targets if c.instance is None]
+    name = tops[0].key if tops else _free(problem, first.name)
+    param: dict[str, Any] = {"value": first.value, **_unit_key(first.unit)}
+    if not 1.0 / MAGNITUDE < abs(first.value) < MAGNITUDE:
+        scale = cand.basis.scales[0] if cand.basis.scales else size(first.unit)
+        param["scale"] = scale_in(scale, first.unit)
+    param["doc"] = f"{first.doc or first.name} (was a constant)"
+    sections: dict[str, dict[str, Any]] = {"parameters": {name: param}}
+    for c in tops[1:]:                     # other problem constants: the same parameter
+        sections.setdefault("constants", {})[c.key] = None
+        sections.setdefault("expressions", {})[c.key] = {"expr": name, **_unit_key(c.unit),
+                                                         "doc": c.doc or c.key}
+    for c in targets:
+        if c.instance is not None:
+            entry = sections.setdefault("instances", {}).setdefault(c.instance, {})
+            entry.setdefault("constants", {})[c.name] = name
+    return Revision(f"{problem.name}_const_{_ident(name)}", (), sections)
+
+
+def _fixed(problem: Problem, cand: Candidate) -> Revision:
+    """The fixed parameter ``targets[0]`` freed."""
+    if not cand.basis.targets or cand.basis.targets[0] not in problem.index:
+        raise ValueError(f"no parameter {cand.basis.targets[:1]} in problem '{problem.name}'")
+    pname = cand.basis.targets[0]
+    p = problem.parameters[problem.index[pname]]
+    bounds = {k: v for k, v in (("lower", p.lower), ("upper", p.upper)) if math.isfinite(v)}
+    inst, _, local = pname.partition(".")
+    sections: dict[str, Any]
+    if local and inst in problem.instances:
+        entry = {"value": p.value, **bounds, "scale": p.scale, "fixed": False}
+        sections = {"instances": {inst: {"parameters": {local: entry}}}}
+    else:
+        sections = {"parameters": {pname: {"value": p.value, **_unit_key(p.unit), **bounds,
+                                           "scale": p.scale, "fixed": False,
+                                           **({"doc": p.doc} if p.doc else {})}}}
+    return Revision(f"{problem.name}_free_{_ident(pname)}", (), sections)
+
+
+def _late(node: expr.Node, rates: Mapping[str, str], tau: str) -> expr.Node:
+    """``node`` with every column ``c`` of ``rates`` read as ``c + tau*c_rate``."""
+    if isinstance(node, expr.Name) and node.name in rates:
+        return expr.Binary("+", node, expr.Binary("*", expr.Name(tau),
+                                                  expr.Name(rates[node.name])))
+    if isinstance(node, expr.Unary):
+        return expr.Unary(node.op, _late(node.operand, rates, tau))
+    if isinstance(node, expr.Binary):
+        return expr.Binary(node.op, _late(node.left, rates, tau),
+                           _late(node.right, rates, tau))
+    if isinstance(node, expr.Call):
+        return expr.Call(node.func, tuple(_late(a, rates, tau) for a in node.args))
+    return node
+
+
+def _latency(problem: Problem, cand: Candidate) -> Revision:
+    """Instance ``variable`` reads its columns ``targets`` late by one delay ``tau``."""
+    inst = cand.basis.variable
+    if inst not in problem.instances:
+        raise ValueError(f"no instance '{inst}' in problem '{problem.name}'")
+    specs = problem.column_specs
+    time = next((c for c in specs.values() if c.role == "time"), None)
+    if time is None:
+        raise ValueError(f"problem '{problem.name}' declares no time column (role: time): "
+                         "a latency needs the readings' rates")
+    tau = _free(problem, f"tau_{_ident(inst)}")
+    rates: dict[str, str] = {}
+    columns: dict[str, Any] = {}
+    for col in cand.basis.targets:
+        if col not in specs:
+            raise ValueError(f"'{col}' is not a column of problem '{problem.name}'")
+        existing = next((k for k, c in specs.items() if c.rate_of == col), None)
+        if existing is not None:
+            rates[col] = existing
+            continue
+        rates[col] = _free(problem, f"{col}_rate")
+        columns[rates[col]] = {"rate_of": col,
+                               **_unit_key(per(specs[col].unit, (time.unit, 1))),
+                               "noise": 0,
+                               "doc": f"rate of {col} (its noise, times the delay {tau}, "
+                                      "is neglected)"}
+    inputs: dict[str, str] = {}
+    for key, text in problem.instances[inst].bindings.items():
+        node = expr.parse(text)
+        if any(n.name in rates for n in expr.names(node)):
+            inputs[key] = expr.render(_late(node, rates, tau))
+    if not inputs:
+        raise ValueError(f"instance '{inst}' reads none of {', '.join(cand.basis.targets)} "
+                         "in its input bindings")
+    scale = scale_in(cand.basis.scales[0], "s") if cand.basis.scales else 1e-3
+    sections: dict[str, dict[str, Any]] = {
+        "parameters": {tau: {"value": 0, "unit": "s", "scale": scale,
+                             "doc": f"delay of {inst}'s readings of "
+                                    f"{', '.join(cand.basis.targets)} (latency)"}},
+        "instances": {inst: {"inputs": inputs}}}
+    if columns:
+        sections["columns"] = columns
+    return Revision(f"{problem.name}_{_ident(inst)}_latency", (), sections)
+
+
+def revision(problem: Problem, cand: Candidate) -> Revision:
+    """What adding ``cand`` changes, as a model extension and/or overlay sections."""
+    kind = cand.basis.kind
+    if kind in TERMS:
+        sug = suggestion(problem, cand)
+        inputs = {"inputs": dict(sug.new_inputs)} if sug.new_inputs else {}
+        return Revision(f"{problem.name}_{sug.instance}_{_ident(sug.output)}_{sug.tag}",
+                        (sug,), {"instances": {sug.instance: inputs}})
+    makers = {"constant": _constant, "fixed": _fixed, "latency": _latency}
+    if kind not in makers:
+        raise ValueError(f"a '{kind}' candidate has no revision here"
+                         + (": the model's own approximation is a variant of its files"
+                            if kind == "approximation" else ""))
+    return makers[kind](problem, cand)
+
+
+def _merge(into: dict[str, Any], more: Mapping[str, Any], path: str = "") -> None:
+    """Merge overlay sections, refusing two different values for one key."""
+    for key, value in more.items():
+        if key in into and isinstance(into[key], dict) and isinstance(value, dict):
+            _merge(into[key], value, f"{path}{key}.")
+        elif key in into and into[key] != value:
+            raise ValueError(f"two candidates of one revision set {path}{key} differently")
+        else:
+            into[key] = value
+
+
+def _combined(problem: Problem, cands: tuple[Candidate, ...]) -> tuple[Revision, ...]:
+    revs = tuple(revision(problem, c) for c in cands)
+    owners = [s.instance for r in revs for s in r.models]
+    if len(set(owners)) != len(owners):
+        raise ValueError("one candidate per instance in a revision")
+    return revs
+
+
+def _overlay(problem: Problem, revs: tuple[Revision, ...], name: str, base: str, doc: str,
+             models: Mapping[str, str]) -> dict[str, Any]:
+    """The overlay document: ``models`` maps an instance to its new model file."""
+    sections: dict[str, Any] = {}
+    for rev in revs:
+        _merge(sections, rev.sections)
+    instances = sections.pop("instances", {})
+    for inst, path in models.items():
+        instances[inst] = {"model": path, **instances.get(inst, {})}
+    doc_: dict[str, Any] = {"problem": name, "extends": base, "doc": doc}
+    for key in ("constants", "parameters", "columns", "expressions"):
+        if key in sections:
+            doc_[key] = sections[key]
+    if instances:
+        doc_["instances"] = {k: v for k, v in instances.items() if v}
+    return doc_
 
 
 def effect_yaml(problem: Problem, cand: Candidate) -> str:
-    """The files that add ``cand``'s term, as text: the new model (in ``models/`` beside
-    the problem file) and the problem overlay that uses it (beside the problem file)."""
-    sug = suggestion(problem, cand)
+    """The files that add ``cand``, as text: the new model (in ``models/`` beside the
+    problem file), if the candidate is a term, and the problem overlay that uses it
+    (beside the problem file)."""
+    rev = revision(problem, cand)
     home = Path(problem.path).parent
-    inst = problem.instances[sug.instance]
-    name = _overlay_name(problem, sug)
     beside = escape_controls(Path(problem.path).name)
-    lines = [f"# models/{sug.model_name}.yaml (beside {beside})",
-             sug.model_text(_rel(inst.model.path, home / "models")).rstrip("\n"), "",
-             f"# {name}.yaml (beside {beside}): the problem with it",
-             sug.overlay_text(name, Path(problem.path).name, f"models/{sug.model_name}.yaml",
-                              f"{problem.name} plus {cand.label}").rstrip("\n")]
+    lines: list[str] = []
+    models: dict[str, str] = {}
+    for sug in rev.models:
+        inst = problem.instances[sug.instance]
+        lines += [f"# models/{sug.model_name}.yaml (beside {beside})",
+                  sug.model_text(_rel(inst.model.path, home / "models")).rstrip("\n"), ""]
+        models[sug.instance] = f"models/{sug.model_name}.yaml"
+    overlay = _overlay(problem, (rev,), rev.name, Path(problem.path).name,
+                       f"{problem.name} plus {cand.label}", models)
+    lines += [f"# {rev.name}.yaml (beside {beside}): the problem with it",
+              dump_yaml(overlay).rstrip("\n")]
     return "\n".join(lines) + "\n"
 
 
 def write_revision(problem: Problem, cand: Candidate, directory: str | Path,
                    name: str | None = None, also: tuple[Candidate, ...] = ()) -> Path:
-    """Write ``cand``'s model and a problem overlay using it into ``directory`` (models in
-    ``directory/models``); return the overlay's path.  ``also``: candidates on other
-    instances added by the same overlay (the same effect in sibling instances)."""
+    """Write ``cand``'s files into ``directory`` (models in ``directory/models``): the
+    model extension of a term, and a problem overlay that uses it; return the overlay's
+    path.  ``also``: candidates added by the same overlay (the same effect in sibling
+    instances, each with its own model).  A file is never written over another
+    candidate's: where a file of the name holds something else, the file gets another
+    name (``NAME_2.yaml``); the overlay's ``problem:`` is always its file's stem."""
     directory = Path(directory)
-    sugs = [suggestion(problem, c) for c in (cand, *also)]
-    if len({s.instance for s in sugs}) != len(sugs):
-        raise ValueError("one candidate per instance in a revision")
-    entries: dict[str, Any] = {}
-    for sug in sugs:
-        model_path = directory / "models" / f"{sug.model_name}.yaml"
-        inst = problem.instances[sug.instance]
-        write_output(model_path, sug.model_text(_rel(inst.model.path, model_path.parent)))
-        entries.update(sug.instance_entry(_rel(model_path, directory)))
-    name = name or _overlay_name(problem, sugs[0])
-    overlay = directory / f"{name}.yaml"
+    revs = _combined(problem, (cand, *also))
+    models: dict[str, str] = {}
+    for rev in revs:
+        for sug in rev.models:
+            inst = problem.instances[sug.instance]
+            path, k = directory / "models" / f"{sug.model_name}.yaml", 1
+            while True:   # the model's name follows its file's
+                stem = sug.model_name if k == 1 else f"{sug.model_name}_{k}"
+                path = path.with_name(f"{stem}.yaml")
+                text = sug.model_text(_rel(inst.model.path, path.parent), stem)
+                if not path.exists() or path.read_text(encoding="utf-8") == text:
+                    break
+                k += 1
+            if not path.exists():
+                write_output(path, text)
+            models[sug.instance] = _rel(path, directory)
     labels = "; ".join(c.label for c in (cand, *also))
-    write_output(overlay, dump_yaml({
-        "problem": name, "extends": _rel(Path(problem.path), directory),
-        "doc": f"{problem.name} plus {labels}", "instances": entries}))
+    stem, k = name or revs[0].name, 1
+    while True:
+        current = stem if k == 1 else f"{stem}_{k}"
+        overlay = directory / f"{current}.yaml"
+        text = dump_yaml(_overlay(problem, revs, current, _rel(Path(problem.path), directory),
+                                  f"{problem.name} plus {labels}", models))
+        if not overlay.exists() or overlay.read_text(encoding="utf-8") == text:
+            break
+        k += 1
+    if not overlay.exists():
+        write_output(overlay, text)
     return overlay
 
 
 def revised_problem(problem: Problem, cand: Candidate, directory: str | Path) -> Problem:
-    """The problem with ``cand``'s term added as :func:`effect_yaml` suggests, loaded from
-    the files :func:`write_revision` writes into ``directory``; ``problem`` is unchanged."""
+    """The problem with ``cand`` added as :func:`effect_yaml` suggests, loaded from the
+    files :func:`write_revision` writes into ``directory``; ``problem`` is unchanged."""
     return load_problem(write_revision(problem, cand, directory))
+

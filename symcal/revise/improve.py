@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +20,8 @@ import numpy as np
 from symcal.analysis.discovery import Candidate
 from symcal.base.errors import SymcalError
 from symcal.base.files import write_output
-from symcal.calibrate.result import Result
+from symcal.base.progress import Bars, Report, reporting
+from symcal.calibrate.result import Result, file_hashes
 from symcal.calibrate.solve import solve
 from symcal.data.dataset import Dataset
 from symcal.data.loading import load_datasets
@@ -28,15 +29,24 @@ from symcal.language.fields import plain_name
 from symcal.language.yamlio import dump_yaml
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
+from symcal.revise.diagnose import GROUP as DIAGNOSED
 from symcal.revise.diagnose import Diagnosis, diagnose
 from symcal.revise.effects import write_revision
+from symcal.revise.watch import Watch, design_hint, new_parameters, wald, watch
 
 #: How many of the leading candidates are tried in a round before giving up.
 TRIES = 3
 #: A held-out reference comparison may get worse by at most this fraction.
 WORSE = 0.10
 #: How many members of a group of indistinguishable candidates are tried.
-GROUP = 4
+GROUP = DIAGNOSED
+#: A member of a group is solved too, after one that pays, when the diagnosis predicts
+#: at least this share of that one's held-out improvement for it (it may fit as well and
+#: put a physical parameter elsewhere); the others are not worth a solve.
+CLOSE = 0.8
+#: Two revisions whose BIC differ by less than this fit about equally (Kass and Raftery:
+#: below 10 the evidence for one over the other is not strong).
+EQUAL_BIC = 10.0
 #: A revision may make an existing parameter's standard error at most this many times
 #: larger (beyond it the new term is nearly aliased with what the model has).
 INFLATION = 5.0
@@ -44,13 +54,21 @@ INFLATION = 5.0
 
 @dataclass(frozen=True)
 class Round:
-    """One revision: what was added (None for the starting problem), its file and fit."""
+    """One revision: what was added (None for the starting problem), its file and fit,
+    what the new term did to the parameters already there (``watch``) and what the data
+    could not tell it apart from (``ambiguous``: sentences)."""
 
     index: int
     added: str | None
     problem_file: Path
     result: Result
     significant: int
+    watch: Watch = Watch()
+    ambiguous: tuple[str, ...] = ()
+
+    def notes(self) -> list[str]:
+        """The round's sentences about the physics: moved, correlated, ambiguous."""
+        return [*self.watch.words(self.added or ""), *self.ambiguous]
 
     def to_dict(self) -> dict:
         """The round as ``symcal improve --json`` prints it."""
@@ -59,7 +77,9 @@ class Round:
                 "floor_tests": [t.to_dict() for t in self.result.floor_tests],
                 "at_floor": self.result.at_floor,
                 "significant": self.significant, "bic": self.result.bic,
-                "aic": self.result.aic, "success": self.result.success}
+                "aic": self.result.aic, "success": self.result.success,
+                "parameters": self.watch.to_dict(), "ambiguous": list(self.ambiguous),
+                "notes": self.notes()}
 
 
 @dataclass(frozen=True)
@@ -125,20 +145,28 @@ def held_out_change(new: Result, old: Result, kind: str | None = None) -> float:
     return float(np.mean(ratios)) if ratios else 0.0
 
 
-def _pays(new: Result, old: Result) -> str | None:
+def _pays(new: Result, old: Result, alpha: float,
+          physical: set[str] | None = None) -> str | None:
     """None when ``new`` is better than ``old``, else why not: the solve succeeds, the BIC
-    falls, the held-out constraint residuals fall (on average), no existing parameter
-    becomes much less determined (:data:`INFLATION`), and no held-out reference comparison
-    gets worse by more than :data:`WORSE`."""
+    falls, the new term's coefficients are not zero within their noise (a Wald test at
+    ``alpha``), the held-out constraint residuals fall (on average), no existing
+    parameter becomes much less determined (:data:`INFLATION`) while the old model was
+    already at its noise floor, and no held-out reference comparison gets worse by more
+    than :data:`WORSE`."""
     if not new.success:
         return "the solve failed"
     if new.bic >= old.bic:
         return f"BIC does not fall ({old.bic:.1f} → {new.bic:.1f})"
+    names = new_parameters(new, old)
+    test = wald(new, names) if names else None
+    if test is not None and test[1] >= alpha:
+        return (f"its coefficients fit to zero within their noise (Wald χ² = {test[0]:.3g}, "
+                f"p = {test[1]:.2g})")
     change = held_out_change(new, old, "constraint")
     if change >= 0:
         return ("the held-out constraint residuals do not fall (mean change "
                 f"{np.expm1(change):+.1%})")
-    inflated = _inflated(new, old)
+    inflated = _inflated(new, old, physical) if old.at_floor is not False else None
     if inflated:
         return inflated
     for s in new.statistics:
@@ -150,10 +178,13 @@ def _pays(new: Result, old: Result) -> str | None:
     return None
 
 
-def _inflated(new: Result, old: Result) -> str | None:
+def _inflated(new: Result, old: Result, physical: set[str] | None = None) -> str | None:
     """Why the new terms are nearly aliased with parameters already there (a standard
-    error grows more than :data:`INFLATION` times), or None."""
-    before = {p.name: p.se for p in old.params.values() if p.se}
+    error of one of the ``physical`` parameters, default every one, grows more than
+    :data:`INFLATION` times), or None.  A term an earlier round added may trade against
+    the new one: that is the terms' structure changing, not the physics."""
+    before = {p.name: p.se for p in old.params.values() if p.se
+              and (physical is None or p.name in physical)}
     worst = max(((p.se / before[p.name], p.name) for p in new.params.values()
                  if p.se and p.name in before), default=None)
     if worst is not None and worst[0] > INFLATION:
@@ -169,38 +200,127 @@ def _spread(result: Result, name: str, dataset: str) -> float | None:
         return None
 
 
+@dataclass(frozen=True)
+class _Kept:
+    """A revision that pays: its label, file, fit, and what it could not be told apart
+    from (sentences)."""
+
+    label: str
+    path: Path
+    result: Result
+    ambiguous: tuple[str, ...] = ()
+
+
 def _best_of_group(
     diag: Diagnosis, lead: Candidate, directory: Path, name: str,
     datasets: Mapping[str, Dataset], result: Result, rejected: list[tuple[str, str]],
-    say: Callable[[str], None],
-) -> tuple[str, Path, Result] | None:
+    say: Callable[[str], None], alpha: float, physical: set[str],
+) -> _Kept | None:
     """Try the lead and the members of its group (the constraints cannot tell them apart;
     a held-out reference may): keep the one that pays and predicts the held-out data
-    best, or None."""
+    best, or None.  Members that pay as well (BIC within :data:`EQUAL_BIC`) but put a
+    physical parameter elsewhere (beyond 3 standard errors) are named: the data cannot
+    tell them apart."""
     labels = [lead.label, *lead.indistinguishable[:GROUP - 1]]
-    best: tuple[float, str, Path, Result] | None = None
+    predicted = {label: predicted_change(diag, label) for label in labels}
+    labels.sort(key=lambda label: predicted[label])
+    paying: list[tuple[float, str, Path, Result]] = []
+    written: dict[str, set[Path]] = {}
     for i, label in enumerate(labels):
+        if paying and not _close(predicted[label], predicted[paying[0][1]]):
+            continue       # the diagnosis predicts it does much worse than one that pays
+        before = _models(directory)
         path = _revision(diag, label, directory, f"{name}_try{i}")
+        written[label] = {path} | (_models(directory) - before)
         revised = _load_revision(path)
         new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
-        why = _pays(new, result)
+        why = _pays(new, result, alpha, physical)
         if why is None:
-            score = held_out_change(new, result)
-            if best is None or score < best[0]:
-                if best is not None:
-                    best[2].unlink(missing_ok=True)
-                best = (score, label, path, new)
-                continue
-        else:
-            rejected.append((label, why))
-            say(f"tried {label}: not kept, {why}")
-        path.unlink(missing_ok=True)
-    if best is None:
+            paying.append((held_out_change(new, result), label, path, new))
+            continue
+        rejected.append((label, why))
+        say(f"tried {label}: not kept, {why}")
+        used = {f.resolve() for r in paying for f in r[3].problem.source_files()}
+        _remove({f for f in written[label] if f.resolve() not in used})
+    if not paying:
         return None
-    _, label, path, new = best
+    paying.sort(key=lambda t: t[0])
+    _, label, path, new = paying[0]
+    used = {f.resolve() for f in new.problem.source_files()}
+    for _, other, _, _ in paying[1:]:
+        _remove({f for f in written[other] if f.resolve() not in used})
     final = _renamed(path, name)
-    return label, final, solve(load_problem(final), {n: d for n, d in datasets.items()
-                                                      if n in new.problem.datasets})
+    said = (_ambiguity(label, new, other, other_new, physical, final)
+            for _, other, _, other_new in paying[1:])
+    ambiguous = tuple(text for text in said if text)
+    return _Kept(label, final, _rebound(new, final), ambiguous)
+
+
+def _rebound(result: Result, path: Path) -> Result:
+    """``result`` of a revision, for the same revision renamed ``path`` (only its name
+    changed: the estimate, statistics and analysis are those of the same model on the
+    same data, so it is not solved again)."""
+    problem = load_problem(path)
+    if problem.parameter_names != result.problem.parameter_names:
+        raise RuntimeError(f"symcal renamed a revision into {path} and it changed")
+    return replace(result, problem=problem, files=file_hashes(problem))
+
+
+def predicted_change(diag: Diagnosis, label: str) -> float:
+    """The diagnosis's prediction for a candidate: the mean log ratio of the held-out
+    constraint residuals' spreads after and before solving again with it (the fitted
+    dataset's where none is held out; 0 without a prediction)."""
+    cand = next((c for c in diag.candidates if c.label == label), None)
+    if cand is None or not cand.reduction:
+        return 0.0
+    fit = diag.result.problem.fit_dataset
+    kinds = {(s.dataset, s.name): s.kind for s in diag.result.statistics}
+
+    def ratios(held_out: bool) -> list[float]:
+        out = []
+        for key, (now, new) in cand.reduction.items():
+            dataset, _, name = key.partition("/")
+            if (dataset != fit) == held_out and kinds.get((dataset, name)) == "constraint" \
+                    and now > 0 and new > 0:
+                out.append(float(np.log(new / now)))
+        return out
+
+    found = ratios(True) or ratios(False)
+    return float(np.mean(found)) if found else 0.0
+
+
+def _close(score: float, best: float) -> bool:
+    """Whether a predicted change is close enough to a paying one's to be solved too."""
+    return best >= 0 or score <= CLOSE * best
+
+
+def _ambiguity(label: str, new: Result, other: str, other_new: Result,
+               physical: set[str], path: Path) -> str:
+    """A sentence when two revisions fit about equally (BIC within :data:`EQUAL_BIC`) and
+    put a physical parameter more than 3 standard errors apart, else ""."""
+    if abs(new.bic - other_new.bic) > EQUAL_BIC:
+        return ""
+    for name in sorted(physical):
+        a, b = new.params.get(name), other_new.params.get(name)
+        if a is None or b is None or not a.se or not b.se:
+            continue
+        if abs(a.value - b.value) > 3 * max(a.se, b.se):
+            target = design_hint(new, path, (name, abs(a.value - b.value) / 3))
+            return (f"the data cannot tell {label} from {other} (BIC {new.bic:.1f} and "
+                    f"{other_new.bic:.1f}): they give {name} = {a.value:.6g} ± {a.se:.2g} "
+                    f"and {b.value:.6g} ± {b.se:.2g} {a.unit}; {target}")
+    return ""
+
+
+def _models(directory: Path) -> set[Path]:
+    """The model files in the output folder's ``models/`` (revisions' own)."""
+    return set((directory / "models").glob("*.yaml"))
+
+
+def _remove(paths: set[Path]) -> None:
+    """Remove the files a revision that was not kept wrote (never a file it found)."""
+    for path in paths:
+        path.unlink(missing_ok=True)
 
 
 def _renamed(path: Path, name: str) -> Path:
@@ -258,10 +378,11 @@ def siblings(diag: Diagnosis, lead: Candidate) -> tuple[Candidate, ...]:
 
 
 def _try_siblings(
-    diag: Diagnosis, lead: Candidate, single: tuple[str, Path, Result] | None,
+    diag: Diagnosis, lead: Candidate, single: _Kept | None,
     directory: Path, name: str, datasets: Mapping[str, Dataset], result: Result,
-    rejected: list[tuple[str, str]], say: Callable[[str], None],
-) -> tuple[str, Path, Result] | None:
+    rejected: list[tuple[str, str]], say: Callable[[str], None], alpha: float,
+    physical: set[str],
+) -> _Kept | None:
     """The lead with the same effect in its sibling instances, in one revision, when it
     pays and beats the lead alone (``single``) on BIC: a sibling candidate that is only
     significant because it is aliased with the lead adds parameters the BIC refuses."""
@@ -269,21 +390,22 @@ def _try_siblings(
     if not also:
         return single
     label = "; ".join(c.label for c in (lead, *also))
+    before = _models(directory)
     path = write_revision(diag.result.problem, lead, directory, f"{name}_all", also)
+    written = {path} | (_models(directory) - before)
     revised = _load_revision(path)
     new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
-    why = _pays(new, result)
-    if why is None and single is not None and new.bic >= single[2].bic:
-        why = (f"its BIC ({new.bic:.1f}) is not below that of {single[0]} alone "
-               f"({single[2].bic:.1f})")
+    why = _pays(new, result, alpha, physical)
+    if why is None and single is not None and new.bic >= single.result.bic:
+        why = (f"its BIC ({new.bic:.1f}) is not below that of {single.label} alone "
+               f"({single.result.bic:.1f})")
     if why is not None:
         rejected.append((label, why))
         say(f"tried {label}: not kept, {why}")
-        path.unlink(missing_ok=True)
+        _remove(written)
         return single
     final = _renamed(path, name)
-    return label, final, solve(load_problem(final), {n: d for n, d in datasets.items()
-                                                      if n in new.problem.datasets})
+    return _Kept(label, final, _rebound(new, final))
 
 
 def _revision(diag: Diagnosis, cand_label: str, directory: Path, name: str) -> Path:
@@ -307,6 +429,7 @@ def improve(
     alpha: float = 0.01,
     drop_invalid: bool = False,
     progress: Callable[[str], None] | None = None,
+    bars: Bars | None = None,
 ) -> Improvement:
     """Run the improvement loop on ``problem`` and write every revision into ``out``.
 
@@ -326,20 +449,33 @@ def improve(
     drop_invalid
         Drop rows with NaN/inf instead of refusing the data.
     progress
-        Called with one line per round (None: silent).
+        Called with each line of progress (:mod:`symcal.base.progress`): what each round
+        tries and keeps (None: no lines).
+    bars
+        Progress bars (:func:`symcal.base.progress.terminal_bars`): one meter counting
+        the rounds kept (at most ``max_rounds``), the latest round's line beside it
+        (then not passed to ``progress``).  None: no bars.
 
     Returns
     -------
     Improvement
     """
-    say = progress or (lambda _line: None)
+    with reporting(progress, bars, "improve", total=max_rounds, unit="round") as report:
+        return _improve(problem, out, data, max_rounds, alpha, drop_invalid, report)
+
+
+def _improve(problem: str | Path, out: str | Path,
+             data: Mapping[str, Dataset | str | Path] | None, max_rounds: int, alpha: float,
+             drop_invalid: bool, report: Report) -> Improvement:
+    say = report.line
     directory = Path(out)
     directory.mkdir(parents=True, exist_ok=True)
     current: Problem = load_problem(problem)
     datasets = load_datasets(current, data, drop_invalid)
     result = solve(current, datasets)
-    diag = diagnose(result, alpha)
+    diag = diagnose(result, alpha, views=False)
     rounds = [Round(0, None, Path(problem), result, len(diag.significant))]
+    physical = {n for n, p in result.params.items() if not p.fixed}
     stem = plain_name(Path(problem).stem)   # revisions are named after the file
     rejected: list[tuple[str, str]] = []
     say(f"round 0: {current.name}: {len(diag.significant)} significant candidate(s)")
@@ -362,18 +498,24 @@ def improve(
         leads.sort(key=lambda c: c.basis.kind != "approximation")
         for lead in leads[:TRIES]:
             single = _best_of_group(diag, lead, directory, name, datasets, result,
-                                    rejected, say_round)
+                                    rejected, say_round, alpha, physical)
             kept = _try_siblings(diag, lead, single, directory, name, datasets, result,
-                                 rejected, say_round)
+                                 rejected, say_round, alpha, physical)
             if kept is not None:
                 break
         if kept is None:
             break
-        label, path, result = kept
+        seen = watch(kept.result, result, physical, kept.path)
+        zero = _now_zero(kept.result, rounds, alpha)
+        result = kept.result
         last_try = len(rejected)
-        diag = diagnose(result, alpha)
-        rounds.append(Round(k, label, path, result, len(diag.significant)))
-        say(f"round {k}: added {label}: {len(diag.significant)} significant candidate(s) left")
+        diag = diagnose(result, alpha, views=False)
+        rounds.append(Round(k, kept.label, kept.path, result, len(diag.significant), seen,
+                            kept.ambiguous + zero))
+        report.step(f"round {k}: added {kept.label}: {len(diag.significant)} significant "
+                    "candidate(s) left")
+        for line in rounds[-1].notes():
+            say(f"round {k}: {line}")
     final = directory / "final.yaml"
     base = Path(os.path.relpath(rounds[-1].problem_file.resolve(), directory.resolve()))
     write_output(final, dump_yaml({
@@ -385,14 +527,30 @@ def improve(
     return Improvement(tuple(rounds), quiet, final, tuple(rejected), diag, aliased)
 
 
+def _now_zero(new: Result, rounds: list[Round], alpha: float) -> tuple[str, ...]:
+    """Sentences for terms earlier rounds added that fit to zero in ``new``: the new term
+    explains what they stood in for (they stay in the chain of revisions; the verdict
+    says so rather than keep them silently)."""
+    out = []
+    for earlier, later in zip(rounds, rounds[1:], strict=False):
+        names = new_parameters(later.result, earlier.result)
+        test = wald(new, names) if names else None
+        if test is not None and test[1] >= alpha:
+            out.append(f"{later.added} (round {later.index}) now fits to zero (Wald χ² = "
+                       f"{test[0]:.3g}, p = {test[1]:.2g}): the new term explains what it "
+                       "stood in for")
+    return tuple(out)
+
+
 def _aliased(diag: Diagnosis, tried: list[tuple[str, str]]) -> tuple[tuple[str, str], ...]:
     """The last diagnosis's significant candidates that the last round found aliased with
-    existing parameters, themselves and every member of their group tried."""
+    existing parameters: every member of their group that was tried (the lead, and those
+    the diagnosis predicted as good) was."""
     why = dict(tried)
     out = []
     for cand in diag.significant:
         members = [cand.label, *cand.indistinguishable[:GROUP - 1]]
-        reasons = [why.get(m, "") for m in members]
-        if all(r.startswith("it is nearly aliased") for r in reasons):
+        reasons = [why[m] for m in members if m in why]
+        if reasons and all(r.startswith("it is nearly aliased") for r in reasons):
             out.append((cand.label, reasons[0]))
     return tuple(out)

@@ -1,0 +1,89 @@
+"""Noise floors and the global test on a log kept as shards, by passes.
+
+:func:`symcal.analysis.floors.floor_tests` with the fitted dataset kept as shards: the
+propagated floors, the tests and the estimate's share are sums over rows
+(:class:`~symcal.analysis.floors.SharePlan`, :class:`~symcal.analysis.floors.RowsPlan`), so
+each shard's task sums its own rows and the lead joins the sums in the order of the
+shards (the successive differences across each boundary included); the held-out datasets
+in memory are tested as usual, with the estimate's share from the log.
+
+One rule is not the same maths on shards: a row whose propagated variance is below
+:data:`~symcal.analysis.floors.EXACT` of the largest so far counts as an exact reading, the
+largest taken over the rows accumulated before it; that running scale starts again at each
+shard, so a row within 1e-12 of the scale could count otherwise (rows declared exact have
+a variance of 0 and count the same).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from symcal.analysis.floors import (
+    DatasetTest,
+    Fit,
+    FloorTest,
+    RowsPlan,
+    RowSums,
+    SharePlan,
+    _dataset_tests,
+    rows_plan,
+    share_finish,
+    share_plan,
+)
+from symcal.data.dataset import Dataset
+from symcal.problem.symbolic import Problem
+from symcal.solvers.objective import Source
+from symcal.solvers.weighed import map_pieces
+
+
+@dataclass(frozen=True)
+class _Share:
+    plan: SharePlan
+    theta: np.ndarray
+    name: str
+
+    def __call__(self, piece: Any) -> tuple[np.ndarray, np.ndarray]:
+        return self.plan.sums(piece.dataset(self.name), self.theta)
+
+
+@dataclass(frozen=True)
+class _Rows:
+    plan: RowsPlan
+
+    def __call__(self, piece: Any) -> RowSums:
+        return self.plan.reduce(piece.dataset(self.plan.dataset))
+
+
+def floor_tests_passes(problem: Problem, log: Source, sample: Dataset,
+                       held: Mapping[str, Dataset], theta: np.ndarray, fit: Fit,
+                       ordered: bool, theta0: np.ndarray | None = None
+                       ) -> tuple[dict[tuple[str, str], FloorTest], tuple[DatasetTest, ...]]:
+    """The floors and tests of the fitted dataset ``log`` (by passes; ``sample``: a few of
+    its rows, for its name and columns; ``ordered``: whether its rows are in time order)
+    and of the datasets ``held`` (in memory), as
+    :func:`~symcal.analysis.floors.floor_tests` gives them on all the data in memory."""
+    share = None
+    if fit.dataset == log.name and np.any(fit.free):
+        plan = share_plan(problem, fit)
+        if plan is not None:
+            parts = map_pieces(_Share(plan, np.array(theta, dtype=float), log.name), log,
+                                "floor_share")
+            share = share_finish(np.sum([p[0] for p in parts], axis=0),
+                                 np.sum([p[1] for p in parts], axis=0))
+    rows = rows_plan(problem, sample, theta, fit, share, theta0)
+    parts = map_pieces(_Rows(rows), log, "floor_rows")
+    total = parts[0]
+    for p in parts[1:]:
+        total = total.join(p)
+    found, joint = rows.finish(total, ordered)
+    out = {(log.name, k): v for k, v in found.items()}
+    tests = [joint]
+    for ds in held.values():
+        more, test = _dataset_tests(problem, ds, theta, fit, share, theta0)
+        out.update({(ds.name, k): v for k, v in more.items()})
+        tests.append(test)
+    return out, tuple(tests)

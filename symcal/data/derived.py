@@ -1,0 +1,128 @@
+"""Derived columns: columns a problem computes from others when a dataset is loaded.
+
+A column declared ``rate_of: SOURCE`` (``columns: {psi_x_rate: {rate_of: psi_x, unit:
+rad/s}}``) is the time derivative of ``SOURCE`` against the problem's time column
+(``role: time``), by central differences on the actual time stamps (second order, also
+where the spacing varies) and one-sided differences at the first and last rows.  Time must
+increase strictly; a dataset where it does not is refused, naming the first row where it
+does not.  Values are in the rate column's declared unit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from symcal.base.errors import DataError
+from symcal.base.units import size
+from symcal.data.dataset import Dataset, rows_text
+from symcal.language.problem_file import ColumnSpec
+
+
+def rate_columns(specs: Mapping[str, ColumnSpec]) -> dict[str, ColumnSpec]:
+    """The derived columns (``rate_of``) among ``specs``, by name."""
+    return {k: c for k, c in specs.items() if c.rate_of}
+
+
+def time_column(specs: Mapping[str, ColumnSpec]) -> ColumnSpec | None:
+    """The column declared ``role: time``, or None."""
+    return next((c for c in specs.values() if c.role == "time"), None)
+
+
+def sources(specs: Mapping[str, ColumnSpec], names: list[str]) -> list[str]:
+    """``names`` with every derived column replaced by what it is computed from (its
+    source and the time column), each once, in order."""
+    rates = rate_columns(specs)
+    time = time_column(specs)
+    out: list[str] = []
+    for name in names:
+        spec = rates.get(name)
+        for col in ([spec.rate_of, time.name] if spec is not None and time is not None
+                    else [name]):
+            if col not in out:
+                out.append(col)
+    return out
+
+
+def rate(values: np.ndarray, time: np.ndarray) -> np.ndarray:
+    """d values / d time by central differences (one-sided at the ends), in the units of
+    ``values`` per unit of ``time``.
+
+    Raises
+    ------
+    ValueError
+        With fewer than two rows.
+    """
+    if len(values) < 2:
+        raise ValueError("a rate needs at least two rows")
+    return np.gradient(np.asarray(values, dtype=float), np.asarray(time, dtype=float),
+                       edge_order=1)
+
+
+def with_derived(specs: Mapping[str, ColumnSpec], data: Dataset,
+                 needed: list[str] | None = None) -> Dataset:
+    """``data`` with every derived column it can compute (its source is in the data)
+    computed anew; unchanged without derived columns.
+
+    Parameters
+    ----------
+    specs
+        The problem's columns (``Problem.column_specs``).
+    data
+        A loaded dataset.
+    needed
+        Columns the problem reads: a derived one among them whose source is absent is
+        refused (the others are computed where they can be).
+
+    Raises
+    ------
+    DataError
+        A needed source missing, no time column in the data, time that does not
+        increase strictly, fewer than two rows, or a rate that is not finite.
+    """
+    rates = rate_columns(specs)
+    if not rates:
+        return data
+    time = time_column(specs)
+    columns = dict(data.columns)
+    computed = False
+    for name, spec in rates.items():
+        want = needed is None or name in needed
+        if spec.rate_of not in columns or time is None or time.name not in columns:
+            if want and needed is not None and name not in columns:
+                missing = spec.rate_of if spec.rate_of not in columns else \
+                    (time.name if time is not None else "(no time column)")
+                raise DataError(f"{data.source}: column '{name}' is the rate of "
+                                f"'{spec.rate_of}' against time '{time.name if time else ''}'"
+                                f", but the data have no column '{missing}'")
+            continue
+        t = np.asarray(columns[time.name], dtype=float)
+        steps = np.diff(t)
+        if len(t) < 2:
+            raise DataError(f"{data.source}: column '{name}' is a rate, which needs at least "
+                            "two rows")
+        if not np.all(steps > 0):
+            bad = np.flatnonzero(~(steps > 0)) + 1
+            raise DataError(f"{data.source}: column '{name}' is the rate of '{spec.rate_of}' "
+                            f"in time '{time.name}', but time does not increase at "
+                            f"{rows_text(columns, bad)}: a rate needs time-ordered rows")
+        # in the rate column's unit: source's and time's sizes over the rate's
+        factor = size(columns_unit(specs, spec.rate_of)) / size(time.unit) / size(spec.unit)
+        values = rate(columns[spec.rate_of], t) * factor
+        if not np.all(np.isfinite(values)):
+            bad = np.flatnonzero(~np.isfinite(values))
+            raise DataError(f"{data.source}: the rate '{name}' is not finite at "
+                            f"{rows_text(columns, bad)}")
+        values.setflags(write=False)
+        columns[name] = values
+        computed = True
+    if not computed:
+        return data
+    return Dataset(data.name, data.source, columns, data.dropped)
+
+
+def columns_unit(specs: Mapping[str, ColumnSpec], name: str) -> str:
+    """The declared unit of column ``name`` ("" when none is declared)."""
+    spec = specs.get(name)
+    return spec.unit if spec is not None else ""

@@ -1,0 +1,449 @@
+"""The candidate effects a diagnosis tests: the search space and the library of shapes.
+
+**The search space.**  By default a sensor instance's candidates use its own inputs (and
+the columns they are bound to, where it evaluates its error), the problem's declared time
+column (``role: time``) and state columns (``role: state``): never a reference column
+(one a comparison reads as its reference, or ``role: reference``), never a label or an
+index (``role: label|index``), never another sensor's reading, unless the problem declares
+it (``candidates:`` on the instance, the model, or the problem: ``declared``).
+
+**The shapes** on each output of the instance: a harmonic of a periodic variable (orders 1
+to :data:`HARMONICS`), a term linear in a variable, a quadratic, a drift in time, the
+product of two of the instance's variables (tested beyond the two linear terms it
+contains: it is tried after them), an angle times a harmonic.  Besides terms on outputs:
+
+- **latency**: an instance's readings stamped late by a constant delay τ, the term
+  ``τ·Σ_j ∂r/∂c_j · dc_j/dt`` over the columns it reads, where the rows are time-ordered
+  and the columns move smoothly (the derivative by central differences in time);
+- **a fixed parameter that is off**: the user fixed it but no gauge needs it fixed; its
+  regressor is ``∂r/∂θ_k``;
+- **a constant that is off**: its regressor is the derivative by the constant's offset.
+
+Every regressor is the change a coefficient of one makes in every residual (N × n_q × m),
+evaluated at the adjusted readings where the noise is declared.  Each coefficient has a
+*scale*: the coefficient that makes the term about one noise standard deviation of the
+output it changes (internal units), from the data, whatever the units.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from symcal.analysis.discovery import Basis, Candidate
+from symcal.analysis.residuals import Variable
+from symcal.base.units import DISPLAY_UNITS
+from symcal.problem.symbolic import Problem
+from symcal.revise.blocks import Block, distinct_groups, references
+
+#: Harmonic orders tried by default.
+HARMONICS = 8
+#: Roles of columns that are never an effect's variable.
+NEVER = ("label", "index", "reference")
+#: Roles of columns every instance's candidates may use.
+SHARED = ("time", "state")
+#: A column moves smoothly in time where its mean square successive difference is below
+#: this share of twice its variance (von Neumann's ratio: 1 for independent rows).
+SMOOTH = 0.2
+
+Raw = Callable[[int], np.ndarray]   # block index -> unwhitened regressor (N, n_q, m)
+
+
+@dataclass
+class Entry:
+    """A candidate, its regressor, and what its test allows for first (``extra``: the
+    simpler terms it contains, as more nuisance columns), None for nothing."""
+
+    candidate: Candidate
+    raw: Raw
+    extra: Raw | None = None
+
+
+@dataclass(frozen=True)
+class Space:
+    """What one instance's candidates may use: variable names, kinds, harmonic orders and
+    where that was decided (``origin``, for the report)."""
+
+    instance: str
+    variables: tuple[str, ...]
+    kinds: tuple[str, ...] | None
+    harmonics: tuple[int, ...]
+    origin: str
+
+    def describe(self) -> str:
+        """The space in words."""
+        kinds = "every kind" if self.kinds is None else ", ".join(self.kinds) or "nothing"
+        return (f"{self.instance}: {', '.join(self.variables) or 'no variable'} "
+                f"({kinds}; {self.origin})")
+
+
+def own_names(problem: Problem, instance: str) -> set[str]:
+    """The names of an instance's own readings: its inputs (``s1.p``), the columns they
+    are bound to, and where it evaluates its error (``s1.u``)."""
+    inst = problem.instances[instance]
+    names = {f"{instance}.{k}" for k in inst.bindings}
+    names |= {text for text in inst.bindings.values() if text in problem.column_specs}
+    for k in inst.model.inputs:
+        point = inst.model.evaluation_point(k)
+        if point is not None:
+            names.add(f"{instance}.{point}")
+    return names
+
+
+def excluded(problem: Problem) -> set[str]:
+    """Columns that are never an effect's variable: references, labels and indices."""
+    return set(problem.never_effects) | set(references(problem))
+
+
+def spaces(problem: Problem) -> dict[str, Space]:
+    """Each instance's search space: as its ``candidates:`` (instance entry, else model)
+    declares it, the default for what it does not say."""
+    shared = [c for c, spec in problem.column_specs.items() if spec.role in SHARED]
+    out = {}
+    for name, inst in problem.instances.items():
+        declared = inst.candidates
+        own = sorted(own_names(problem, name))
+        default = tuple(own + shared)
+        if declared is None:
+            out[name] = Space(name, default, None, tuple(range(1, HARMONICS + 1)),
+                              "default: its own readings, time and state columns")
+            continue
+        out[name] = Space(
+            name, default if declared.variables is None else tuple(declared.variables),
+            declared.kinds,
+            tuple(range(1, HARMONICS + 1)) if declared.harmonics is None
+            else tuple(declared.harmonics), declared.origin)
+    return out
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x)))) if x.size else 0.0
+
+
+def output_sigma(block: Block, h: int) -> float:
+    """About one noise standard deviation of the output of hook ``h`` (internal units):
+    the noise of the residual it moves most, divided by how much it moves it."""
+    weight = np.sqrt(np.mean(np.square(block.hooks[:, :, h]), axis=0))
+    if not np.any(weight > 0):
+        return 1.0
+    k = int(np.argmax(weight))
+    return _residual_sigma(block, k) / float(weight[k])
+
+
+def _residual_sigma(block: Block, k: int) -> float:
+    if block.cov is not None:
+        sigma = float(np.sqrt(np.mean(block.cov[:, k, k])))
+        if sigma > 0:
+            return sigma
+    spread = float(np.std(block.after[:, k]))
+    return spread if spread > 0 else 1.0
+
+
+def column_scale(block: Block, x: np.ndarray) -> float:
+    """The coefficient of a regressor column (N × n_q) that changes the residual it moves
+    most by about one noise standard deviation."""
+    weight = np.sqrt(np.mean(np.square(x), axis=0))
+    if not np.any(weight > 0):
+        return 1.0
+    k = int(np.argmax(weight))
+    return _residual_sigma(block, k) / float(weight[k])
+
+
+def _scales(sigma: float, columns: np.ndarray) -> tuple[float, ...]:
+    """Per column of φ (N × m): the coefficient that makes the term ``sigma`` RMS."""
+    out = []
+    for j in range(columns.shape[1]):
+        size = _rms(columns[:, j])
+        out.append(sigma / size if size > 0 else sigma)
+    return tuple(float(f"{s:.3g}") for s in out)
+
+
+def _centre(values: np.ndarray) -> float:
+    return float(f"{float(np.mean(values)):.6g}")
+
+
+@dataclass(frozen=True)
+class _Shape:
+    basis: Basis
+    phi: Callable[[Block], np.ndarray]       # block -> (N, m)
+    contains: tuple[str, ...] = ()           # variables of the linear terms it contains
+
+
+def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shape]:
+    """Every shape φ of one instance's space (values on ``block``, the fit's)."""
+    kinds = space.kinds
+    allowed = (lambda k: True) if kinds is None else (lambda k: k in kinds)
+    out: list[_Shape] = []
+    periodic = [v for v in variables if v.period]
+    angles = [v for v in variables if v.kind == "angle"]
+    plain = [v for v in variables if v.kind != "angle"]
+    if allowed("harmonic"):
+        for v in periodic:
+            period = float(v.period or 1.0)
+            shown = period / DISPLAY_UNITS[v.unit]
+            for n in space.harmonics:
+                w = 2 * np.pi * n / period
+                out.append(_Shape(Basis(
+                    "harmonic", v.name, f"harmonic {n} of {v.name} (period {shown:g} {v.unit})",
+                    (f"h{n}_sin", f"h{n}_cos"),
+                    (f"sin({2 * n}*pi*{{v}}/{{period}})", f"cos({2 * n}*pi*{{v}}/{{period}})"),
+                    order=n, unit=v.unit, period=period), _harmonic(v.name, w)))
+    for v in [*plain, *angles]:
+        if v.kind == "drift":
+            if allowed("drift"):
+                out.append(_Shape(Basis("drift", v.name, f"a slow drift in time ({v.name})",
+                                        ("drift",), ("{v}",), unit=v.unit),
+                                  _linear(v.name, 0.0)))
+            continue
+        c = _centre(block.values(v.name))
+        if allowed("linear"):
+            out.append(_Shape(Basis("linear", v.name, f"a term linear in {v.name}", ("lin",),
+                                    ("({v} - {centre})",), unit=v.unit, centre=c),
+                              _linear(v.name, c)))
+        if allowed("quadratic"):
+            out.append(_Shape(Basis("quadratic", v.name, f"a quadratic dependence on {v.name}",
+                                    ("lin", "quad"), ("({v} - {centre})", "({v} - {centre})**2"),
+                                    unit=v.unit, centre=c),
+                              _quadratic(v.name, c)))
+    if allowed("product"):
+        # uncentred: a gain growing with time is exactly c·v·t (centring would leave a
+        # drift c·v̄·t behind); the linear terms it contains are allowed for in its test
+        pool = sorted(variables, key=lambda v: v.kind == "drift")   # time goes second
+        for i, v in enumerate(pool):
+            for v2 in pool[i + 1:]:
+                cv = cw = 0.0
+                out.append(_Shape(Basis(
+                    "product", v.name, f"the product of {v.name} and {v2.name}", ("prod",),
+                    ("{v}*{w}",), unit=v.unit, centre=cv,
+                    other=v2.name, other_unit=v2.unit, other_centre=cw),
+                    _product(v.name, cv, v2.name, cw), (v.name, v2.name)))
+    if allowed("angle_harmonic"):
+        for a in angles:
+            for v in periodic:
+                period = float(v.period or 1.0)
+                w_ = 2 * np.pi / period
+                out.append(_Shape(Basis(
+                    "angle_harmonic", v.name, f"the angle {a.name} times harmonic 1 of {v.name}",
+                    ("ah_sin", "ah_cos"),
+                    ("{a}*sin(2*pi*{v}/{period})", "{a}*cos(2*pi*{v}/{period})"), a.name,
+                    unit=v.unit, angle_unit=a.unit, period=period),
+                    _angle_harmonic(a.name, v.name, w_)))
+    return out
+
+
+def _harmonic(name: str, w: float) -> Callable[[Block], np.ndarray]:
+    return lambda b: np.column_stack([np.sin(w * b.values(name)), np.cos(w * b.values(name))])
+
+
+def _linear(name: str, centre: float) -> Callable[[Block], np.ndarray]:
+    return lambda b: (b.values(name) - centre)[:, None]
+
+
+def _quadratic(name: str, centre: float) -> Callable[[Block], np.ndarray]:
+    return lambda b: np.column_stack([b.values(name) - centre, (b.values(name) - centre) ** 2])
+
+
+def _product(v: str, cv: float, w: str, cw: float) -> Callable[[Block], np.ndarray]:
+    return lambda b: ((b.values(v) - cv) * (b.values(w) - cw))[:, None]
+
+
+def _angle_harmonic(a: str, v: str, w: float) -> Callable[[Block], np.ndarray]:
+    return lambda b: b.values(a)[:, None] * np.column_stack(
+        [np.sin(w * b.values(v)), np.cos(w * b.values(v))])
+
+
+def _in_space(groups: list[tuple[Variable, set[str]]], space: Space, never: set[str]
+              ) -> list[Variable]:
+    """The distinct variables of a space (any name equal to one of its names), never a
+    derived one or an excluded column."""
+    wanted = set(space.variables)
+    out = []
+    for var, names in groups:
+        if var.kind == "derived" or names & never:
+            continue
+        if names & wanted:
+            out.append(var)
+    return out
+
+
+def output_entries(problem: Problem, blocks: list[Block], fit: int
+                   ) -> tuple[list[Entry], dict[str, Space]]:
+    """Every (output × shape) candidate of every instance's space, with its regressor."""
+    hp = problem.diagnostic
+    never = excluded(problem)
+    groups = distinct_groups(blocks[fit].variables)
+    found = spaces(problem)
+    out: list[Entry] = []
+    for h, output in enumerate(hp.hooks):
+        if all(not np.any(b.hooks[:, :, h]) for b in blocks):
+            continue
+        instance = output.split(".", 1)[0]
+        if instance not in found:
+            continue
+        space = found[instance]
+        variables = _in_space(groups, space, never)
+        sigma = output_sigma(blocks[fit], h)
+        for shape in _shapes(variables, blocks[fit], space):
+            phi = shape.phi
+            basis = _with_scales(shape.basis, sigma, phi(blocks[fit]))
+
+            def raw(i: int, h: int = h, phi: Callable = phi) -> np.ndarray:
+                b = blocks[i]
+                return b.hooks[:, :, h][:, :, None] * phi(b)[:, None, :]
+
+            extra = None
+            if shape.contains:
+                parts = [_linear(n, 0.0 if v.kind == "drift" else _centre(blocks[fit].values(n)))
+                         for n in shape.contains
+                         for v in variables if v.name == n]
+
+                def extra(i: int, h: int = h, parts: list = parts) -> np.ndarray:
+                    b = blocks[i]
+                    f = np.column_stack([p(b) for p in parts])
+                    return b.hooks[:, :, h][:, :, None] * f[:, None, :]
+
+            out.append(Entry(Candidate(output, basis), raw, extra))
+    return out, found
+
+
+def _with_scales(basis: Basis, sigma: float, phi: np.ndarray) -> Basis:
+    """The basis with its coefficients' scales (terms of about ``sigma`` RMS)."""
+    return replace(basis, scales=_scales(sigma, phi), term=sigma)
+
+
+def fixed_entries(problem: Problem, blocks: list[Block], fit: int, free: np.ndarray,
+                  gauge_fixes: set[str]) -> list[Entry]:
+    """Each parameter the user fixed that no gauge needs fixed, as "this value is off"."""
+    fixed = [n for n, f in zip(problem.parameter_names, free, strict=True) if not f]
+    allowed = set(problem.candidates.fixed) if problem.candidates.where is not None \
+        else set(fixed)
+    out = []
+    for k, name in enumerate(fixed):
+        if name in gauge_fixes or name not in allowed:
+            continue
+        param = problem.parameters[problem.index[name]]
+        x = blocks[fit].jac_fixed[:, :, k]
+        if not np.any(x):
+            continue
+        scale = column_scale(blocks[fit], x)
+        doc = f" ({param.doc})" if param.doc else ""
+        basis = Basis("fixed", name, f"the fixed parameter {name}{doc} is off", ("delta",),
+                      (), unit=param.unit, scales=(float(f"{scale:.3g}"),), term=scale,
+                      centre=param.value, targets=(name,))
+        out.append(Entry(Candidate("", basis), _fixed_raw(blocks, k)))
+    return out
+
+
+def _fixed_raw(blocks: list[Block], k: int) -> Raw:
+    def raw(i: int) -> np.ndarray:
+        return blocks[i].jac_fixed[:, :, k:k + 1]
+    return raw
+
+
+def constant_entries(problem: Problem, blocks: list[Block], fit: int) -> list[Entry]:
+    """Each constant as "this value is off": a problem constant alone; a model's
+    constant once for all the instances that share it (one pitch of one platen), and for
+    each instance alone where several share it."""
+    index = {c.key: k for k, c in enumerate(problem.diagnostic.constants)}
+    groups: dict[tuple[str, str], list] = {}
+    for c in problem.constants:
+        if c.tested and c.key in index:
+            groups.setdefault((str(c.model_file or ""), c.name), []).append(c)
+    out = []
+    for members in groups.values():
+        sets = [members] + ([[c] for c in members] if len(members) > 1 else [])
+        for chosen in sets:
+            keys = [index[c.key] for c in chosen]
+            x = blocks[fit].jac_constants[:, :, keys].sum(axis=2)
+            if not np.any(x):
+                continue
+            first = chosen[0]
+            doc = f"{first.doc} " if first.doc else ""
+            whose = (f"{first.instance}'s " if len(chosen) == 1 and first.instance
+                     else "the ")
+            shared = (f" (shared by {', '.join(c.instance for c in chosen)})"
+                      if len(chosen) > 1 else "")
+            scale = column_scale(blocks[fit], x)
+            basis = Basis("constant", first.name,
+                          f"{whose}{doc}{first.name}{shared} is off", ("delta",), (),
+                          unit=first.unit, scales=(float(f"{scale:.3g}"),), term=scale,
+                          centre=first.value * DISPLAY_UNITS[first.unit],
+                          targets=tuple(c.key for c in chosen))
+            out.append(Entry(Candidate("", basis), _constant_raw(blocks, keys)))
+    return out
+
+
+def _constant_raw(blocks: list[Block], keys: list[int]) -> Raw:
+    def raw(i: int) -> np.ndarray:
+        return blocks[i].jac_constants[:, :, keys].sum(axis=2)[:, :, None]
+    return raw
+
+
+def latency_entries(problem: Problem, blocks: list[Block], fit: int,
+                    found: Mapping[str, Space]) -> list[Entry]:
+    """Each instance reading data columns late by one delay, where some dataset's rows
+    are time-ordered and its columns move smoothly."""
+    time = next((c for c, s in problem.column_specs.items() if s.role == "time"), None)
+    if time is None:
+        return []
+    hp = problem.diagnostic
+    index = {c: k for k, c in enumerate(hp.columns)}
+    out = []
+    for name, inst in problem.instances.items():
+        space = found.get(name)
+        if space is not None and space.kinds is not None and "latency" not in space.kinds:
+            continue
+        cols = sorted({c for c in inst.bindings.values() if c in index and c != time})
+        if not cols:
+            continue
+        rates = [_rates(b, time, cols) for b in blocks]
+        if all(r is None for r in rates):
+            continue
+
+        def raw(i: int, cols: list[str] = cols, rates: list = rates) -> np.ndarray:
+            b = blocks[i]
+            if rates[i] is None:
+                return np.zeros((b.dataset.n, len(b.names), 1))
+            x = sum(b.jac_columns[:, :, index[c]] * rates[i][:, j][:, None]
+                    for j, c in enumerate(cols))
+            return np.asarray(x)[:, :, None]
+
+        x_fit = raw(fit)[:, :, 0]
+        scale = column_scale(blocks[fit], x_fit) if np.any(x_fit) else 1e-3
+        basis = Basis("latency", name, f"{name}'s readings ({', '.join(cols)}) lag by a "
+                      "constant delay", ("tau",), (), unit="s",
+                      scales=(float(f"{scale:.3g}"),), term=scale, targets=tuple(cols))
+        out.append(Entry(Candidate("", basis), raw))
+    return out
+
+
+def _rates(block: Block, time: str, cols: list[str]) -> np.ndarray | None:
+    """The columns' time derivatives (internal units per second) on a dataset whose rows
+    are time-ordered and whose columns move smoothly; None elsewhere."""
+    ds = block.dataset
+    if time not in ds.columns or ds.n < 5:
+        return None
+    t = np.asarray(ds.columns[time], dtype=float) * DISPLAY_UNITS[_unit(block, time)]
+    if np.any(np.diff(t) <= 0):
+        return None
+    out = []
+    moving = False
+    for c in cols:
+        v = block.values(c) if c in block.regressors or any(
+            x.name == c for x in block.variables) else np.asarray(ds.columns[c], dtype=float)
+        var = float(np.var(v))
+        if var <= 0:
+            out.append(np.zeros_like(v))
+            continue
+        ratio = float(np.mean(np.diff(v) ** 2)) / (2 * var)
+        if ratio > SMOOTH:
+            return None
+        moving = True
+        out.append(np.gradient(v, t))
+    return np.column_stack(out) if moving else None
+
+
+def _unit(block: Block, col: str) -> str:
+    return next((v.unit for v in block.variables if v.name == col), "")
