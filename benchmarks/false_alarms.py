@@ -77,7 +77,7 @@ def run(name: str, seeds: range, alpha: float) -> dict:
         data = {r: make_dataset(r, "simulated", simulate_run(scenario, r, seed), [])
                 for r in runs}
         result = symcal.solve(problem, data)
-        diag = symcal.diagnose(result, alpha, views=False)
+        diag = symcal.diagnose(result, alpha, report=False)
         alarms += bool(diag.significant)
         tested = diag.tested
         for test in result.floor_tests:

@@ -75,8 +75,8 @@ def test_each_objective_method_is_one_pass_of_its_kind(platen) -> None:
     theta = _theta0(problem) + 1e-3   # a point no earlier test reduced an R factor at
     with counting() as counts:
         objective.cost(data, theta)
+        terms = objective.cost_terms(data, theta)  # a residual pass of its own (Σ g_k²)
         objective.residuals(data, theta)
-        objective.cost_terms(data, theta)  # a residual pass of its own (Σ g_k² per chunk)
         objective.residual_covariance(data, theta, rank=33)
         objective.normal_equations(data, theta)
         objective.accumulate_r(data, theta)
@@ -85,6 +85,11 @@ def test_each_objective_method_is_one_pass_of_its_kind(platen) -> None:
                                 "accumulate_r": 1}
     assert (counts.residual_passes, counts.linearised_passes, counts.r_passes) == (4, 1, 1)
     assert counts.observations == 6 * N
+    # asked again at the point of the last residuals: from them, no pass, the same bits
+    with counting() as again:
+        assert objective.cost_terms(data, theta) == terms
+        objective.residuals(data, theta)
+    assert again.passes == 0
 
 
 def test_nested_blocks_both_count(platen) -> None:

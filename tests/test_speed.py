@@ -351,3 +351,137 @@ def test_qr_of_a_block_with_nan_is_not_finite_and_does_not_raise(rows) -> None:
                                atol=1e-12 * np.abs(r).max())
     block[rows // 2, 3] = np.nan
     assert not np.all(np.isfinite(passes._qr_r(block)))
+
+
+# ------------------------------------------------------------------ the analysis around a solve
+
+
+def test_a_repeated_solve_builds_nothing_again_and_finds_the_same(monkeypatch) -> None:
+    """The second solve of one problem on the same data reuses the analysis' functions
+    (series statistics, noise floors: one object per problem and dataset layout) and its
+    Result is the same document, every number equal, as the first's."""
+    from symcal.analysis import fit, floors
+    from symcal.base import numeric
+
+    problem = symcal.load_problem(ROOT / "problems" / "platen_self_calibration.yaml")
+    first = symcal.solve(problem)
+    kept = dict(numeric._OWNED[problem])
+    assert any(k[0] == "series" for k in kept) and any(k[0] == "floors" for k in kept)
+    built: list[str] = []
+
+    def counted(theta, u, outputs, name="f"):  # type: ignore[no-untyped-def]
+        built.append(name)
+        return numeric.mapped(theta, u, outputs, name)
+
+    monkeypatch.setattr(fit, "mapped", counted)
+    monkeypatch.setattr(floors, "mapped", counted)
+    second = symcal.solve(problem, dict(first.data))
+    assert built == []
+    assert all(numeric._OWNED[problem][k] is v for k, v in kept.items())
+    one, two = first.to_dict(), second.to_dict()
+    for doc in (one, two):
+        doc.pop("solver")
+        doc.pop("datasets")          # the first simulated them, the second was given them
+        for stage in doc["stages"]:
+            stage.pop("seconds")
+    assert one == two
+
+
+def test_hac_meat_of_a_solve_equals_the_lag_by_lag_sum() -> None:
+    """The window-sum form of the Newey-West meat equals the sum over lags (the form it
+    replaced) on a real fit's per-row scores, whatever the chunking."""
+    from symcal.analysis.serial import hac_meat
+
+    problem, _, data, objective = _dual_objective(3_000)
+    theta = np.array([p.value for p in problem.parameters])
+    scores = np.vstack(list(objective.score_chunks(data, theta)))
+    for lags in (1, 7, 40):
+        direct = scores.T @ scores
+        for lag in range(1, lags + 1):
+            cross = scores[:-lag].T @ scores[lag:]
+            direct += (1 - lag / (lags + 1)) * (cross + cross.T)
+        for size in (500, 3_000):
+            parts = (scores[i:i + size] for i in range(0, len(scores), size))
+            got = hac_meat(parts, lags, scores.shape[1])
+            np.testing.assert_allclose(got, direct, rtol=1e-11,
+                                       atol=1e-13 * np.abs(direct).max())
+    # a piece with fewer rows than lags (a short shard of a partitioned log)
+    for rows, lags in ((3, 40), (1, 7), (40, 40)):
+        few = scores[:rows]
+        direct = few.T @ few
+        for lag in range(1, min(lags, rows - 1) + 1):
+            cross = few[:-lag].T @ few[lag:]
+            direct += (1 - lag / (lags + 1)) * (cross + cross.T)
+        got = hac_meat(iter([few[:2], few[2:]]), lags, few.shape[1])
+        np.testing.assert_allclose(got, direct, rtol=1e-11,
+                                   atol=1e-13 * np.abs(direct).max())
+
+
+def test_a_simulated_dataset_reuses_its_scenario_until_a_file_changes(tmp_path) -> None:
+    """The scenario of a problem's simulated datasets is parsed once per process and
+    parsed again when it, or a file it extends, changes; the data are those of a fresh
+    load either way."""
+    import shutil
+
+    from symcal.data import loading
+    from symcal.simulation import load_scenario, simulate_run
+
+    source = ROOT / "problems" / "scenarios" / "courier_platen.yaml"
+    base = tmp_path / "base.yaml"
+    shutil.copy(source, base)
+    top = tmp_path / "top.yaml"
+    top.write_text("scenario: top\nextends: base.yaml\n", encoding="utf-8")
+    first = loading.scenario(top)
+    assert loading.scenario(top) is first
+    np.testing.assert_array_equal(
+        simulate_run(first, "flyby", seed=2)["t"],
+        simulate_run(load_scenario(top), "flyby", seed=2)["t"])
+    text = base.read_text(encoding="utf-8")
+    base.write_text(text.replace("scenario:", "# changed\nscenario:", 1), encoding="utf-8")
+    again = loading.scenario(top)
+    assert again is not first
+    assert loading.scenario(top) is again
+
+
+def test_a_function_is_compiled_once_across_processes(empty_cache, monkeypatch) -> None:
+    """While another process holds the claim on a cache entry, a process waits for its
+    library instead of compiling the same function again; a claim left by a killed
+    process (older than BUILD_WAIT) is taken over."""
+    import os
+    import threading
+    import time
+
+    jit = empty_cache
+    if jit.compiler() is None:
+        pytest.skip("no C compiler")
+    fn = _function("claimed_twin")
+    cc = jit.compiler()
+    target = jit.cache_dir() / f"{jit._key(fn.serialized(), cc)}.so"
+    lock = target.with_suffix(".building")
+    assert jit._claim(lock)                              # "another process" builds
+    builds: list[str] = []
+    original = jit._build
+
+    def counted(source, name, compiler, where):  # type: ignore[no-untyped-def]
+        builds.append(name)
+        original(source, name, compiler, where)
+
+    monkeypatch.setattr(jit, "_build", counted)
+    got: list[object] = []
+    waiter = threading.Thread(target=lambda: got.append(jit.compiled(fn.fn, fn.serialized())))
+    waiter.start()
+    time.sleep(0.3)
+    assert waiter.is_alive() and not builds              # it waits, it does not compile
+    original(jit._source(fn.fn), fn.fn.name(), cc, target)   # the other process's entry
+    lock.unlink()
+    waiter.join(timeout=60)
+    assert got and got[0] is not None and builds == []
+    # an abandoned claim is taken over
+    other = _function("abandoned_twin")
+    target = jit.cache_dir() / f"{jit._key(other.serialized(), cc)}.so"
+    stale = target.with_suffix(".building")
+    stale.write_text("")
+    old = time.time() - 2 * jit.BUILD_WAIT
+    os.utime(stale, (old, old))
+    assert jit.compiled(other.fn, other.serialized()) is not None
+    assert builds == ["abandoned_twin"] and not stale.exists()

@@ -64,12 +64,14 @@ def exact_section(report: dict[str, Any], settings: Settings) -> list[str]:
         "rounding of the cost where a solver drifted along the problem's gauges (MINPACK's "
         "lm moved the dual problem's offsets by thousands of mm: the cost, computed there, "
         "rounds lower; at symcal's point its Gauss–Newton step promises 1e-24 of the cost, "
-        "at MINPACK's 4e-17).", ""]
+        "at MINPACK's 4e-17).  *CPU ÷ public* is the same ratio of CPU time (the "
+        "process's, all its threads; median of the warm calls): on a machine shared with "
+        "other work it moves less than the wall time does.", ""]
     for problem, info in PROBLEMS.items():
         lines += [f"**{info['title'].split(':')[0]}**", "",
-                  "| N | peer | warm | cold | ÷ public | ÷ stage | peak RSS | public's "
-                  "share of its memory | rel. J | iterations |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
+                  "| N | peer | warm | cold | ÷ public | ÷ stage | CPU (warm) | CPU ÷ public "
+                  "| peak RSS | public's share of its memory | rel. J | iterations |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for n in settings.sizes:
             here = [r for r in rows if r["problem"] == problem and r["n"] == n]
             public = next((r for r in here if r["method"] == "symcal_public"
@@ -83,7 +85,7 @@ def exact_section(report: dict[str, Any], settings: Settings) -> list[str]:
                     cold = fmt_time(r.get("cold", r["first"]))
                     lines.append(f"| {fmt_n(n)} | **{LABELS[who]}** | "
                                  f"{fmt_time(r['seconds'])} | {cold} "
-                                 f"| 1 | — | {r['peak_mib']:.0f} MiB | — | "
+                                 f"| 1 | — | {_cpu(r)} | 1 | {r['peak_mib']:.0f} MiB | — | "
                                  f"{(r['cost'] - lowest) / lowest:.1e} | {r['iterations']} |")
             for name in EXACT_PEERS:
                 r = next((x for x in here if x["method"] == name), None)
@@ -91,18 +93,31 @@ def exact_section(report: dict[str, Any], settings: Settings) -> list[str]:
                     continue
                 if "seconds" not in r:
                     lines.append(f"| {fmt_n(n)} | {LABELS[name]} | — | — | — | — | — | — | — "
-                                 f"| skipped: {r.get('skipped') or r.get('error')} |")
+                                 f"| — | — | skipped: {r.get('skipped') or r.get('error')} |")
                     continue
                 lines.append(
                     f"| {fmt_n(n)} | {LABELS[name]} | {fmt_time(r['seconds'])} | "
                     f"{fmt_time(r.get('cold', r['first']))} | "
                     f"{_ratio(r['seconds'], public['seconds']) if public else '—'} | "
                     f"{_ratio(r['seconds'], stage['seconds']) if stage else '—'} | "
+                    f"{_cpu(r)} | {_cpu_ratio(r, public)} | "
                     f"{r['peak_mib']:.0f} MiB | "
                     f"{'1/' + format(r['peak_mib'] / public['peak_mib'], '.1f') if public else '—'}"
                     f" | {(r['cost'] - lowest) / lowest:.1e} | {r['iterations']} |")
         lines.append("")
     return lines
+
+
+def _cpu(r: dict[str, Any]) -> str:
+    """A row's warm CPU time, or — (runs from before it was measured)."""
+    return fmt_time(r["cpu_seconds"]) if "cpu_seconds" in r else "—"
+
+
+def _cpu_ratio(r: dict[str, Any], public: dict[str, Any] | None) -> str:
+    """A peer's CPU time over the public solve's."""
+    if public is None or "cpu_seconds" not in r or "cpu_seconds" not in public:
+        return "—"
+    return _ratio(r["cpu_seconds"], public["cpu_seconds"])
 
 
 def exact_targets(report: dict[str, Any], settings: Settings) -> list[dict[str, str]]:

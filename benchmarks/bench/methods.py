@@ -48,16 +48,18 @@ Method = Callable[[np.ndarray], Outcome]
 
 
 def forget_r(problem: object) -> None:
-    """Drop the R factor each objective of ``problem`` keeps from its last pass, so that
-    a repeated timed solve from the same start reduces its own (the linear stage would
-    otherwise be one lookup from the second call on).  The gauge analysis an identical
-    earlier solve made is kept: reusing it is what a repeated solve does."""
+    """Drop the R factor and the residuals each objective of ``problem`` keeps from its
+    last passes, so that a repeated timed solve from the same start reduces its own (the
+    linear stage would otherwise be one lookup from the second call on).  The gauge
+    analysis an identical earlier solve made is kept: reusing it is what a repeated solve
+    does."""
     from symcal.solvers.objective import _BUILT
 
     for built in _BUILT.get(problem, {}).values():
-        last = getattr(built, "last_r", None)
-        if isinstance(last, list):
-            last.clear()
+        for kept in ("last_r", "last_g"):
+            last = getattr(built, kept, None)
+            if isinstance(last, list):
+                last.clear()
 
 
 def symcal_solver(problem: str, cols: Columns, method: str = "auto") -> Method:

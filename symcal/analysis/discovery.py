@@ -172,23 +172,49 @@ class _Nuisance:
     solve: np.ndarray
 
 
-_SVDS: dict[int, tuple[Design, _Nuisance]] = {}
+#: The nuisances' SVDs of the last designs asked (by identity; a diagnosis alternates
+#: between a few designs).
+_SVDS: list[tuple[Design, _Nuisance]] = []
+_KEPT = 4
 
 
 def _nuisance(design: Design) -> _Nuisance:
-    """The nuisance's SVD, kept for the last design asked (one SVD per design, however
-    many candidates are tested on it)."""
-    kept = _SVDS.get(0)
-    if kept is None or kept[0] is not design:
-        matrix = design.nuisance
-        if matrix.size == 0:
-            found = _Nuisance(np.zeros((matrix.shape[0], 0)), np.zeros((matrix.shape[1], 0)))
-        else:
-            u, sv, vt = np.linalg.svd(matrix, full_matrices=False)
-            keep = sv > rank_tolerance(sv, matrix.shape[0])
-            found = _Nuisance(u[:, keep], vt[keep].T / sv[keep][None, :])
-        _SVDS[0] = (design, found)
-    return _SVDS[0][1]
+    """The nuisance's SVD (one per design, however many candidates are tested on it)."""
+    for kept, found in _SVDS:
+        if kept is design:
+            return found
+    matrix = design.nuisance
+    if matrix.size == 0:
+        found = _Nuisance(np.zeros((matrix.shape[0], 0)), np.zeros((matrix.shape[1], 0)))
+    else:
+        u, sv, vt = np.linalg.svd(matrix, full_matrices=False)
+        keep = sv > rank_tolerance(sv, matrix.shape[0])
+        found = _Nuisance(u[:, keep], vt[keep].T / sv[keep][None, :])
+    _SVDS.insert(0, (design, found))
+    del _SVDS[_KEPT:]
+    return found
+
+
+def refit(design: Design, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The least-squares fit of the design's residual by its nuisance and the columns
+    ``x`` (M × m) jointly: the nuisance's coefficients, ``x``'s coefficients, their
+    covariance (residual variance times the inverse normal matrix of ``x`` beyond the
+    nuisance) and the residual variance.  From the nuisance's SVD: no solve of the
+    whole matrix per candidate."""
+    nuisance = _nuisance(design)
+    qn = nuisance.u
+    xp = _project(x, qn)
+    q, r_x = np.linalg.qr(xp)
+    rank_x = int(np.sum(np.abs(np.diag(r_x)) > 1e-10 * max(float(np.abs(r_x).max()), 1e-300)))
+    gram = xp.T @ xp
+    inv = np.linalg.pinv(gram)
+    coef_x = inv @ (xp.T @ design.r)
+    rest = design.r - x @ coef_x
+    coef_n = nuisance.solve @ (qn.T @ rest)
+    left = rest - design.nuisance @ coef_n
+    dof = max(len(design.r) - qn.shape[1] - rank_x, 1)
+    s2 = float(left @ left) / dof
+    return coef_n, coef_x, s2 * inv, s2
 
 
 def _basis(design: Design) -> np.ndarray:

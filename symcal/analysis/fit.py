@@ -4,13 +4,15 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import casadi as ca
 import numpy as np
 
 from symcal.analysis.floors import FloorTest
-from symcal.base.numeric import mapped
+from symcal.base import jit
+from symcal.base.numeric import Mapped, mapped, owned
 from symcal.base.units import DISPLAY_UNITS
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
@@ -97,10 +99,51 @@ class SeriesStats:
                    None if noise is None else FloorTest.from_dict(noise, scale))
 
 
+@dataclass(frozen=True)
+class _Series:
+    """What :func:`series_statistics` examines on one dataset: the entries, the notes of
+    the comparisons skipped there, and the mapped function of all the entries."""
+
+    names: tuple[str, ...]
+    kinds: tuple[str, ...]
+    units: tuple[str, ...]
+    means: tuple[bool, ...]
+    notes: tuple[str, ...]
+    fn: Mapped
+
+
+def _series(problem: Problem, ds: Dataset) -> _Series:
+    names, kinds, exprs, units, means = [], [], [], [], []
+    notes: list[str] = []
+    for c in problem.constraints:
+        names.append(c.name)
+        kinds.append("constraint")
+        exprs.append(c.sx)
+        units.append(c.unit)
+        means.append(False)
+    for comp in problem.comparisons:
+        if comp.datasets is not None and ds.name not in comp.datasets:
+            continue
+        missing = [c for c in problem.columns_of(comp.reference) if c not in ds.columns]
+        if missing:
+            notes.append(f"comparison '{comp.name}' skipped on '{ds.name}': "
+                         f"no column {', '.join(repr(m) for m in missing)}")
+            continue
+        names.append(comp.name)
+        kinds.append("comparison")
+        exprs.append(comp.estimate - comp.reference)
+        units.append(comp.unit)
+        means.append(comp.remove_mean)
+    fn = mapped(problem.theta, problem.u, [ca.vertcat(*exprs)], "series")
+    return _Series(tuple(names), tuple(kinds), tuple(units), tuple(means), tuple(notes), fn)
+
+
 def series_statistics(
     problem: Problem, datasets: dict[str, Dataset], theta0: np.ndarray, theta: np.ndarray
 ) -> tuple[tuple[SeriesStats, ...], tuple[str, ...]]:
-    """Statistics of every constraint and applicable comparison on every dataset.
+    """Statistics of every constraint and applicable comparison on every dataset (their
+    function built once per problem, dataset name and columns; its compiled twin when it
+    pays, the same bits).
 
     Returns
     -------
@@ -110,31 +153,15 @@ def series_statistics(
     stats: list[SeriesStats] = []
     notes: list[str] = []
     for ds in datasets.values():
-        names, kinds, exprs, units, means = [], [], [], [], []
-        for c in problem.constraints:
-            names.append(c.name)
-            kinds.append("constraint")
-            exprs.append(c.sx)
-            units.append(c.unit)
-            means.append(False)
-        for comp in problem.comparisons:
-            if comp.datasets is not None and ds.name not in comp.datasets:
-                continue
-            missing = [c for c in problem.columns_of(comp.reference) if c not in ds.columns]
-            if missing:
-                notes.append(f"comparison '{comp.name}' skipped on '{ds.name}': "
-                             f"no column {', '.join(repr(m) for m in missing)}")
-                continue
-            names.append(comp.name)
-            kinds.append("comparison")
-            exprs.append(comp.estimate - comp.reference)
-            units.append(comp.unit)
-            means.append(comp.remove_mean)
-        fn = mapped(problem.theta, problem.u, [ca.vertcat(*exprs)], "series")
+        key = ("series", ds.name, frozenset(ds.columns))
+        series = owned(problem, key, partial(_series, problem, ds))
+        notes.extend(series.notes)
+        fn = jit.select(series.fn, 2 * ds.n)
         u = ds.matrix(problem.columns)
         before = fn(theta0, u)[0]
         after = fn(theta, u)[0]
-        for j, name in enumerate(names):
-            stats.append(SeriesStats(name, kinds[j], ds.name, units[j], ds.n,
-                                     Spread.of(before[:, j]), Spread.of(after[:, j]), means[j]))
+        for j, name in enumerate(series.names):
+            stats.append(SeriesStats(name, series.kinds[j], ds.name, series.units[j], ds.n,
+                                     Spread.of(before[:, j]), Spread.of(after[:, j]),
+                                     series.means[j]))
     return tuple(stats), tuple(notes)

@@ -33,7 +33,6 @@ Rows are evaluated chunk by chunk; nothing of size N × (residuals × readings) 
 from __future__ import annotations
 
 import math
-import weakref
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from statistics import NormalDist
@@ -43,9 +42,10 @@ import casadi as ca
 import numpy as np
 
 from symcal.base import jit
-from symcal.base.numeric import Mapped, chunks, mapped
+from symcal.base.numeric import Mapped, chunks, mapped, owned
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
+from symcal.solvers.executor import default_executor
 
 #: The level of every band: a χ²/dof inside its central 95 % interval is at the floor.
 LEVEL = 0.95
@@ -502,6 +502,12 @@ class _Entries:
 
 
 def _entries(problem: Problem, ds: Dataset) -> _Entries:
+    """The entries of ``ds`` (built once per problem, dataset name and columns)."""
+    key = ("floor entries", ds.name, frozenset(ds.columns))
+    return owned(problem, key, lambda: _build_entries(problem, ds))
+
+
+def _build_entries(problem: Problem, ds: Dataset) -> _Entries:
     noisy = problem.noisy
     out = _Entries()
     comparisons = {c.name: c for c in noisy.comparisons}
@@ -525,21 +531,12 @@ def _entries(problem: Problem, ds: Dataset) -> _Entries:
     return out
 
 
-#: Per problem (while it lives): the propagation functions built for it, by what they
-#: evaluate (the entries' names and the free parameters): repeated solves reuse them.
-_BUILT: weakref.WeakKeyDictionary[Problem, dict[tuple[object, ...], _Propagation]] = \
-    weakref.WeakKeyDictionary()
-
-
 def _propagation(problem: Problem, names: tuple[str, ...], exprs: list[ca.SX],
                  free: np.ndarray) -> _Propagation:
     """The :class:`_Propagation` of ``exprs`` (named ``names``: the same names of one
     problem are the same expressions), built once per problem."""
-    built = _BUILT.setdefault(problem, {})
-    key = (names, np.asarray(free, dtype=bool).tobytes())
-    if key not in built:
-        built[key] = _Propagation(problem, exprs, free)
-    return built[key]
+    key = ("floors", names, np.asarray(free, dtype=bool).tobytes())
+    return owned(problem, key, lambda: _Propagation(problem, exprs, free))
 
 
 class _Propagation:
@@ -564,23 +561,32 @@ class _Propagation:
                                     "noise_residuals")
         self.columns = noisy.columns
 
+    def at(self, fn: Mapped, u: np.ndarray, theta: np.ndarray, part: slice
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(r, L, J)`` of the observations ``part`` of ``u`` (the dataset's columns) by
+        ``fn`` (:attr:`fn` or its twin): ``r`` m × n_e, ``L`` m × n_e × n_ε, ``J``
+        m × n_e × n_p."""
+        block = u[:, part]
+        m = block.shape[1]
+        ext = np.vstack([block, np.zeros((self.n_eps, m))])
+        r, lt, jt = fn.chunk(theta, ext)
+        return r, lt.reshape(m, self.n_e, self.n_eps), jt.reshape(m, self.n_e, self.n_p)
+
     def rows(self, ds: Dataset, theta: np.ndarray
              ) -> Iterator[tuple[slice, np.ndarray, np.ndarray, np.ndarray]]:
-        """``(rows, r, L, J)`` chunk by chunk: ``r`` m × n_e, ``L`` m × n_e × n_ε, ``J``
-        m × n_e × n_p."""
+        """``(rows, r, L, J)`` chunk by chunk, in order (evaluated on the in-memory
+        passes' executor: threads for a large dataset, the same bits)."""
         u = ds.matrix(self.columns)
         fn = jit.select(self.fn, ds.n)
-        for part in chunks(ds.n):
-            block = u[:, part]
-            m = block.shape[1]
-            ext = np.vstack([block, np.zeros((self.n_eps, m))])
-            r, lt, jt = fn.chunk(theta, ext)
-            yield (part, r, lt.reshape(m, self.n_e, self.n_eps),
-                   jt.reshape(m, self.n_e, self.n_p))
+        parts = list(chunks(ds.n))
+        for part, (r, lmat, jac) in zip(parts, default_executor(ds.n).map(
+                lambda part: self.at(fn, u, theta, part), parts), strict=True):
+            yield part, r, lmat, jac
 
-    def residuals(self, ds: Dataset, theta: np.ndarray, part: slice) -> np.ndarray:
-        """The residuals of the observations ``part`` at ``theta`` (m × n_e)."""
-        block = ds.matrix(self.columns)[:, part]
+    def residuals(self, u: np.ndarray, theta: np.ndarray, part: slice) -> np.ndarray:
+        """The residuals of the observations ``part`` of ``u`` (the dataset's columns) at
+        ``theta`` (m × n_e)."""
+        block = u[:, part]
         ext = np.vstack([block, np.zeros((self.n_eps, block.shape[1]))])
         return jit.select(self.plain, block.shape[1]).chunk(theta, ext)[0]
 
@@ -626,11 +632,6 @@ def _gram(lmat: np.ndarray) -> np.ndarray:
     return np.einsum("mae,mbe->mab", lmat, lmat)
 
 
-def _sandwich(left: np.ndarray, middle: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """Per row, ``left · middle · rightᵀ`` (m × a × p, p × q, m × b × q → m × a × b)."""
-    return (left @ middle) @ np.swapaxes(right, 1, 2)
-
-
 def _weights(fit: Fit, c: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """The fit's weights W_i of the fitted constraints, internal units (m × n_f × n_f)."""
     m, n = c.shape[0], c.shape[1]
@@ -663,19 +664,40 @@ def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray
     prop = _propagation(problem, ("share", *fit.constraints),
                         [noisy.constraint(n).sx for n in fit.constraints], fit.free)
     n_p = prop.n_p
-    a, b = np.zeros((n_p, n_p)), np.zeros((n_p, n_p))
-    for _, _, lmat, jac in prop.rows(ds, theta):
+    u = ds.matrix(prop.columns)
+    fn = jit.select(prop.fn, ds.n)
+
+    def piece(part: slice) -> tuple[np.ndarray, np.ndarray]:
+        _, lmat, jac = prop.at(fn, u, theta, part)
         c = _gram(lmat)
-        w = _weights(fit, c, sigma)
-        wj = w @ jac
-        a += jac.reshape(-1, n_p).T @ wj.reshape(-1, n_p)
-        b += wj.reshape(-1, n_p).T @ (c @ wj).reshape(-1, n_p)
+        wj = _weights(fit, c, sigma) @ jac
+        return (jac.reshape(-1, n_p).T @ wj.reshape(-1, n_p),
+                wj.reshape(-1, n_p).T @ (c @ wj).reshape(-1, n_p))
+
+    a, b = np.zeros((n_p, n_p)), np.zeros((n_p, n_p))
+    for da, db in default_executor(ds.n).map(piece, chunks(ds.n)):   # in order
+        a += da
+        b += db
     if n_p == 0:
         return _Estimate(a, b)
     vals, vecs = np.linalg.eigh(a)
     keep = vals > 1e-10 * max(float(vals.max(initial=0.0)), 1e-300)
     a_pinv = (vecs[:, keep] / vals[keep]) @ vecs[:, keep].T
     return _Estimate(a_pinv, a_pinv @ b @ a_pinv)
+
+
+@dataclass(frozen=True)
+class _Chunk:
+    """One chunk's share of a dataset's tests (see :func:`_dataset_tests`)."""
+
+    r: np.ndarray               # m × n_e residuals at the estimate
+    d: np.ndarray               # m × n_e: each residual's propagated variance C_kk
+    e: np.ndarray               # m × n_e: its expectation E_kk (the estimate's share in)
+    jac: np.ndarray | None      # m × n_e × n_p, with the estimate's share only
+    x: np.ndarray | None        # m × n_e × n_p, the fitted rows' term
+    r0: np.ndarray | None       # m × n_e residuals at the initial parameters
+    chi2: float                 # the joint test's terms
+    dof: float
 
 
 @dataclass
@@ -918,8 +940,9 @@ class RowsPlan:
                                                                        block.shape[1]))]))[0]
                 if start:
                     out.first_before = [float(v) for v in r0[0]]
+                d = np.diagonal(c, axis1=1, axis2=2)
                 for k, s in enumerate(out.before):
-                    _accumulate(s, k, r0, c, c, jac, None, None)
+                    _accumulate(s, r0[:, k], d[:, k], d[:, k], None, None)
             expect = c.copy()
             x = None
             if share is not None:
@@ -935,8 +958,11 @@ class RowsPlan:
                 rc = r[:, cons]
                 out.chi2 += float(np.einsum("ma,mab,mb->", rc, pinv, rc))
                 out.dof += float(np.einsum("mab,mba->", pinv, expect[sub]))
+            d, e = np.diagonal(c, axis1=1, axis2=2), np.diagonal(expect, axis1=1, axis2=2)
             for k, s in enumerate(out.sums):
-                _accumulate(s, k, r, c, expect, jac, x, share)
+                _accumulate(s, r[:, k], d[:, k], e[:, k],
+                            None if share is None else jac[:, k, :],
+                            None if x is None else x[:, k, :])
         return out
 
     def finish(self, sums: RowSums, ordered: bool) -> tuple[dict[str, FloorTest], DatasetTest]:
@@ -994,30 +1020,53 @@ def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
     sigma_f = np.array([problem.constraint(entries.names[k]).sigma for k in fitted])
     use_share = share is not None and prop.n_p > 0
     before = [_Sums() for _ in entries.names]
-    for part, r, lmat, jac in prop.rows(ds, theta):
+    u = ds.matrix(prop.columns)
+    fn = jit.select(prop.fn, ds.n)
+
+    def piece(part: slice) -> _Chunk:
+        """The heavy work of one chunk (evaluation, propagation, the joint test's terms),
+        independent of every other chunk: on the executor's threads."""
+        r, lmat, jac = prop.at(fn, u, theta, part)
         c = _gram(lmat)
-        if theta0 is not None:
-            r0 = prop.residuals(ds, theta0, part)
-            for k, s in enumerate(before):
-                _accumulate(s, k, r0, c, c, jac, None, None)
-        expect = c.copy()
-        x = None
+        d = np.diagonal(c, axis1=1, axis2=2).copy()           # C_kk
+        r0 = prop.residuals(u, theta0, part) if theta0 is not None else None
+        e, x, jc, xa = d.copy(), None, None, None               # E_kk
         if use_share:
             assert share is not None
-            expect += _sandwich(jac, share.cov, jac)
+            m, n_e, n_p = jac.shape
+            jc = (jac.reshape(-1, n_p) @ share.cov).reshape(m, n_e, n_p)
+            e += np.einsum("map,map->ma", jc, jac)
             if fitted:
                 w = _weights(fit, c[:, fitted][:, :, fitted], sigma_f)
                 x = (c[:, :, fitted] @ w) @ jac[:, fitted, :]
-                xa = _sandwich(x, share.a_pinv, jac)
-                expect -= xa + np.transpose(xa, (0, 2, 1))
+                xa = (x.reshape(-1, n_p) @ share.a_pinv).reshape(m, n_e, n_p)
+                e -= 2.0 * np.einsum("map,map->ma", xa, jac)
+        chi2_part = dof_part = 0.0
         if joint_ok:
             sub = np.ix_(range(c.shape[0]), cons, cons)
             pinv, _ = _pinv_rows(c[sub])
             rc = r[:, cons]
-            chi2 += float(np.einsum("ma,mab,mb->", rc, pinv, rc))
-            dof += float(np.einsum("mab,mba->", pinv, expect[sub]))
+            chi2_part = float(np.einsum("ma,mab,mb->", rc, pinv, rc))
+            expect = c[sub]
+            if jc is not None:
+                jcons = np.swapaxes(jac[:, cons, :], 1, 2)
+                expect = expect + jc[:, cons, :] @ jcons
+                if xa is not None:
+                    xj = xa[:, cons, :] @ jcons
+                    expect = expect - (xj + np.swapaxes(xj, 1, 2))
+            dof_part = float(np.einsum("mab,mba->", pinv, expect))
+        return _Chunk(r, d, e, jac if use_share else None, x, r0, chi2_part, dof_part)
+
+    for chunk in default_executor(ds.n).map(piece, chunks(ds.n)):      # in order
+        if chunk.r0 is not None:
+            for k, s in enumerate(before):
+                _accumulate(s, chunk.r0[:, k], chunk.d[:, k], chunk.d[:, k], None, None)
+        chi2 += chunk.chi2
+        dof += chunk.dof
         for k, s in enumerate(sums):
-            _accumulate(s, k, r, c, expect, jac, x, share if use_share else None)
+            _accumulate(s, chunk.r[:, k], chunk.d[:, k], chunk.e[:, k],
+                        None if chunk.jac is None else chunk.jac[:, k, :],
+                        None if chunk.x is None else chunk.x[:, k, :])
     ordered = time_ordered(problem, ds)
     found = {}
     for k, name in enumerate(entries.names):
@@ -1038,9 +1087,11 @@ def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
     return found, joint
 
 
-def _accumulate(s: _Sums, k: int, r: np.ndarray, c: np.ndarray, expect: np.ndarray,
-                jac: np.ndarray, x: np.ndarray | None, share: _Estimate | None) -> None:
-    rk, d = r[:, k], c[:, k, k]
+def _accumulate(s: _Sums, rk: np.ndarray, d: np.ndarray, e: np.ndarray,
+                jk: np.ndarray | None, xk: np.ndarray | None) -> None:
+    """Add one chunk of one entry: its residuals ``rk``, variances ``d`` (C_kk),
+    expectations ``e`` (E_kk), Jacobian rows ``jk`` and fitted-rows term ``xk`` (with the
+    estimate's share only)."""
     top = float(d.max(initial=0.0))
     live = d > EXACT * max(top, s.d / max(s.n, 1), 1e-300)
     s.exact += int(np.sum(~live))
@@ -1052,15 +1103,14 @@ def _accumulate(s: _Sums, k: int, r: np.ndarray, c: np.ndarray, expect: np.ndarr
     s.r += float(rk.sum())
     s.r2 += float(np.sum(rk * rk))
     s.d += float(d.sum())
-    s.wd += float(np.sum(w * expect[:, k, k]))
-    if share is not None:
-        jk = jac[:, k, :]
+    s.wd += float(np.sum(w * e))
+    if jk is not None:     # sums over the rows as products (a strided sum is slow)
+        ones = np.ones(len(rk))
         s.add_vectors("wj", w @ jk)
-        s.add_vectors("j", jk.sum(axis=0))
-        if x is not None:
-            xk = x[:, k, :]
+        s.add_vectors("j", ones @ jk)
+        if xk is not None:
             s.add_vectors("wxv", w @ xk)
-            s.add_vectors("x", xk.sum(axis=0))
+            s.add_vectors("x", ones @ xk)
     if len(rk):
         first = float(rk[0])
         if s.last is not None:

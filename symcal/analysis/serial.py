@@ -227,21 +227,37 @@ def _last(rows: np.ndarray, k: int) -> np.ndarray:
 
 def hac_meat(scores: Iterator[np.ndarray], lags: int, n_free: int) -> np.ndarray:
     """``Σ_{|l|≤L} (1 − |l|/(L+1)) Γ_l`` of per-row scores given chunk by chunk in row
-    order (each chunk ``m × n_free``)."""
+    order (each chunk ``m × n_free``).
+
+    The Bartlett weights are a triangle, the correlation of two boxes of L + 1 rows, so the
+    sum is ``Σ_e W_eᵀ W_e / (L + 1)`` over the sums ``W_e`` of the scores in every window
+    of L + 1 consecutive rows (those that overhang either end included): one product of
+    the window sums, whatever L, instead of one per lag.  The windows are differences of
+    running sums within each chunk and the last L rows carried to the next."""
+    width = lags + 1
     meat = np.zeros((n_free, n_free))
     tail = np.zeros((0, n_free))
     for chunk in scores:
+        chunk = np.asarray(chunk, dtype=float).reshape(-1, n_free)
+        if not chunk.shape[0]:
+            continue
         rows = np.vstack([tail, chunk])
+        run = np.cumsum(rows, axis=0)
         start = tail.shape[0]
-        new = rows[start:]
-        meat += new.T @ new
-        for lag in range(1, lags + 1):
-            weight = 1.0 - lag / (lags + 1.0)
-            # pairs (i - lag, i) with i among the new rows and i - lag among all rows held
-            first = max(start, lag)
-            if first >= rows.shape[0]:
-                break
-            cross = rows[first - lag:rows.shape[0] - lag].T @ rows[first:]
-            meat += weight * (cross + cross.T)
-        tail = rows[-lags:] if lags else tail
-    return meat
+        # windows ending at each new row: rows e - L .. e (fewer at the very start)
+        ends = np.arange(start, rows.shape[0])
+        windows = run[ends]
+        earlier = ends - width
+        has = earlier >= 0
+        windows[has] -= run[earlier[has]]
+        meat += windows.T @ windows
+        tail = rows[-lags:] if lags else rows[:0]
+    # windows overhanging the end: the sums of the last L, L - 1, ..., 1 rows; with fewer
+    # than L rows in all, the L + 1 - rows windows that hold every row (and overhang both
+    # ends) are all the sum of every row
+    suffix = np.cumsum(tail[::-1], axis=0)
+    meat += suffix.T @ suffix
+    if 0 < tail.shape[0] < lags:
+        total = suffix[-1]
+        meat += (lags - tail.shape[0]) * np.outer(total, total)
+    return meat / width

@@ -40,6 +40,7 @@ import shutil
 import subprocess
 import tempfile
 import threading
+import time
 import weakref
 from pathlib import Path
 
@@ -152,6 +153,49 @@ def _build(source: str, name: str, cc: str, target: Path) -> None:
     atomic_write_text(target.with_suffix(".sha256"), _digest(data) + "\n")
 
 
+#: A build whose claim is older than this (s) was abandoned (its process was killed): the
+#: claim is taken over.  As long as the compiler's own time limit.
+BUILD_WAIT = 300.0
+
+
+def _claim(lock: Path) -> bool:
+    """Claim the build of a cache entry (create ``lock`` exclusively); False when another
+    process holds a claim younger than :data:`BUILD_WAIT`."""
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    for _ in range(2):
+        try:
+            os.close(os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
+            return True
+        except FileExistsError:
+            try:
+                if time.time() - lock.stat().st_mtime <= BUILD_WAIT:
+                    return False
+                lock.unlink()                         # abandoned: take it over
+            except FileNotFoundError:
+                continue                              # released meanwhile: claim again
+    return False
+
+
+def _build_once(fn: ca.Function, cc: str, target: Path) -> None:
+    """Build the entry ``target``, once across processes: the process that claims it
+    compiles; another one waits for its entry (its passes go on interpreted meanwhile,
+    when it builds in the background) and compiles itself only if none appears.  A fleet
+    of worker processes on one machine compiles each function once, not once per
+    worker."""
+    lock = target.with_suffix(".building")
+    if _claim(lock):
+        try:
+            _build(_source(fn), fn.name(), cc, target)
+        finally:
+            lock.unlink(missing_ok=True)
+        return
+    deadline = time.monotonic() + BUILD_WAIT
+    while lock.exists() and not _trusted(target) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if not _trusted(target):                          # the other build failed
+        _build(_source(fn), fn.name(), cc, target)
+
+
 def _key(serialized: bytes, cc: str) -> str:
     """The cache key: everything that determines the compiled library."""
     head = "\0".join([str(FORMAT), str(ca.CasadiMeta.version()), cc, *FLAGS]).encode()
@@ -182,7 +226,7 @@ def compiled(fn: ca.Function, serialized: bytes, build: bool = True) -> ctypes.C
         if not _trusted(target):
             if not build:
                 return None
-            _build(_source(fn), fn.name(), cc, target)
+            _build_once(fn, cc, target)
         try:
             loaded = _load(target)
         except (OSError, AttributeError):   # trusted bytes that do not load: rebuild

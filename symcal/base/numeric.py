@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import hashlib
 import threading
-from collections.abc import Iterator
-from typing import Any
+import weakref
+from collections.abc import Callable, Iterator
+from typing import Any, TypeVar
 
 import casadi as ca
 import numpy as np
@@ -153,3 +154,22 @@ def mapped(theta: ca.SX, u: ca.SX, outputs: list[ca.SX], name: str = "f") -> Map
     """Build a :class:`Mapped` function of ``(theta, u)`` returning ``outputs`` (columns)."""
     fn = ca.Function(name, [theta, u], [ca.densify(ca.vec(o)) for o in outputs])
     return Mapped(fn)
+
+
+_T = TypeVar("_T")
+#: Per owner (a problem, while it lives): what was built for it, by key.
+_OWNED: weakref.WeakKeyDictionary[Any, dict[Any, Any]] = weakref.WeakKeyDictionary()
+_OWNED_LOCK = threading.Lock()
+
+
+def owned(owner: Any, key: Any, build: Callable[[], _T]) -> _T:
+    """``build()`` once per ``owner`` (held weakly) and ``key``: what depends only on a
+    problem's structure (its mapped functions, the expressions an analysis examines) is
+    built for its first solve and reused by the next ones."""
+    with _OWNED_LOCK:
+        memo = _OWNED.setdefault(owner, {})
+        if key in memo:
+            return memo[key]
+    value = build()
+    with _OWNED_LOCK:
+        return memo.setdefault(key, value)

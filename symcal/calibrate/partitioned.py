@@ -60,7 +60,14 @@ from symcal.data.loading import load_datasets, needed_columns
 from symcal.data.shards import ShardedDataset, open_shards
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
-from symcal.solvers.executor import Executor, SerialExecutor, current, using
+from symcal.solvers.executor import (
+    Executor,
+    SerialExecutor,
+    current,
+    thread_count,
+    threads,
+    using,
+)
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -209,7 +216,10 @@ def _solve(problem: Problem, log: ShardedDataset | Dataset, held: dict[str, Data
            given: Any, data: dict[str, Dataset | str | Path]) -> Result:
     inner = executor or current()
     if inner is None and isinstance(log, ShardedDataset):
-        inner = SerialExecutor()
+        # one shard per thread, one thread per usable core (the evaluation releases the
+        # GIL; the pieces are reduced in their order, so the result is the same)
+        workers = min(thread_count(), len(log.shards))
+        inner = threads(workers) if workers > 1 else SerialExecutor()
     sample = log.sample(GAUGE_SAMPLE) if isinstance(log, ShardedDataset) else log
     theta0 = _initial(problem, {})
     theta = theta0

@@ -369,15 +369,16 @@ def run_stage(
     at_bound = [p.name for p in (problem.parameters[i] for i in idx)
                 if min(abs(out.theta[problem.index[p.name]] - b) for b in (p.lower, p.upper))
                 <= 1e-7 * p.scale]
+    outliers = _outliers(plain, data, out.theta, weights, losses, lambda weighted:
+                         solve_stage(weighted, data, out.theta, method, None, stage.name,
+                                     options)[0])
     result = StageResult(
         stage.name, stage.doc, out.method, out.success, out.status, out.message,
         out.iterations, out.seconds, names, _constraint_costs(plain, data, theta, out.theta),
         tuple(n for n, m in zip(names, moved, strict=True) if not m), tuple(at_bound),
         conditioning(r_start, out.rows, names, scales),
         conditioning(out.r_factor, out.rows, names, scales, gauges=exact_null), ident, unc,
-        tuple(notes), _outliers(plain, data, out.theta, weights, losses, lambda weighted:
-                                solve_stage(weighted, data, out.theta, method, None,
-                                            stage.name, options)[0]), gauges, serial,
+        tuple(notes), outliers, gauges, serial,
     )
     return out.theta, result
 
@@ -555,9 +556,11 @@ def correlations(unc: Uncertainty, name: str) -> dict[str, float]:
     """``name``'s finite correlations with the other free parameters of a stage."""
     if name not in unc.names:
         return {}
-    row = unc.correlation[unc.names.index(name)]
-    return {other: float(v) for other, v in zip(unc.names, row, strict=True)
-            if other != name and np.isfinite(v)}
+    k = unc.names.index(name)
+    row = np.asarray(unc.correlation[k], dtype=float)
+    keep = np.isfinite(row)
+    keep[k] = False
+    return {unc.names[j]: float(row[j]) for j in np.flatnonzero(keep)}
 
 
 def _no_se_reason(name: str, fixed: bool, last: StageResult) -> str | None:

@@ -32,14 +32,25 @@ def _methods(render: Callable[[Any], str]) -> dict[str, Callable[..., Any]]:
 
 
 def register() -> None:
-    """Give :class:`Result` and :class:`Diagnosis` their notebook display (once)."""
-    if _REGISTERED:
-        return
-    from symcal.calibrate.result import Result
-    from symcal.report.text import diagnosis_report, text_report
-    from symcal.revise.diagnose import Diagnosis
+    """Give :class:`Result` and :class:`Diagnosis` their notebook display (once each).
 
-    for cls, render in ((Result, text_report), (Diagnosis, diagnosis_report)):
-        for name, method in _methods(render).items():
-            setattr(cls, name, method)
-    _REGISTERED.append(True)
+    A :class:`Diagnosis` is registered once its module is imported (by whatever made
+    one): registering it does not import the diagnosis, which imports SciPy's statistics
+    (seconds at a first solve that never diagnoses)."""
+    import sys
+
+    if len(_REGISTERED) == 2:
+        return
+    from symcal.report.text import diagnosis_report, text_report
+
+    if not _REGISTERED:
+        from symcal.calibrate.result import Result
+
+        for name, method in _methods(text_report).items():
+            setattr(Result, name, method)
+        _REGISTERED.append(True)
+    module = sys.modules.get("symcal.revise.diagnose")
+    if module is not None:
+        for name, method in _methods(diagnosis_report).items():
+            setattr(module.Diagnosis, name, method)
+        _REGISTERED.append(True)

@@ -330,7 +330,7 @@ def _uncalibratable_words(cand: Candidate, needs: str,
             f"leaves them unchanged. {needs}" + _group_words(cand, own))
 
 
-def diagnose(result: Result, alpha: float = 0.01, *, views: bool = True) -> Diagnosis:
+def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Diagnosis:
     """Find where a calibrated model fails and which effect is most likely missing.
 
     Nothing is solved again: the residuals, their sensitivities and the candidate terms
@@ -343,10 +343,11 @@ def diagnose(result: Result, alpha: float = 0.01, *, views: bool = True) -> Diag
         :meth:`~symcal.calibrate.result.Result.load`.
     alpha
         Family-wise significance level over all candidates (Bonferroni).
-    views
-        Whether to examine each residual along every variable (binned structure,
-        periodograms, what is left: what the report shows); ``False`` tests the
-        candidates only (the improve loop's rounds).
+    report
+        Whether to find everything the report shows: each residual along every variable
+        (binned structure, periodograms, what is left) and the effects only a reference
+        reveals; ``False`` tests the calibratable candidates only (what the improve
+        loop's rounds need).
 
     Returns
     -------
@@ -359,19 +360,15 @@ def diagnose(result: Result, alpha: float = 0.01, *, views: bool = True) -> Diag
               for ds in data.values()]
     if result.outliers is not None and result.outliers.dominate:
         # outliers first: F-tests for missing effects mean nothing while they dominate
-        return Diagnosis(result, tuple(_views(blocks, result)) if views else (), (), {},
+        return Diagnosis(result, tuple(_views(blocks, result)) if report else (), (), {},
                          alpha, 0)
     fit = list(data).index(problem.fit_dataset)
     own_names = [c.name for c in result.stages[-1].costs]
     own_cols = [blocks[fit].names.index(n) for n in own_names]
     own, own_t = design([blocks[fit].subset(own_cols)], problem, free)
-    full, full_t = design(blocks, problem, free)
 
     def own_regressor(raw: Raw) -> np.ndarray:
         return whiten(raw(fit)[:, own_cols, :], own_t[0])
-
-    def full_regressor(raw: Raw) -> np.ndarray:
-        return np.vstack([whiten(raw(i), t) for i, t in enumerate(full_t)])
 
     fixed = [n for n, f in zip(problem.parameter_names, free, strict=True) if not f]
     fixed_columns = {name: whiten(blocks[fit].jac_fixed[:, own_cols, k:k + 1], own_t[0])[:, 0]
@@ -407,8 +404,16 @@ def diagnose(result: Result, alpha: float = 0.01, *, views: bool = True) -> Diag
     for cand in [*leads, *(c for c in ranked if c.label in members)]:
         predict(cand, own, own_regressor(by_label[cand.label].raw), blocks, free,
                 by_label[cand.label].raw)
-    uncal, needs = _uncalibratable(problem, full, entries, full_regressor, leads, ranked,
-                                   alpha, local)
+    uncal: list[Candidate] = []
+    needs: dict[str, str] = {}
+    if report:
+        full, full_t = design(blocks, problem, free)
+
+        def full_regressor(raw: Raw) -> np.ndarray:
+            return np.vstack([whiten(raw(i), t) for i, t in enumerate(full_t)])
+
+        uncal, needs = _uncalibratable(problem, full, entries, full_regressor, leads,
+                                       ranked, alpha, local)
     yaml = {c.label: (variant.overlay(Path(problem.path), f"{problem.name}_implicit",
                                       Path(problem.path).parent)
                       if c.basis.kind == "approximation" and variant is not None
@@ -418,7 +423,7 @@ def diagnose(result: Result, alpha: float = 0.01, *, views: bool = True) -> Diag
                   for name, inst in problem.instances.items()}
     above = any(s.kind == "comparison" and s.noise is not None and s.noise.verdict == "above"
                 for s in result.statistics)
-    return Diagnosis(result, tuple(_views(blocks, result)) if views else (), tuple(ranked),
+    return Diagnosis(result, tuple(_views(blocks, result)) if report else (), tuple(ranked),
                      yaml, alpha,
                      len(candidates), tuple(uncal), needs, variant, own_inputs,
                      _better_problem(problem) if above else "",

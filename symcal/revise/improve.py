@@ -233,7 +233,7 @@ def _best_of_group(
         path = _revision(diag, label, directory, f"{name}_try{i}")
         written[label] = {path} | (_models(directory) - before)
         revised = _load_revision(path)
-        new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
+        new = _trial(revised, datasets, result)
         why = _pays(new, result, alpha, physical)
         if why is None:
             paying.append((held_out_change(new, result), label, path, new))
@@ -310,6 +310,17 @@ def _ambiguity(label: str, new: Result, other: str, other_new: Result,
                     f"{other_new.bic:.1f}): they give {name} = {a.value:.6g} ± {a.se:.2g} "
                     f"and {b.value:.6g} ± {b.se:.2g} {a.unit}; {target}")
     return ""
+
+
+def _trial(revised: Problem, datasets: Mapping[str, Dataset], result: Result) -> Result:
+    """The revision solved on the same data, started where the last kept model ended (its
+    free parameters at their estimates, a new term's coefficients at zero): the stages
+    then take a few steps each instead of starting again from the file's values."""
+    start = {name: p.value for name, p in result.params.items()
+             if not p.fixed and name in revised.index
+             and not revised.parameters[revised.index[name]].fixed}
+    return solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets},
+                 initial=start)
 
 
 def _models(directory: Path) -> set[Path]:
@@ -394,7 +405,7 @@ def _try_siblings(
     path = write_revision(diag.result.problem, lead, directory, f"{name}_all", also)
     written = {path} | (_models(directory) - before)
     revised = _load_revision(path)
-    new = solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets})
+    new = _trial(revised, datasets, result)
     why = _pays(new, result, alpha, physical)
     if why is None and single is not None and new.bic >= single.result.bic:
         why = (f"its BIC ({new.bic:.1f}) is not below that of {single.label} alone "
@@ -473,7 +484,7 @@ def _improve(problem: str | Path, out: str | Path,
     current: Problem = load_problem(problem)
     datasets = load_datasets(current, data, drop_invalid)
     result = solve(current, datasets)
-    diag = diagnose(result, alpha, views=False)
+    diag = diagnose(result, alpha, report=False)
     rounds = [Round(0, None, Path(problem), result, len(diag.significant))]
     physical = {n for n, p in result.params.items() if not p.fixed}
     stem = plain_name(Path(problem).stem)   # revisions are named after the file
@@ -509,7 +520,7 @@ def _improve(problem: str | Path, out: str | Path,
         zero = _now_zero(kept.result, rounds, alpha)
         result = kept.result
         last_try = len(rejected)
-        diag = diagnose(result, alpha, views=False)
+        diag = diagnose(result, alpha, report=False)
         rounds.append(Round(k, kept.label, kept.path, result, len(diag.significant), seen,
                             kept.ambiguous + zero))
         report.step(f"round {k}: added {kept.label}: {len(diag.significant)} significant "

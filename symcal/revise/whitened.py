@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from symcal.analysis.discovery import Candidate, Design
+from symcal.analysis.discovery import Candidate, Design, refit
 from symcal.analysis.floors import EXACT
 from symcal.base.linalg import range_basis, whitening
 from symcal.base.units import DISPLAY_UNITS
@@ -124,21 +124,15 @@ def predict(cand: Candidate, own: Design, x_own: np.ndarray, blocks: list[Block]
     calibration's constraints, applied to every residual; fills ``reduction`` (std now →
     predicted, display units) and the coefficients of the term to add (regressors are the
     change a term of coefficient 1 makes) with standard errors."""
-    a = np.column_stack([own.nuisance, x_own])
-    delta, *_ = np.linalg.lstsq(a, own.r, rcond=None)
-    m = x_own.shape[1]
-    rows = len(own.r)
-    rank = range_basis(a).shape[1]
-    s2 = float(np.sum((own.r - a @ delta) ** 2)) / max(rows - rank, 1)
-    cov = s2 * np.linalg.pinv(a.T @ a)
+    coef_n, coef_x, cov, _ = refit(own, x_own)
     # the fit explains the residual as X·δ; the term to add to the model is -δ
-    cand.coefficient = tuple(-float(v) for v in delta[-m:])
+    cand.coefficient = tuple(-float(v) for v in coef_x)
     cand.coefficient_se = tuple(float(np.sqrt(max(cov[k, k], 0.0)))
-                                for k in range(len(delta) - m, len(delta)))
+                                for k in range(len(coef_x)))
     n_params = int(free.sum())
     out: dict[str, tuple[float, float]] = {}
     for i, b in enumerate(blocks):
-        change = b.jac @ delta[:n_params] + raw(i) @ delta[-m:]
+        change = b.jac @ coef_n[:n_params] + raw(i) @ coef_x
         predicted = b.after - change
         for k, name in enumerate(b.names):
             now, new = b.after[:, k], predicted[:, k]

@@ -42,6 +42,7 @@ class _Built:
     jac: ca.SX
     mapped: dict[str, Mapped]
     last_r: list[Any] = field(default_factory=list)
+    last_g: list[Any] = field(default_factory=list)
 
 
 #: Per problem (while it lives), what its objectives built, by (constraints, free
@@ -87,6 +88,7 @@ class Objective:
     jac: ca.SX = field(init=False, repr=False)
     _cache: dict[str, Mapped] = field(default_factory=dict, init=False, repr=False)
     _last_r: list[Any] = field(default_factory=list, init=False, repr=False)
+    _last_g: list[Any] = field(default_factory=list, init=False, repr=False)
 
     def __post_init__(self) -> None:
         free = np.asarray(self.free, dtype=bool)
@@ -105,6 +107,7 @@ class Objective:
         object.__setattr__(self, "jac", shared.jac)
         object.__setattr__(self, "_cache", shared.mapped)
         object.__setattr__(self, "_last_r", shared.last_r)
+        object.__setattr__(self, "_last_g", shared.last_g)
 
     def with_row_weights(self, row_weights: np.ndarray | None) -> Objective:
         """This objective with other per-row factors (None: none), sharing its built
@@ -221,15 +224,51 @@ class Objective:
                 g, jac = g * w, jac * w[:, :, None]
             yield np.einsum("ma,man->mn", g, jac)
 
+    def _kept_g(self, dataset: Source, theta: np.ndarray) -> np.ndarray | None:
+        """The residuals kept from an earlier :meth:`residuals` of this dataset at this
+        point (no per-row weights), or None."""
+        if not isinstance(dataset, Dataset) or self.row_weights is not None:
+            return None
+        key = np.ascontiguousarray(theta, dtype=float).tobytes()
+        for ref, at, g in self._last_g:
+            if ref() is dataset and at == key:
+                return g
+        return None
+
     def residuals(self, dataset: Dataset, theta: np.ndarray) -> np.ndarray:
-        """Weighted residuals at ``theta``, ``N × n_g`` (in-memory data only)."""
+        """Weighted residuals at ``theta``, ``N × n_g`` (in-memory data only; read-only).
+
+        Without per-row weights, the residuals of the last two points asked are kept:
+        a stage's analysis asks for them at its start and at its estimate several times
+        (finite values, cost per constraint, outliers, serial correlation), and gets
+        them, the same bits, without another pass."""
+        kept = self._kept_g(dataset, theta)
+        if kept is not None:
+            return kept
         instrument.record_pass("residual", "residuals", dataset.n)
-        return np.asarray(self._pass("residuals", "residual", dataset, theta))
+        g = np.asarray(self._pass("residuals", "residual", dataset, theta))
+        if self.row_weights is None:
+            g.setflags(write=False)
+            key = np.ascontiguousarray(theta, dtype=float).tobytes()
+            self._last_g[:] = [*self._last_g[-1:], (weakref.ref(dataset), key, g)]
+        return g
 
     def cost_terms(self, dataset: Source, theta: np.ndarray) -> dict[str, float]:
-        """Σ (g_k/σ_k)² of each constraint of the cost at ``theta``."""
-        instrument.record_pass("residual", "cost_terms", dataset.n)
-        terms = self._pass("terms", "residual", dataset, theta)
+        """Σ (g_k/σ_k)² of each constraint of the cost at ``theta`` (from the kept
+        residuals when :meth:`residuals` was asked at this point: reduced chunk by chunk
+        in the same order as the pass, the same bits)."""
+        kept = self._kept_g(dataset, theta)
+        if kept is not None:
+            terms: Any = None
+            for part in chunks(dataset.n):
+                block = kept[part]
+                value = np.sum(block * block, axis=0)
+                terms = value if terms is None else terms + value
+        else:
+            instrument.record_pass("residual", "cost_terms", dataset.n)
+            terms = self._pass("terms", "residual", dataset, theta)
+        if terms is None:
+            terms = np.zeros(len(self.constraints))
         return {name: float(terms[k]) for k, name in enumerate(self.constraints)}
 
     def normal_equations(

@@ -12,6 +12,14 @@ projection: 100 shards at the measured cost per shard, on the same 2 workers, fo
 pass of each kind and for a solve by the default path, ``lm``: 4 TSQR passes (what the
 dual solve makes at N = 1e6 from the common start; the IPOPT path makes 7 linearised
 passes and 1 TSQR).  ``--quick``: 4 shards of 5000 rows.
+
+The command line on shards: ``symcal solve problems/dual_sensor_calibration.yaml --data
+calibration=DIR --quiet`` (the bundled problem as a user runs it: its three stages,
+estimated weighting, the simulated fly-by held out, the whole analysis) on folders of
+:data:`CLI_SHARDS` shards of :data:`CLI_ROWS` rows, the whole command timed (start-up
+included).  Its cost is ``a + b·shards``: the fixed part and the cost per shard, fitted
+to the runs, give the 1e8 projection on this path (the command reads the shards one
+after the other in its own process).
 """
 
 from __future__ import annotations
@@ -36,6 +44,11 @@ WORKERS = 2
 #: 1e8 projection.
 SOLVE_PASSES = {"accumulate_r": 4}
 KINDS = ("cost", "normal_equations", "accumulate_r")
+#: Shard counts and rows per shard of the command-line runs (full run; ``--quick``: 1, 2
+#: shards of the quick size).
+CLI_SHARDS = (2, 8)
+CLI_ROWS = 100_000
+CLI_PROBLEM = "problems/dual_sensor_calibration.yaml"
 
 
 def _worker_peak() -> float:
@@ -56,8 +69,52 @@ def _reset_peak() -> None:
         pass
 
 
+def cli_child(job: dict[str, Any]) -> dict[str, Any]:
+    """Time ``symcal solve PROBLEM --data calibration=DIR`` on folders of shards."""
+    import subprocess
+    import sys
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from symcal.simulation import load_scenario, simulate_run
+
+    scenario = load_scenario(ROOT / PROBLEMS["dual"]["scenario"])
+    runs = []
+    with tempfile.TemporaryDirectory(prefix="symcal-hugecli-", dir=job["workdir"]) as tmp:
+        for count in job["shards"]:
+            folder = Path(tmp) / f"log-{count}"
+            folder.mkdir()
+            for i in range(count):
+                cols = simulate_run(scenario, "calibration", seed=SEED + i, n=job["rows"])
+                pq.write_table(pa.table(cols), folder / f"part-{i:04d}.parquet")
+            start = time.perf_counter()
+            proc = subprocess.run([sys.executable, "-m", "symcal", "solve", CLI_PROBLEM,
+                                   "--data", f"calibration={folder}", "--quiet"],
+                                  capture_output=True, text=True, cwd=ROOT)
+            seconds = time.perf_counter() - start
+            runs.append({"shards": count, "rows": count * job["rows"], "seconds": seconds,
+                         "exit": proc.returncode, "stderr": proc.stderr[-400:]})
+    return {"runs": runs, "rows_per_shard": job["rows"]}
+
+
+def cli_projection(cli: dict[str, Any], n: int = 100_000_000) -> dict[str, float]:
+    """``a + b·shards`` fitted to the command's runs (least squares), and its value at
+    ``n`` rows in shards of the same size."""
+    import numpy as np
+
+    shards = np.array([r["shards"] for r in cli["runs"]], dtype=float)
+    seconds = np.array([r["seconds"] for r in cli["runs"]])
+    b, a = np.polyfit(shards, seconds, 1)
+    count = n / cli["rows_per_shard"]
+    return {"fixed": float(a), "per_shard": float(b), "shards": count,
+            "seconds": float(a + b * count)}
+
+
 def child(job: dict[str, Any]) -> dict[str, Any]:
     """Write the shards, then time one pass of each kind on a local Dask cluster."""
+    if job.get("cli"):
+        return cli_child(job)
     import numpy as np
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -125,14 +182,30 @@ def run(ctx: Run) -> JobSummary:
     if "error" in result:
         return JobSummary(NAME, 1, [str(result["error"])], "failed")
     result["projection"] = projection(result)
+    cli = run_child({"kind": NAME, "cli": True, "workdir": str(ctx.workdir),
+                     "shards": (1, 2) if ctx.settings.quick else CLI_SHARDS,
+                     "rows": QUICK[1] if ctx.settings.quick else CLI_ROWS},
+                    ctx.settings, timeout=3600)
+    failures = []
+    if "error" in cli:
+        failures.append(f"command line on shards: {cli['error']}")
+    else:
+        failures += [f"symcal solve on {r['shards']} shards exited {r['exit']}: {r['stderr']}"
+                     for r in cli["runs"] if r["exit"] != 0]
+        if not failures:
+            cli["projection"] = cli_projection(cli)
+    result["cli"] = cli
     p = result["passes"]
     note = (f"{fmt_n(result['n'])} rows in {shards} Parquet shards on {WORKERS} Dask "
             f"workers: cost {p['cost']:.1f} s, normal equations {p['normal_equations']:.1f} s,"
             f" TSQR {p['accumulate_r']:.1f} s per pass; workers' peak "
             f"{max(result['worker_peak_mib']):.0f} MiB; 1e8 solve projected "
             f"{result['projection']['solve'] / 60:.1f} min")
+    if "projection" in cli:
+        note += (f"; symcal solve on shards: 1e8 rows projected "
+                 f"{cli['projection']['seconds'] / 3600:.1f} h")
     say("== " + note)
-    return JobSummary(NAME, 1, [], note)
+    return JobSummary(NAME, 2, failures, note)
 
 
 def table(report: dict[str, Any]) -> list[str]:
@@ -167,4 +240,25 @@ def table(report: dict[str, Any]) -> list[str]:
         "whatever the length of the log (a 1e8-row log is 100 such shards; the projection "
         "assumes the same cost per shard and the same 2 workers, and needs no more memory).",
     ]
+    return lines + _cli_table(r.get("cli", {}))
+
+
+def _cli_table(cli: dict[str, Any]) -> list[str]:
+    """The command line on shards: its runs and the 1e8 projection."""
+    if "projection" not in cli:
+        return []
+    proj = cli["projection"]
+    lines = ["", "### The command line on a log kept as shards", "",
+             f"`symcal solve {CLI_PROBLEM} --data calibration=DIR --quiet`, the whole "
+             "command (start-up, the problem's build, its simulated fly-by, three stages "
+             "with estimated weighting, the analysis), DIR holding Parquet shards of "
+             f"{fmt_n(cli['rows_per_shard'])} rows each.  The command reads the shards one "
+             "after the other in its own process (one core).", "",
+             "| shards | rows | time |", "|---|---|---|"]
+    lines += [f"| {r['shards']} | {fmt_n(r['rows'])} | {r['seconds']:.1f} s |"
+              for r in cli["runs"]]
+    lines += ["", f"Fitted `a + b·shards`: fixed {proj['fixed']:.1f} s, "
+              f"{proj['per_shard']:.2f} s per shard of {fmt_n(cli['rows_per_shard'])} rows, "
+              f"so 1e8 rows ({proj['shards']:.0f} shards) take "
+              f"{proj['seconds']:.0f} s ({proj['seconds'] / 3600:.1f} h) on this path."]
     return lines
