@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Callable, Mapping
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,19 +17,17 @@ from symcal.analysis.floors import (
     row_covariances,
     time_ordered,
 )
-from symcal.analysis.gauges import find_gauges
-from symcal.analysis.identifiability import Uncertainty, analyse, conditioning
+from symcal.analysis.identifiability import Uncertainty
 from symcal.analysis.implicit import implicit_checks
 from symcal.analysis.outliers import Outliers, find_outliers
 from symcal.analysis.serial import SerialCorrelation, bandwidth, detect, hac_meat
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, SolveError, SymcalError
-from symcal.base.linalg import is_singular, numerical_rank, sqrt_psd, whitening
+from symcal.base.linalg import numerical_rank, sqrt_psd, whitening
 from symcal.base.options import METHODS, SolveOptions
 from symcal.base.progress import Bars, reporting
-from symcal.base.units import DISPLAY_UNITS, symbol
+from symcal.base.units import DISPLAY_UNITS
 from symcal.calibrate.result import (
-    ConstraintCost,
     DatasetInfo,
     ParameterResult,
     Result,
@@ -37,46 +35,17 @@ from symcal.calibrate.result import (
     file_hashes,
     parameter_table,
 )
+from symcal.calibrate.stage_run import Inner, run_stage_on
 from symcal.data.dataset import Dataset
 from symcal.data.loading import load_datasets
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem, Stage
 from symcal.solvers.base import SolverOutput
 from symcal.solvers.executor import blas_limited
-from symcal.solvers.linear import solve_linear
-from symcal.solvers.objective import Objective, Source
-from symcal.solvers.robust import RowLosses, row_losses, sandwich_meat, solve_robust
-from symcal.solvers.stage import ipopt, lm, out_of_bounds, solve_stage
+from symcal.solvers.objective import Objective
+from symcal.solvers.robust import RobustOutput, RowLosses, sandwich_meat, solve_robust
 
 Progress = Callable[[str], None] | None
-
-
-def _robust(
-    objective: Objective, data: Dataset, theta: np.ndarray, losses: RowLosses, method: str,
-    progress: Progress, label: str, options: SolveOptions,
-) -> tuple[SolverOutput, list[str], np.ndarray]:
-    """Solve a stage with robust losses: reweighting rounds, each on the path the first
-    round takes (:func:`_solve_stage`), warm-started."""
-    notes: list[str] = []
-    path: list[str] = []
-
-    def inner(weighted: Objective, start: np.ndarray) -> SolverOutput:
-        if not path:
-            out, first = solve_stage(weighted, data, start, method, progress, label, options)
-            notes.extend(first)
-            path.append(out.method)
-            return out
-        if path[0] == "linear":
-            out = solve_linear(weighted, data, start)
-            if not out_of_bounds(objective, out.theta):
-                return out
-            path[0] = "ipopt"
-        if path[0] == "lm":
-            return lm(weighted, data, start, progress, label, options)
-        return ipopt(weighted, data, start, progress, label, options)
-
-    robust = solve_robust(objective, data, theta, losses, inner, progress, label)
-    return robust.output, notes, robust.weights
 
 
 def _outliers(objective: Objective, data: Dataset, theta: np.ndarray,
@@ -112,132 +81,6 @@ def _refit(objective: Objective, data: Dataset,
     return refit
 
 
-def _constraint_costs(objective: Objective, data: Source, before: np.ndarray,
-                      after: np.ndarray) -> tuple[ConstraintCost, ...]:
-    start, end = objective.cost_terms(data, before), objective.cost_terms(data, after)
-    out = []
-    for name in objective.constraints:
-        q = objective.problem.constraint(name)
-        to_rms = q.sigma / np.sqrt(data.n) / DISPLAY_UNITS[q.unit]
-        out.append(ConstraintCost(name, q.unit, start[name], end[name],
-                                  float(np.sqrt(start[name]) * to_rms),
-                                  float(np.sqrt(end[name]) * to_rms)))
-    return tuple(out)
-
-
-def _reweighted(
-    objective: Objective, first: SolverOutput, data: Dataset, method: str,
-    progress: Progress, label: str, options: SolveOptions,
-) -> tuple[Objective, SolverOutput, str]:
-    """Solve again, weighted by the constraints' covariance estimated from the residuals."""
-    rank = numerical_rank(first.r_factor, first.rows, objective.scales)
-    cov = objective.residual_covariance(data, first.theta, rank)
-    if is_singular(cov):
-        return objective, first, ("weighting: the constraints' residual covariance is "
-                                  "singular; kept equal weights")
-    whitened = Objective(objective.problem, objective.constraints, objective.free,
-                         whitening(cov)[0])
-    second, _ = solve_stage(whitened, data, first.theta, method, progress, label, options)
-    merged = SolverOutput(
-        second.theta, second.free, second.method, second.success, second.status,
-        second.message + "; weighted by the estimated covariance of the constraints",
-        second.r_factor, second.rows, second.rss, first.iterations + second.iterations,
-        first.seconds + second.seconds)
-    problem = objective.problem
-    sizes = []
-    for k, name in enumerate(objective.constraints):
-        q = problem.constraint(name)
-        sizes.append(f"{name} {np.sqrt(cov[k, k]) * q.sigma / DISPLAY_UNITS[q.unit]:.3g} "
-                     f"{q.unit or '(internal)'}")
-    note = ("weighting: solved with equal weights, then again with each observation's "
-            "constraints whitened by their covariance estimated from those residuals "
-            f"(residual std {', '.join(sizes)})")
-    return whitened, merged, note
-
-
-def _propagated_weights(objective: Objective, data: Dataset, theta: np.ndarray
-                        ) -> tuple[np.ndarray | None, str]:
-    """Each observation's ``C_i^-½`` of the stage's weighted constraints at ``theta`` (the
-    covariance propagated from the readings' declared noise), or None and why not."""
-    problem = objective.problem
-    missing = sorted({c for n in objective.constraints
-                      for c in problem.undeclared(problem.constraint(n).sx)})
-    if missing:
-        raise SymcalError(f"weighting 'propagated' needs the noise of every reading the "
-                          f"constraints read; no noise is declared for the column(s) "
-                          f"{', '.join(repr(m) for m in missing)}: declare it ('noise: 0.5 um' "
-                          "on the column, on the model input bound to it, or in the "
-                          "problem's 'noise:' section), or choose another weighting")
-    cov = row_covariances(problem, objective.constraints, data, theta)
-    t, singular = inverse_sqrt_rows(cov)
-    if singular:
-        return None, (f"weighting: the propagated covariance of the constraints is singular "
-                      f"on {singular} of {data.n} observations (the readings they use are "
-                      "declared exact there); kept equal weights")
-    return t, ""
-
-
-#: Propagated weights that change by at most this fraction (per observation) when taken
-#: again at the estimate are converged: the stage is not solved again.
-REWEIGHT = 1e-2
-
-
-def _propagated(
-    plain: Objective, data: Dataset, theta: np.ndarray, method: str, progress: Progress,
-    label: str, options: SolveOptions,
-) -> tuple[Objective, SolverOutput, list[str]]:
-    """Solve weighted by the covariance propagated from the readings' noise: at the start,
-    then again at that estimate (the covariance depends on the parameters through the
-    constraints' derivatives by the readings)."""
-    weights, why = _propagated_weights(plain, data, theta)
-    if weights is None:
-        out, notes = solve_stage(plain, data, theta, method, progress, label, options)
-        return plain, out, [*notes, why]
-    weighted = plain.with_row_weights(weights)
-    first, notes = solve_stage(weighted, data, theta, method, progress, label, options)
-    if not first.success:
-        return weighted, first, notes
-    again, why = _propagated_weights(plain, data, first.theta)
-    if again is None:
-        return weighted, first, [*notes, why]
-    change = float(np.max(np.linalg.norm(again - weights, axis=(1, 2))
-                          / np.maximum(np.linalg.norm(weights, axis=(1, 2)), 1e-300)))
-    when = "at the start and again at that estimate"
-    if change <= REWEIGHT:    # the weights have converged: solving again moves nothing
-        second, when = first, (f"at the start (at that estimate they differ by "
-                               f"{change:.1g} at most)")
-    else:
-        reweighted = plain.with_row_weights(again)
-        second, _ = solve_stage(reweighted, data, first.theta, method, progress, label,
-                                options)
-        if second.success:
-            weighted = reweighted
-        else:   # from a converged point: keep it, weighted as at the start
-            notes.append(f"weighting: solving again with the weights at the estimate did "
-                         f"not succeed ({second.message}); kept the estimate weighted at "
-                         "the start")
-            second, when = first, "at the start"
-    merged = SolverOutput(
-        second.theta, second.free, second.method, second.success, second.status,
-        second.message + "; weighted by the covariance propagated from the readings' noise",
-        second.r_factor, second.rows, second.rss,
-        first.iterations + (second.iterations if second is not first else 0),
-        first.seconds + (second.seconds if second is not first else 0.0))
-    problem = plain.problem
-    floor = np.sqrt(np.mean(np.diagonal(row_covariances(problem, plain.constraints, data,
-                                                        second.theta), axis1=1, axis2=2),
-                            axis=0))
-    sizes = []
-    for k, name in enumerate(plain.constraints):
-        q = problem.constraint(name)
-        sizes.append(f"{name} {floor[k] * q.sigma / DISPLAY_UNITS[q.unit]:.3g} "
-                     f"{symbol(q.unit)}")
-    note = ("weighting: each observation's constraints whitened by their covariance "
-            f"propagated from the readings' declared noise, {when} (noise floor "
-            f"{', '.join(sizes)})")
-    return weighted, merged, [*notes, note]
-
-
 def _check_finite(objective: Objective, data: Dataset, theta: np.ndarray) -> None:
     """Refuse constraints that are inf or NaN at the start, naming where."""
     g = objective.residuals(data, theta)
@@ -251,136 +94,99 @@ def _check_finite(objective: Objective, data: Dataset, theta: np.ndarray) -> Non
             "the data there")
 
 
-#: An iterative solve has diverged when a free parameter moved more than this many times
-#: its nominal scale from where the stage started.
-DIVERGED = 1e6
-
-
-def _diverged(out: SolverOutput, problem: Problem, theta0: np.ndarray,
-              objective: Objective) -> SolverOutput:
-    """``out`` marked failed when an iterative method carried a parameter away (a
-    divergence, whatever the solver's own status says)."""
-    if out.method == "linear" or not out.success:
-        return out
-    moved = np.abs(out.theta[objective.index] - theta0[objective.index]) / objective.scales
-    worst = int(np.argmax(moved)) if moved.size else 0
-    if moved.size and moved[worst] > DIVERGED:
-        name = objective.names[worst]
-        i = problem.index[name]
-        return replace(out, success=False, status="Diverged",
-                       message=f"failed: the iterates diverged ({name} went from "
-                               f"{theta0[i]:.6g} to {out.theta[i]:.6g}, more than "
-                               f"{DIVERGED:g} times its scale {objective.scales[worst]:g})")
-    return out
-
-
-def _check_information(stage: Stage, data: Dataset, rows: int, rank: int,
-                       unidentifiable: int, n_free: int) -> None:
-    """Refuse data that determine no parameter at the start, or leave no degree of
-    freedom: bad input, found before anything is solved."""
-    if rows <= rank:
-        raise DataError(f"stage '{stage.name}': {data.n} observations of '{data.name}' give "
-                        f"{rows} residual values for {rank} identifiable parameters; at "
-                        f"least {rank + 1} are needed (more for a useful fit)")
-    if unidentifiable == n_free:
-        raise DataError(f"stage '{stage.name}': the {data.n} observations of '{data.name}' "
-                        f"determine none of the {n_free} free parameters individually (only "
-                        f"{rank} combination(s) of them): the data do not excite the model; "
-                        "check that the inputs vary over the calibration")
-
-
 @blas_limited
 def run_stage(
     problem: Problem, stage: Stage, data: Dataset, theta: np.ndarray,
     options: SolveOptions | None = None, progress: Progress = None,
 ) -> tuple[np.ndarray, StageResult]:
-    """Solve one stage from ``theta`` and analyse its outcome.
+    """Solve one stage from ``theta`` and analyse its outcome
+    (:func:`~symcal.calibrate.stage_run.run_stage_on`, the data in memory).
 
     Returns
     -------
     (theta, StageResult)
         The new parameter vector and what happened.
     """
-    options = options or problem.options
-    free = np.array([p.name in stage.free for p in problem.parameters])
-    plain = Objective(problem, stage.constraints, free)
-    _check_finite(plain, data, theta)
-    r_start, _, tail0, rows0 = plain.accumulate_r(data, theta)
-    ident0, unc0 = analyse(r_start, rows0, tail0, plain.names, plain.scales,
-                           theta[plain.index])
-    _check_information(stage, data, rows0, ident0.rank,
-                       sum(unc0.se[n] is None for n in plain.names), len(plain.names))
-    gauges = find_gauges(plain, data, theta)
-    if progress is not None:
-        for gauge in gauges.gauges:
-            progress(f"  {stage.name}: before the solve, a gauge: {gauge.text}")
-    method = options.method or stage.method
-    losses = row_losses(plain)
-    weights = None
-    objective = plain
-    if losses is not None and problem.weighting in ("estimated", "propagated"):
-        raise SymcalError(f"stage '{stage.name}': {losses.texts[0]} is a robust loss, which "
-                          f"weighting '{problem.weighting}' does not support: remove one of "
-                          "them")
-    if losses is not None:
-        out, notes, weights = _robust(plain, data, theta, losses, method, progress,
-                                      stage.name, options)
-    elif problem.weighting == "propagated":
-        objective, out, notes = _propagated(plain, data, theta, method, progress, stage.name,
-                                            options)
-    else:
-        out, notes = solve_stage(plain, data, theta, method, progress, stage.name, options)
-    out = _diverged(out, problem, theta, plain)
-    collapse = gauges.collapse(theta, out.theta, plain) if out.success else None
-    if collapse is not None:
-        out = replace(out, success=False, status="Collapsed", message=collapse)
-    if problem.weighting == "estimated" and len(stage.constraints) > 1 and out.success:
-        objective, out, note = _reweighted(plain, out, data, method, progress, stage.name,
-                                           options)
-        notes.append(note)
-    names, scales, idx = objective.names, objective.scales, objective.index
-    meat = None
-    if weights is not None:
-        meat = sandwich_meat(plain, data, out.theta,
-                             weights, numerical_rank(out.r_factor, out.rows, scales))
-    elif len(stage.constraints) > 1:
-        rank = numerical_rank(out.r_factor, out.rows, scales)
-        cov_g = objective.residual_covariance(data, out.theta, rank)
-        meat = objective.accumulate_r(data, out.theta, sqrt_psd(cov_g).T)[0]
-    serial = None
-    if weights is None and out.success and time_ordered(problem, data):
-        serial, hac = _serial(objective, data, out)
-        if hac is not None:
-            meat = hac
-    exact_null, held = gauges.confirmed(plain, data, out.theta)
-    if len(held.gauges) < len(gauges.gauges):
-        gone = [g.text.split(":")[0] + " of " + ", ".join(g.parameters)
-                for g in gauges.gauges if g not in held.gauges]
-        notes.append(f"the {'; '.join(gone)} found before the solve does not hold at the "
-                     "estimate: a degeneracy of the region the start lies in, not a gauge")
-        gauges = held
-    ident, unc = analyse(out.r_factor, out.rows, out.rss, names, scales, out.theta[idx],
-                         meat, exact_null)
-    if out.success and ident.rank == 0:
-        out = replace(out, success=False, status="Collapsed",
-                      message="failed: the iterates left the region the data describe: where "
-                              "they ended, the data determine none of the free parameters")
-    moved = np.abs(out.theta[idx] - theta[idx]) > 1e-12 * scales
-    at_bound = [p.name for p in (problem.parameters[i] for i in idx)
-                if min(abs(out.theta[problem.index[p.name]] - b) for b in (p.lower, p.upper))
-                <= 1e-7 * p.scale]
-    outliers = _outliers(plain, data, out.theta, weights, losses, lambda weighted:
-                         solve_stage(weighted, data, out.theta, method, None, stage.name,
-                                     options)[0])
-    result = StageResult(
-        stage.name, stage.doc, out.method, out.success, out.status, out.message,
-        out.iterations, out.seconds, names, _constraint_costs(plain, data, theta, out.theta),
-        tuple(n for n, m in zip(names, moved, strict=True) if not m), tuple(at_bound),
-        conditioning(r_start, out.rows, names, scales),
-        conditioning(out.r_factor, out.rows, names, scales, gauges=exact_null), ident, unc,
-        tuple(notes), outliers, gauges, serial,
-    )
-    return out.theta, result
+    return run_stage_on(InMemory(data), problem, stage, theta, options or problem.options,
+                        progress)
+
+
+@dataclass(frozen=True)
+class InMemory:
+    """A stage's steps on a dataset in memory (a
+    :class:`~symcal.calibrate.stage_run.StageData`): arrays of its N rows."""
+
+    data: Dataset
+
+    @property
+    def sample(self) -> Dataset:
+        """The gauges are found and confirmed on the dataset itself."""
+        return self.data
+
+    def check_finite(self, objective: Objective, theta: np.ndarray) -> None:
+        """Refuse constraints that are inf or NaN at the start, naming where."""
+        _check_finite(objective, self.data, theta)
+
+    def robust(self, objective: Objective, theta: np.ndarray, losses: RowLosses,
+               inner: Inner, progress: Progress, label: str) -> RobustOutput[np.ndarray]:
+        """IRLS rounds, the weights an ``N × n_g`` array."""
+        return solve_robust(objective, self.data, theta, losses, inner, progress, label)
+
+    def robust_meat(self, objective: Objective, theta: np.ndarray,
+                    robust: RobustOutput[np.ndarray], losses: RowLosses,
+                    rank: int) -> np.ndarray:
+        """The robust sandwich's meat from the final weights."""
+        return sandwich_meat(objective, self.data, theta, robust.weights, rank)
+
+    def propagation(self, objective: Objective) -> _Propagated:
+        """Each observation's ``C_i^-½``, an ``N × n_g × n_g`` array."""
+        return _Propagated(objective, self.data)
+
+    def serial(self, objective: Objective, out: SolverOutput
+               ) -> tuple[SerialCorrelation | None, np.ndarray | None]:
+        """On time-ordered rows: :func:`_serial`."""
+        if not time_ordered(objective.problem, self.data):
+            return None, None
+        return _serial(objective, self.data, out)
+
+    def outliers(self, objective: Objective, theta: np.ndarray,
+                 robust: RobustOutput[np.ndarray] | None, losses: RowLosses | None,
+                 solve_again: Callable[[Objective], SolverOutput]) -> Outliers | None:
+        """:func:`_outliers`, weighted by the robust solve's final weights."""
+        return _outliers(objective, self.data, theta, None if robust is None
+                         else robust.weights, losses, solve_again)
+
+
+@dataclass(frozen=True)
+class _Propagated:
+    """The propagated weights of ``objective`` on a dataset in memory (a
+    :class:`~symcal.calibrate.stage_run.Propagation`): each observation's ``C_i^-½``."""
+
+    objective: Objective
+    data: Dataset
+
+    def weights(self, theta: np.ndarray, before: np.ndarray | None
+                ) -> tuple[np.ndarray, int, float]:
+        """``C_i^-½`` at ``theta``, the observations where ``C_i`` is singular, the
+        largest relative change from ``before``."""
+        cov = row_covariances(self.objective.problem, self.objective.constraints, self.data,
+                              theta)
+        t, singular = inverse_sqrt_rows(cov)
+        if singular or before is None:
+            return t, singular, 0.0
+        change = float(np.max(np.linalg.norm(t - before, axis=(1, 2))
+                              / np.maximum(np.linalg.norm(before, axis=(1, 2)), 1e-300)))
+        return t, singular, change
+
+    def weighted(self, weights: np.ndarray) -> Objective:
+        """The objective with the rows' ``C_i^-½``."""
+        return self.objective.with_row_weights(weights)
+
+    def floor(self, theta: np.ndarray, weights: np.ndarray, there: bool) -> np.ndarray:
+        """The noise floor at ``theta``, from the covariances there."""
+        cov = row_covariances(self.objective.problem, self.objective.constraints, self.data,
+                              theta)
+        return np.sqrt(np.mean(np.diagonal(cov, axis1=1, axis2=2), axis=0))
 
 
 def _serial(objective: Objective, data: Dataset, out: SolverOutput

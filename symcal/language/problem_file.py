@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -276,35 +277,36 @@ def _parse_instance(
         if key not in bindings:
             raise SpecError(inputs_at, f"input '{key}' of model '{model.name}' is not bound "
                                        f"(add '{key}: <column or expression>')")
-    params_at = child_where(entry, where, "parameters")
-    params = expect_map(entry.get("parameters"), params_at)
-    overrides: dict[str, tuple[YMap, Where]] = {}
-    for key, val in params.items():
-        at = child_where(params, params_at, key)
-        if key not in model.parameters:
-            raise SpecError(at, _not_in(key, "a parameter", model.name, list(model.parameters)))
-        overrides[key] = (check_keys(val, at, optional=["value", "lower", "upper", "fixed",
-                                                         "scale"]), at)
-    noise_at = child_where(entry, where, "noise")
-    noises = expect_map(entry.get("noise"), noise_at)
-    noise: dict[str, NoiseSpec] = {}
-    for key, val in noises.items():
-        at = child_where(noises, noise_at, key)
-        if key not in model.inputs:
-            raise SpecError(at, _not_in(key, "an input", model.name, list(model.inputs)))
-        noise[key] = parse_noise(val, at, model.inputs[key].unit)
-    consts_at = child_where(entry, where, "constants")
-    consts = expect_map(entry.get("constants"), consts_at)
-    constants: dict[str, ExprSpec] = {}
-    for key, val in consts.items():
-        at = child_where(consts, consts_at, key)
-        if key not in model.constants:
-            raise SpecError(at, _not_in(key, "a constant", model.name, list(model.constants)))
-        constants[key] = parse_expr(val, at)
+    overrides: dict[str, tuple[YMap, Where]] = {
+        key: (check_keys(val, at, optional=["value", "lower", "upper", "fixed", "scale"]), at)
+        for key, val, at in _model_entries(entry, where, "parameters", model,
+                                           list(model.parameters), "a parameter")}
+    noise: dict[str, NoiseSpec] = {
+        key: parse_noise(val, at, model.inputs[key].unit)
+        for key, val, at in _model_entries(entry, where, "noise", model, list(model.inputs),
+                                           "an input")}
+    constants: dict[str, ExprSpec] = {
+        key: parse_expr(val, at)
+        for key, val, at in _model_entries(entry, where, "constants", model,
+                                           list(model.constants), "a constant")}
     candidates = (parse_candidates(entry["candidates"], child_where(entry, where, "candidates"))
                   if "candidates" in entry else None)
     return InstanceSpec(name, model, bindings, overrides, _doc(entry, where), where, noise,
                         constants, candidates)
+
+
+def _model_entries(entry: YMap, where: Where, part: str, model: ModelSpec,
+                   names: list[str], what: str) -> Iterator[tuple[str, Any, Where]]:
+    """The keys, values and places of an instance's map ``part`` (``parameters``,
+    ``noise``, ...), each key refused unless it is one of the model's ``names`` (``what``:
+    "a parameter", ...)."""
+    part_at = child_where(entry, where, part)
+    items = expect_map(entry.get(part), part_at)
+    for key, val in items.items():
+        at = child_where(items, part_at, key)
+        if key not in names:
+            raise SpecError(at, _not_in(key, what, model.name, names))
+        yield key, val, at
 
 
 def _not_in(key: str, what: str, model: str, names: list[str]) -> str:

@@ -34,13 +34,19 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import numpy as np
 
 from symcal.base.linalg import rank_tolerance, sqrt_psd
 from symcal.data.dataset import Dataset
 from symcal.solvers.base import SolverOutput
-from symcal.solvers.objective import Objective
+from symcal.solvers.objective import Objective, Source
+
+#: Where the weights of a robust solve live (an array in memory, a weigher in passes).
+W = TypeVar("W")
+#: What the robust cost's evaluation hands to the weighing (the weights, or nothing).
+S = TypeVar("S")
 
 #: Converged when a Gauss–Newton step of the reweighted model would lower the cost by
 #: less than this fraction of itself (the trust-region path's test).
@@ -130,16 +136,17 @@ def row_losses(objective: Objective) -> RowLosses | None:
 
 
 @dataclass(frozen=True, eq=False)
-class RobustOutput:
+class RobustOutput(Generic[W]):
     """A robust solve: the solver output at the final iterate and its final weights.
 
     ``output.r_factor`` and ``output.rss`` are those of the reweighted residuals
-    (``JᵀWJ = RᵀR``, ``Σ w g²``) at ``output.theta``; ``weights`` (``N × n_g``) are the
-    IRLS weights there; ``cost`` the robust cost; ``rounds`` the reweighting rounds.
+    (``JᵀWJ = RᵀR``, ``Σ w g²``) at ``output.theta``; ``weights`` are the IRLS weights
+    there (in memory an ``N × n_g`` array, in passes the weigher that computes them);
+    ``cost`` the robust cost; ``rounds`` the reweighting rounds.
     """
 
     output: SolverOutput
-    weights: np.ndarray
+    weights: W
     cost: float
     rounds: int
 
@@ -165,7 +172,7 @@ def solve_robust(
     progress: Callable[[str], None] | None = None,
     label: str = "robust",
     max_rounds: int = MAX_ROUNDS,
-) -> RobustOutput:
+) -> RobustOutput[np.ndarray]:
     """Minimise the robust cost by iteratively reweighted least squares from ``theta0``.
 
     Parameters
@@ -194,6 +201,39 @@ def solve_robust(
         ``output.success`` only when the first-order test holds; a failed round or the
         round limit keeps the iterate of lowest robust cost, with the reason.
     """
+    def cost(theta: np.ndarray) -> tuple[float, bool, np.ndarray]:
+        g = objective.residuals(dataset, theta)
+        w = losses.weights(g)
+        return losses.cost(g), bool(np.all(np.isfinite(w))), w
+
+    def weigh(theta: np.ndarray, w: np.ndarray) -> tuple[Objective, np.ndarray]:
+        return objective.with_row_weights(np.sqrt(w)), w
+
+    return irls(objective, dataset, theta0, losses, cost, weigh, inner, progress, label,
+                max_rounds)
+
+
+def irls(
+    objective: Objective,
+    data: Source,
+    theta0: np.ndarray,
+    losses: RowLosses,
+    cost: Callable[[np.ndarray], tuple[float, bool, S]],
+    weigh: Callable[[np.ndarray, S], tuple[Objective, W]],
+    inner: Callable[[Objective, np.ndarray], SolverOutput],
+    progress: Callable[[str], None] | None,
+    label: str,
+    max_rounds: int,
+) -> RobustOutput[W]:
+    """The reweighting rounds of :func:`solve_robust`, wherever the weights live.
+
+    ``cost(theta)`` gives the robust cost at ``theta``, whether every IRLS weight there is
+    finite, and what ``weigh`` needs of that evaluation; ``weigh(theta, that)`` gives
+    ``objective`` weighted by the IRLS weights frozen at ``theta`` (their square roots as
+    per-row factors) and those weights (an array held in memory, or the weigher that
+    computes them in the passes).  The other parameters as for :func:`solve_robust`,
+    ``data`` in memory or kept as shards.
+    """
     start = time.perf_counter()
     scales = objective.scales
     theta = np.array(theta0, dtype=float)
@@ -203,19 +243,17 @@ def solve_robust(
     ok, status, words = False, "iteration_limit", ""
     moved = np.inf
     while True:
-        g = objective.residuals(dataset, theta)
-        w = losses.weights(g)
-        cost = losses.cost(g)
-        if not np.all(np.isfinite(w)) or not np.isfinite(cost):
+        value, finite, that = cost(theta)
+        if not finite or not np.isfinite(value):
             status, words = "invalid_number", "a residual is NaN or inf"
             break
-        if best is None or cost < best[0]:
-            best = (cost, theta.copy())
-        weighted = objective.with_row_weights(np.sqrt(w))
-        r, c, tail, rows = weighted.accumulate_r(dataset, theta)
+        if best is None or value < best[0]:
+            best = (value, theta.copy())
+        reweighted, _ = weigh(theta, that)
+        r, c, tail, rows = reweighted.accumulate_r(data, theta)
         decrement = _decrement(r, c, tail, rows, scales)
         if progress is not None:
-            progress(f"  {label}: reweighting round {rounds:3d}  robust cost {cost:.6e}  "
+            progress(f"  {label}: reweighting round {rounds:3d}  robust cost {value:.6e}  "
                      f"decrement {decrement:.2g}")
         if decrement < DECREMENT:
             ok, status = True, "converged"
@@ -236,7 +274,7 @@ def solve_robust(
             status, words = "iteration_limit", (f"stopped: {max_rounds} rounds reached "
                                                 f"(decrement {decrement:.2g})")
             break
-        out = inner(weighted, theta)
+        out = inner(reweighted, theta)
         rounds += 1
         iterations += out.iterations
         method, inner_words = out.method, out.message
@@ -246,19 +284,17 @@ def solve_robust(
         moved = float(np.max(np.abs(out.theta - theta)[objective.index] / scales,
                              initial=0.0))
         theta = out.theta
-    if not ok and best is not None and best[0] < losses.cost(
-            objective.residuals(dataset, theta)):
+    if not ok and best is not None and best[0] < cost(theta)[0]:
         theta = best[1]
         words += "; the estimate is the iterate of lowest robust cost"
-    g = objective.residuals(dataset, theta)
-    w = losses.weights(g)
-    weighted = objective.with_row_weights(np.sqrt(w))
-    r, c, tail, rows = weighted.accumulate_r(dataset, theta)
+    value, _, that = cost(theta)
+    reweighted, w = weigh(theta, that)
+    r, c, tail, rows = reweighted.accumulate_r(data, theta)
     message = (f"{inner_words}; robust loss ({'; '.join(losses.texts)}) by iteratively "
                f"reweighted least squares, {rounds} rounds: {words}")
     output = SolverOutput(theta, objective.free.copy(), method, ok, status, message, r, rows,
                           float(c @ c + tail), iterations, time.perf_counter() - start)
-    return RobustOutput(output, w, losses.cost(g), rounds)
+    return RobustOutput(output, w, value, rounds)
 
 
 def sandwich_meat(objective: Objective, dataset: Dataset, theta: np.ndarray,
@@ -285,7 +321,14 @@ def sandwich_meat(objective: Objective, dataset: Dataset, theta: np.ndarray,
     psi = weights * objective.residuals(dataset, theta)
     rows = psi.size
     cov = (psi.T @ psi) / max(dataset.n, 1) * rows / max(rows - rank, 1)
+    return meat_of(objective, dataset, theta, cov)
+
+
+def meat_of(objective: Objective, data: Source, theta: np.ndarray,
+            cov: np.ndarray) -> np.ndarray:
+    """``M`` with ``MᵀM = Σ_i J_iᵀ S_ψ J_i`` from ``S_ψ`` (``cov``, ``n_g × n_g``), ``J``
+    the Jacobian of ``objective`` at ``theta`` on ``data``."""
     half = sqrt_psd(cov).T
     if half.shape[0] < cov.shape[0]:     # a vanishing direction: pad with zero rows
         half = np.vstack([half, np.zeros((cov.shape[0] - half.shape[0], cov.shape[0]))])
-    return objective.accumulate_r(dataset, theta, half)[0]
+    return objective.accumulate_r(data, theta, half)[0]
