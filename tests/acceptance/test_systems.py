@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from acceptance import harness
 from conftest import ROOT
 
 import symcal
+from acceptance import harness
 from symcal.data.dataset import make_dataset
 from symcal.simulation import load_scenario, simulate_run, truth
 
@@ -76,7 +76,7 @@ def test_scenario_simulates_its_runs(scenario: str, runs: tuple[str, ...]) -> No
             assert np.all(np.isfinite(column)), (scenario, run, name)
 
 
-def _thermistor_T(r: np.ndarray, r0: float, t0: float, beta: float, c3: float,
+def _thermistor_temperature(r: np.ndarray, r0: float, t0: float, beta: float, c3: float,
                   lead: float) -> np.ndarray:
     x = np.log((r - lead) / r0)
     return 1.0 / (1.0 / t0 + x / beta + c3 * x**3)
@@ -94,7 +94,7 @@ def test_thermistor_readings_follow_their_law(variant: str) -> None:
     bath = table["T_bath"]
     for part, r0 in (("th1", 1.0e4), ("th2", 5.0e3)):
         column = table["R1" if part == "th1" else "R2"]
-        got = _thermistor_T(column, r0, true[f"{part}.T0"], true[f"{part}.beta"],
+        got = _thermistor_temperature(column, r0, true[f"{part}.T0"], true[f"{part}.beta"],
                             true[f"{part}.c3"], true[f"{part}.r_lead"])
         assert np.max(np.abs(got - bath)) < 1e-6, part     # noiseless: exact to rounding
     assert bath.min() == pytest.approx(283.15) and bath.max() == pytest.approx(353.15, abs=0.01)
