@@ -207,11 +207,17 @@ def call(args: Sequence[str], cwd: Path, timeout: float, workspace: Path) -> Cal
 # --------------------------------------------------------------------------- truth
 
 
+#: symcal's own functions used in this process (units, problem files) one thread at a time
+#: (its unit registry is created on first use).
+_SYMCAL_LOCK = threading.Lock()
+
+
 def unit_size(unit: str | None) -> float:
     """The size of ``unit`` in symcal's internal units (1 for a plain number)."""
     from symcal.base.units import size
 
-    return float(size(unit or None))
+    with _SYMCAL_LOCK:
+        return float(size(unit or None))
 
 
 def truth_value(truth: dict[str, Any], ref: str | dict[str, Any]) -> tuple[float, str] | None:
@@ -420,15 +426,12 @@ def _workspace(case: Case, seed: int, settings: Settings) -> Path:
     return ws
 
 
-_LOAD_LOCK = threading.Lock()
-
-
 def parameter_names(problem: str | Path) -> list[str]:
     """The parameter names of a problem file (bookkeeping: which round added what; one
     build at a time in this process)."""
     from symcal import load_problem
 
-    with _LOAD_LOCK:
+    with _SYMCAL_LOCK:
         return list(load_problem(problem).parameter_names)
 
 
@@ -593,7 +596,11 @@ def run(cases: Sequence[Case], settings: Settings,
         nonlocal done
         case, seed, full, improve = task
         start = time.perf_counter()
-        rec = run_seed(case, seed, settings, full, improve)
+        try:
+            rec = run_seed(case, seed, settings, full, improve)
+        except Exception as exc:  # noqa: BLE001 - one seed's harness error is its record
+            rec = {"case": case.name, "seed": seed, "full": full, "calls": [],
+                   "error": f"harness: {type(exc).__name__}: {exc}"}
         rec["seconds"] = round(time.perf_counter() - start, 1)
         done += 1
         if progress:
@@ -799,6 +806,9 @@ def failures(records: list[dict[str, Any]]) -> list[str]:
     document is an ending, not a failure), grouped by command and message."""
     groups: dict[tuple[str, str, str], list[tuple[str, str]]] = {}
     for rec in records:
+        if rec.get("error", "").startswith("harness"):
+            groups.setdefault(("harness", "-", rec["error"][:400]), []).append(
+                (f"{rec['case']}#{rec['seed']}", "(the harness itself)"))
         for c in rec["calls"]:
             verb = c["command"].split()[1]
             if not c.get("error") and (c["rc"] == 0 or (verb == "improve" and c["rc"] == 1)):
