@@ -356,7 +356,7 @@ def split_suggestion(text: str, problem: Path) -> list[tuple[Path, str]]:
 
 def _chain(problem: Path) -> list[tuple[Path, dict[str, Any]]]:
     """A problem file and the files it extends, most derived first."""
-    out = []
+    out: list[tuple[Path, dict[str, Any]]] = []
     path: Path | None = problem
     while path is not None and len(out) < 32:
         doc = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
