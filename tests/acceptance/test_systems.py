@@ -14,6 +14,7 @@ the tables) do what they say.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -203,10 +204,12 @@ def test_truth_in_other_units() -> None:
     symcal writes oddly (uT/s as g/s^2/A/s), are compared in one unit."""
     doc = {"parameters": {"acc.d_z": 0.002, "mag.d_z": 0.004},
            "units": {"acc.d_z": "m/s**3", "mag.d_z": "uT/s"}}
+    acc, mag = harness.truth_value(doc, "acc.d_z"), harness.truth_value(doc, "mag.d_z")
+    assert acc is not None and mag is not None
     p = {"value": 2.03, "se": 0.01, "unit": "mm/s^2/s", "fixed": False}
-    assert harness.zscore(p, harness.truth_value(doc, "acc.d_z")) == pytest.approx(3.0)
+    assert harness.zscore(p, acc) == pytest.approx(3.0)
     q = {"value": 3.9e-6, "se": 1e-7, "unit": "g/s^2/A/s", "fixed": False}
-    assert harness.zscore(q, harness.truth_value(doc, "mag.d_z")) == pytest.approx(-1.0)
+    assert harness.zscore(q, mag) == pytest.approx(-1.0)
     assert harness.zscore({**p, "se": None}, (2.0, "mm/s**3")) is None
     assert harness.truth_value(doc, {"value": -1e-4, "unit": "rad/s**2"}) == (-1e-4,
                                                                             "rad/s**2")
@@ -214,7 +217,7 @@ def test_truth_in_other_units() -> None:
 
 def test_tables_count_what_the_records_say() -> None:
     case = CASES["magnetometer_drift"]
-    rec = {"case": case.name, "seed": 1, "full": True,
+    rec: dict[str, Any] = {"case": case.name, "seed": 1, "full": True,
            "calls": [{"command": "symcal improve p.yaml --json", "rc": 1, "error": True,
                       "message": "internal error (boom)"}],
            "solve": {"rc": 0, "truth": [{"name": "mag.b_z", "z": -16.9}]},
