@@ -54,6 +54,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--timeout", type=float, default=1800.0,
                    help="seconds one symcal command may take (default 1800)")
     p.add_argument("--list", action="store_true", help="list the cases and exit")
+    p.add_argument("--from-json", type=Path, metavar="FILE",
+                   help="tabulate a saved run (FILE.json, or the FILE.jsonl a run appends to "
+                        "while it runs) instead of running")
     return p.parse_args(argv)
 
 
@@ -85,14 +88,26 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:
         print("acceptance: error: --clean-seeds-for takes GLOB=N", file=sys.stderr)
         return 2
+    if args.from_json:
+        return _tabulate(args, cases)
     settings = harness.Settings(seeds=args.seeds, clean_seeds=args.clean_seeds,
                                 clean_seeds_for=per,
                                 clean_improve_seeds=args.clean_improve_seeds,
                                 seed0=args.seed0, jobs=args.jobs, work=args.work,
                                 keep=args.keep, timeout=args.timeout)
     start = time.perf_counter()
+    sink = None
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        stream = args.out.with_suffix(".jsonl")
+        stream.write_text("", encoding="utf-8")
+
+        def sink(rec: dict) -> None:
+            with stream.open("a", encoding="utf-8") as f:
+                f.write(json.dumps(rec, default=str) + "\n")
+
     records = harness.run(cases, settings, progress=lambda s: print(s, file=sys.stderr,
-                                                                    flush=True))
+                                                                    flush=True), sink=sink)
     minutes = (time.perf_counter() - start) / 60
     header = "\n".join([
         "# symcal acceptance (issue 23)", "",
@@ -105,9 +120,39 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text, encoding="utf-8")
-        args.out.with_suffix(".json").write_text(json.dumps(records, indent=1, default=str),
+        saved = {"settings": {"seeds": settings.seeds, "seed0": settings.seed0,
+                              "clean_seeds": settings.clean_seeds,
+                              "clean_improve_seeds": settings.clean_improve_seeds,
+                              "commit": _commit()},
+                 "records": records}
+        args.out.with_suffix(".json").write_text(json.dumps(saved, indent=1, default=str),
                                                  encoding="utf-8")
         print(f"wrote {args.out} and {args.out.with_suffix('.json')}", file=sys.stderr)
+    else:
+        print(text)
+    return 0
+
+
+def _tabulate(args: argparse.Namespace, cases: list[harness.Case]) -> int:
+    """The tables of a saved run (only its cases that are selected)."""
+    try:
+        given, records = harness.load_records(args.from_json)
+    except (OSError, ValueError, KeyError) as exc:
+        print(f"acceptance: error: {args.from_json}: {exc}", file=sys.stderr)
+        return 2
+    names = {c.name for c in cases}
+    records = [r for r in records if r["case"] in names]
+    present = {r["case"] for r in records}
+    chosen = [c for c in cases if c.name in present]
+    settings = harness.settings_of(records, given)
+    header = "\n".join(["# symcal acceptance (issue 23)", "",
+                        f"Tabulated from {args.from_json} (run on "
+                        f"{given.get('commit', 'an unrecorded commit')}); {len(chosen)} "
+                        f"cases, {len(records)} seed runs.", ""])
+    text = harness.markdown(chosen, records, settings, header)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text, encoding="utf-8")
     else:
         print(text)
     return 0

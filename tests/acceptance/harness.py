@@ -457,6 +457,16 @@ def term_checks(case: Case, improve: dict[str, Any], final: dict[str, Any],
     return out
 
 
+def term_checks_of(case: Case, rec: dict[str, Any]) -> list[dict[str, Any]]:
+    """The term checks of a recorded seed, against ``case.terms`` as they are now (the
+    record's own where it lacks what they read)."""
+    final = rec.get("final", {})
+    if not isinstance(final.get("added_params"), dict) or "truth" not in rec:
+        return list(final.get("terms", []))
+    return term_checks(case, rec.get("improve", {}), {"params": final["added_params"]},
+                       rec["truth"], final.get("new_by_round", []))
+
+
 def run_seed(case: Case, seed: int, settings: Settings, full: bool, improve: bool
              ) -> dict[str, Any]:
     """One seed of one case: the commands of the module docstring (``full``: solve and the
@@ -509,10 +519,14 @@ def run_seed(case: Case, seed: int, settings: Settings, full: bool, improve: boo
                 rec["final"]["truth"] = check_against_truth(final.get("params", {}), truth,
                                                             physical)
                 new_by_round = _new_parameters(isum, problem, ws)
-                rec["final"]["added_params"] = sorted(
-                    n for n in final.get("params", {}) if n not in set(physical)
-                    and not final["params"][n].get("fixed")
-                    and n not in original.get("params", {}))
+                added = sorted(n for n in final.get("params", {}) if n not in set(physical)
+                               and n not in original.get("params", {}))
+                # what the term checks read, kept so that a saved run can be checked again
+                # against edited cases.yaml terms (term_checks_of)
+                rec["final"]["added_params"] = {n: final["params"][n] for n in added}
+                rec["final"]["new_by_round"] = new_by_round
+                rec["truth"] = {"parameters": truth.get("parameters", {}),
+                                "units": truth.get("units", {})}
                 rec["final"]["terms"] = term_checks(case, isum, final, truth, new_by_round)
     finally:
         if not settings.keep:
@@ -586,11 +600,14 @@ def plan(cases: Sequence[Case], settings: Settings) -> list[tuple[Case, int, boo
 
 
 def run(cases: Sequence[Case], settings: Settings,
-        progress: Callable[[str], None] | None = None) -> list[dict[str, Any]]:
-    """Every task of :func:`plan`, ``settings.jobs`` at a time; records in task order."""
+        progress: Callable[[str], None] | None = None,
+        sink: Callable[[dict[str, Any]], None] | None = None) -> list[dict[str, Any]]:
+    """Every task of :func:`plan`, ``settings.jobs`` at a time; records in task order
+    (``sink`` receives each record as it completes)."""
     tasks = plan(cases, settings)
     settings.work.mkdir(parents=True, exist_ok=True)
     done = 0
+    lock = threading.Lock()
 
     def one(task: tuple[Case, int, bool, bool]) -> dict[str, Any]:
         nonlocal done
@@ -602,14 +619,38 @@ def run(cases: Sequence[Case], settings: Settings,
             rec = {"case": case.name, "seed": seed, "full": full, "calls": [],
                    "error": f"harness: {type(exc).__name__}: {exc}"}
         rec["seconds"] = round(time.perf_counter() - start, 1)
-        done += 1
-        if progress:
-            progress(f"[{done}/{len(tasks)}] {case.name} seed {seed}: {brief(rec)} "
-                     f"({rec['seconds']:.0f} s)")
+        with lock:
+            done += 1
+            if sink:
+                sink(rec)
+            if progress:
+                progress(f"[{done}/{len(tasks)}] {case.name} seed {seed}: {brief(rec)} "
+                         f"({rec['seconds']:.0f} s)")
         return rec
 
     with ThreadPoolExecutor(max_workers=max(1, settings.jobs)) as pool:
         return list(pool.map(one, tasks))
+
+
+def load_records(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The settings and records of a run written by ``benchmarks/acceptance.py``: its
+    ``FILE.json`` (``{"settings", "records"}``, or a bare list of records) or the
+    ``FILE.jsonl`` it appends to while running (one record a line)."""
+    text = path.read_text(encoding="utf-8")
+    if path.suffix == ".jsonl":
+        return {}, [json.loads(line) for line in text.splitlines() if line.strip()]
+    doc = json.loads(text)
+    if isinstance(doc, list):
+        return {}, doc
+    return doc.get("settings", {}), doc["records"]
+
+
+def settings_of(records: list[dict[str, Any]], given: dict[str, Any]) -> Settings:
+    """The settings a table needs (seeds, first seed), from a saved run."""
+    full = Counter(r["case"] for r in records if r.get("full"))
+    seeds = [r["seed"] for r in records]
+    return Settings(seeds=int(given.get("seeds", max(full.values(), default=0))),
+                    seed0=int(given.get("seed0", min(seeds, default=0))))
 
 
 def brief(rec: dict[str, Any]) -> str:
@@ -643,7 +684,7 @@ def meets(case: Case, rec: dict[str, Any]) -> bool | None:
             return False
         if rounds > MAX_ROUNDS or physics_ok(final.get("truth", [])) is False:
             return False
-        return all(abs(t["z"]) <= Z_LIMIT for t in final.get("terms", [])
+        return all(abs(t["z"]) <= Z_LIMIT for t in term_checks_of(case, rec)
                    if t.get("z") is not None)
     if case.expect == "structure":
         return rc == 1 and quiet is False and imp.get("at_floor") is not True
@@ -696,9 +737,9 @@ def _floors(records: list[dict[str, Any]], key: str) -> str:
         if not values:
             parts.append(f"{ds} unknown")
             continue
-        band = tests[0].get("band") or [None, None]
+        band = tests[0].get("band") or [math.nan, math.nan]
         at = sum(t.get("verdict") == "at" for t in tests)
-        parts.append(f"{ds} {_g(statistics.median(values))} [{_g(band[0], 2)}–{_g(band[1], 2)}]"
+        parts.append(f"{ds} {_g(statistics.median(values))} [{band[0]:.2f}–{band[1]:.2f}]"
                      f" at {at}/{len(tests)}")
     return "; ".join(parts) or "–"
 
@@ -721,7 +762,7 @@ def _physics(records: list[dict[str, Any]], key: str) -> str:
 def _terms(case: Case, records: list[dict[str, Any]]) -> str:
     if not case.terms:
         return "n/a"
-    rows = [t for r in records for t in r.get("final", {}).get("terms", [])]
+    rows = [t for r in records for t in term_checks_of(case, r)]
     if not rows:
         return "not added"
     ok = sum(1 for t in rows if t.get("z") is not None and abs(t["z"]) <= Z_LIMIT)
