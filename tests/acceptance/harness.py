@@ -515,7 +515,12 @@ def run_seed(case: Case, seed: int, settings: Settings, full: bool, improve: boo
                 final = solve_summary(fin.json())
                 rec["final"] = {"rc": fin.rc, **{k: v for k, v in final.items()
                                                  if k != "params"}}
-                physical = rec.get("physical", [])
+                # the original problem's free parameters, and those it fixed that the
+                # final problem frees (a fixed parameter found off)
+                freed = [n for n, p in original.get("params", {}).items() if p.get("fixed")
+                         and not final.get("params", {}).get(n, {}).get("fixed", True)]
+                physical = [*rec.get("physical", []), *freed]
+                rec["final"]["freed"] = freed
                 rec["final"]["truth"] = check_against_truth(final.get("params", {}), truth,
                                                             physical)
                 new_by_round = _new_parameters(isum, problem, ws)
