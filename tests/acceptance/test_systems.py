@@ -231,7 +231,8 @@ def test_tables_count_what_the_records_say() -> None:
                "terms": [{"name": "mag.drift_t", "z": -0.7}]}}
     assert harness.meets(case, rec) is True
     row = harness.hidden_row(case, [rec])
-    assert "| 0/1 (worst mag.b_z -16.9σ) | 1/1 (worst mag.m_zx +1.2σ) |" in row
+    assert ("| 0/1 (worst mag.b_z -16.9σ; 1 of 1 beyond) | 1/1 (worst mag.m_zx +1.2σ; 0 of 1"
+            " beyond) |") in row
     assert "1/1 within 3σ (mag.drift_t -0.7σ)" in row and row.endswith("**1/1** |")
     assert harness.meets(case, {**rec, "final": {**rec["final"], "terms": [
         {"name": "mag.drift_t", "z": 4.0}]}}) is False
