@@ -865,15 +865,19 @@ def failures(records: list[dict[str, Any]]) -> list[str]:
             verb = c["command"].split()[1]
             if not c.get("error") and (c["rc"] == 0 or (verb == "improve" and c["rc"] == 1)):
                 continue
-            key = (verb, str(c["rc"]), c["message"][:400])
+            # one group per message up to its numbers and file names
+            shape = re.sub(r"[-+]?\d[\d.e+-]*", "#", c["message"][:400])
+            shape = re.sub(r"[\w./]+\.yaml", "F.yaml", shape)
+            key = (verb, str(c["rc"]), shape)
             where = f"{rec['case']}#{rec['seed']}"
-            groups.setdefault(key, []).append((where, c["command"]))
+            groups.setdefault(key, []).append((where, c["command"], c["message"][:400]))
     out = []
-    for (verb, rc, message), hits in sorted(groups.items()):
-        cases = Counter(w.split("#")[0] for w, _ in hits)
+    for (verb, rc, _), hits in sorted(groups.items()):
+        cases = Counter(w.split("#")[0] for w, _, _ in hits)
         listing = ", ".join(f"{c} ×{k}" for c, k in cases.items())
+        where, command, message = hits[0]
         out.append(f"- `{verb}` exit {rc} ({len(hits)} runs: {listing}): {_esc(message)}\n"
-                   f"  e.g. `{hits[0][1]}` ({hits[0][0]})")
+                   f"  e.g. `{command}` ({where})")
     return out
 
 
