@@ -161,6 +161,9 @@ class FloorTest:
         The relative standard deviation of ``chi2 / dof`` (to combine tests).
     chi2_before
         The same statistic with the initial parameters (same weights), when known.
+    rows
+        For a floor estimated by successive differences whose test carries the
+        estimate's share (:func:`shared_ratio_band`): the rows it was estimated on.
     """
 
     floor: float | None
@@ -170,6 +173,7 @@ class FloorTest:
     band: tuple[float, float] | None = None
     sd: float | None = None
     chi2_before: float | None = None
+    rows: int | None = None
 
     @property
     def worse(self) -> bool:
@@ -205,7 +209,7 @@ class FloorTest:
         return {"floor": None if self.floor is None else self.floor / scale,
                 "method": self.method, "chi2": self.chi2, "dof": self.dof,
                 "band": None if self.band is None else list(self.band), "sd": self.sd,
-                "chi2_before": self.chi2_before, "worse": self.worse}
+                "chi2_before": self.chi2_before, "worse": self.worse, "rows": self.rows}
 
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any], scale: float = 1.0) -> FloorTest:
@@ -215,7 +219,7 @@ class FloorTest:
         return cls(None if floor is None else float(floor) * scale, str(doc["method"]),
                    doc.get("chi2"), doc.get("dof"),
                    None if band is None else (float(band[0]), float(band[1])), doc.get("sd"),
-                   doc.get("chi2_before"))
+                   doc.get("chi2_before"), doc.get("rows"))
 
 
 def verdict_of(value: float | None, band: tuple[float, float] | None) -> str | None:
@@ -337,6 +341,81 @@ def ratio_sd(n: int, centred: bool = False) -> float:
     return c * math.sqrt(var) / (m1 * m1)
 
 
+#: Equal-probability nodes of the estimate's share in :func:`shared_ratio_band`.
+SHARE_NODES = 64
+
+
+def shared_ratio_band(n: int, centred: bool, dof: float, sd: float,
+                      level: float = LEVEL) -> tuple[float, float]:
+    """The central ``level`` interval of ``χ²/dof`` of a residual whose floor was
+    estimated by successive differences on its ``n`` rows, when the residual also carries
+    the estimate's share (:func:`_estimated_test`).
+
+    χ² (the spread over the estimated floor squared) is then the white noise's part,
+    ``k X`` (k = n, or n - 1 ``centred``; X = ``c / η`` of :func:`ratio_band`, η/4 a
+    beta), plus the share's ``Y``, of mean ``dof - k`` and variance ``(sd·dof)² -
+    (k·sd_X)²`` (``sd`` the statistic's relative standard deviation, ``sd_X``
+    :func:`ratio_sd`).  On held-out rows ``Y = Q + 2 eᵀJδθ``: ``Q = δθᵀGδθ``, a quadratic
+    form in the estimate's error (drawn from the fitted rows' noise) concentrated in a
+    few directions, and a cross term with the rows' own noise, of variance ``4 E Q =
+    4 (dof - k)``; on the fitted rows (a negative mean) no cross term.  Q is taken as a
+    scaled χ² of its mean and variance (Satterthwaite: ``a χ²_f``, ``a f = mean``,
+    ``2 a² f = var``; ``a < 0`` on the fitted rows): its long right tail and its mass
+    near zero are what a normal band misses.  Given Q, the cross term is normal of
+    variance 4Q and widens the noise's part: ``k + λ (k X - k)``, ``λ² = 1 + 4 Q /
+    (k sd_X)²``.  The distribution of the sum is the convolution ``P(χ² ≤ t) =
+    E_Q[P(k X ≤ k + (t - Q - k)/λ)]``, the mean over :data:`SHARE_NODES`
+    equal-probability nodes of Q; its quantiles by bisection.  Exact when either part
+    is alone."""
+    k = float(n - 1 if centred else n)
+    lo, hi = ratio_band(n, centred, level)
+    mean_y = dof - k
+    var_x = (k * ratio_sd(n, centred)) ** 2
+    var_y = (sd * dof) ** 2 - var_x
+    if var_y <= 1e-12 * k * k or abs(mean_y) <= 1e-9 * k:
+        return max(k * lo + mean_y, 0.0) / dof, (k * hi + mean_y) / dof
+    cross = min(4.0 * max(mean_y, 0.0), var_y) / max(mean_y, 1e-300)   # per unit of Q
+    var_q = var_y - cross * max(mean_y, 0.0)
+    c, m1, var = _ratio_moments(n, centred)
+    mu, v = m1 / 4.0, var / 16.0
+    kk = mu * (1.0 - mu) / v - 1.0
+    a, b = mu * kk, (1.0 - mu) * kk
+    if var_q <= 1e-12 * k * k:
+        nodes = [mean_y]
+    else:
+        f, scale = 2.0 * mean_y**2 / var_q, var_q / (2.0 * mean_y)
+        nodes = [scale * chi2_quantile((j + 0.5) / SHARE_NODES, f)
+                 for j in range(SHARE_NODES)]
+
+    def cdf(t: float) -> float:
+        total = 0.0
+        for q in nodes:
+            noise = k + (t - q - k) / math.sqrt(1.0 + cross * max(q, 0.0) / var_x)
+            if noise > 0:
+                total += 1.0 - beta_cdf(c * k / (4.0 * noise), a, b)
+        return total / len(nodes)
+
+    def quantile(p: float) -> float:
+        width = 10.0 * sd * dof
+        low, high = dof - width, dof + width
+        while cdf(low) > p:
+            low -= width
+        while cdf(high) < p:
+            high += width
+        for _ in range(60):
+            mid = 0.5 * (low + high)
+            if cdf(mid) < p:
+                low = mid
+            else:
+                high = mid
+            if high - low <= 1e-7 * dof:
+                break
+        return 0.5 * (low + high)
+
+    tail = (1.0 - level) / 2.0
+    return max(quantile(tail), 0.0) / dof, quantile(1.0 - tail) / dof
+
+
 @dataclass(frozen=True)
 class DatasetTest:
     """The global test of the model on one dataset: its constraints' χ² against the
@@ -361,6 +440,7 @@ class DatasetTest:
     band: tuple[float, float] | None = None
     distribution: str = "chi2"
     sd: float | None = None
+    rows: int | None = None
 
     def band_at(self, level: float) -> tuple[float, float] | None:
         """The central ``level`` interval of ``chi2 / dof`` at the floor (None when
@@ -371,6 +451,8 @@ class DatasetTest:
             return self.band
         if self.distribution == "chi2":
             return chi2_band(self.dof if self.sd is None else 2.0 / self.sd**2, level)
+        if self.distribution == "ratio" and self.rows is not None and self.sd is not None:
+            return shared_ratio_band(self.rows, False, self.dof, self.sd, level)
         if self.distribution == "ratio":
             return ratio_band(int(round(self.dof)), False, level)
         if self.distribution == "normal" and self.sd is not None:
@@ -401,7 +483,8 @@ class DatasetTest:
                 "method": self.method, "chi2": self.chi2, "dof": self.dof,
                 "chi2_dof": self.chi2_dof,
                 "band": None if self.band is None else list(self.band),
-                "verdict": self.verdict, "distribution": self.distribution, "sd": self.sd}
+                "verdict": self.verdict, "distribution": self.distribution, "sd": self.sd,
+                "rows": self.rows}
 
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any]) -> DatasetTest:
@@ -413,7 +496,7 @@ class DatasetTest:
                    # a document from before distributions were stored: a propagated
                    # test's is χ²; a combined one's cannot be known
                    str(doc.get("distribution", "chi2" if doc["method"] == PROPAGATED
-                               else "")), doc.get("sd"))
+                               else "")), doc.get("sd"), doc.get("rows"))
 
 
 def family_level(count: int, level: float = LEVEL) -> float:
@@ -644,6 +727,49 @@ def _weights(fit: Fit, c: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     return np.broadcast_to(scale @ scale, (m, n, n))
 
 
+def _assume(c: np.ndarray, variances: np.ndarray | None) -> np.ndarray:
+    """Per row, the covariance ``c`` (m × n × n) with each entry k whose variance
+    ``variances[k]`` is given (not NaN) taken as independent of the others, of that
+    variance: its floor estimated from the data, where no noise is declared."""
+    if variances is None or not np.any(given := ~np.isnan(variances)):
+        return c
+    c = c.copy()
+    for k in np.flatnonzero(given):
+        c[:, k, :] = 0.0
+        c[:, :, k] = 0.0
+        c[:, k, k] = variances[k]
+    return c
+
+
+def difference_variances(problem: Problem, ds: Dataset, theta: np.ndarray,
+                         names: tuple[str, ...], exprs: list[ca.SX], declared: list[bool]
+                         ) -> np.ndarray:
+    """Each entry's floor squared estimated by successive differences on the rows of
+    ``ds`` at ``theta`` (half the mean square of its successive differences), NaN where
+    its noise is declared or the rows are not time-ordered: the variances the estimate's
+    share is taken with where no noise is declared (one pass over the residuals)."""
+    out = np.full(len(names), np.nan)
+    if all(declared) or not time_ordered(problem, ds):
+        return out
+    prop = _propagation(problem, ("entries", *names), exprs,
+                        np.zeros(len(problem.parameters), dtype=bool))
+    u = ds.matrix(prop.columns)
+    diff2 = np.zeros(len(names))
+    last: np.ndarray | None = None
+    for part in chunks(ds.n):
+        r = prop.residuals(u, theta, part)
+        if not len(r):
+            continue
+        if last is not None:
+            diff2 += (r[0] - last) ** 2
+        diff2 += np.sum(np.diff(r, axis=0) ** 2, axis=0)
+        last = r[-1]
+    for k, known in enumerate(declared):
+        if not known and diff2[k] > 0:
+            out[k] = diff2[k] / (2.0 * (ds.n - 1))
+    return out
+
+
 @dataclass(frozen=True)
 class _Estimate:
     """The noise's share in the estimate: ``A⁺`` and ``Cov`` (free parameters)."""
@@ -652,13 +778,20 @@ class _Estimate:
     cov: np.ndarray
 
 
-def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray
-                    ) -> _Estimate | None:
+def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray,
+                    assumed: Mapping[str, float] | None = None) -> _Estimate | None:
     """A⁺ and the covariance of the estimate from the calibration data's noise, or None
-    where a fitted constraint reads a column of undeclared noise."""
+    where a fitted constraint reads a column of undeclared noise and ``assumed`` has no
+    variance for it (its floor estimated on ``ds``: :func:`difference_variances`)."""
     quantities = [problem.constraint(n) for n in fit.constraints]
-    if any(problem.undeclared(q.sx) for q in quantities):
+    assumed = assumed or {}
+    undeclared = [k for k, (n, q) in enumerate(zip(fit.constraints, quantities, strict=True))
+                  if problem.undeclared(q.sx)]
+    if any(fit.constraints[k] not in assumed for k in undeclared):
         return None
+    variances = np.full(len(quantities), np.nan)
+    for k in undeclared:
+        variances[k] = assumed[fit.constraints[k]]
     noisy = problem.noisy
     sigma = np.array([q.sigma for q in quantities])
     prop = _propagation(problem, ("share", *fit.constraints),
@@ -669,7 +802,7 @@ def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray
 
     def piece(part: slice) -> tuple[np.ndarray, np.ndarray]:
         _, lmat, jac = prop.at(fn, u, theta, part)
-        c = _gram(lmat)
+        c = _assume(_gram(lmat), variances)
         wj = _weights(fit, c, sigma) @ jac
         return (jac.reshape(-1, n_p).T @ wj.reshape(-1, n_p),
                 wj.reshape(-1, n_p).T @ (c @ wj).reshape(-1, n_p))
@@ -712,6 +845,7 @@ class _Sums:
     d: float = 0.0
     wd: float = 0.0       # Σ w E_kk (the estimate's share and the fitted rows' term in)
     wj: np.ndarray | None = None
+    wjj: np.ndarray | None = None     # Σ w Jᵀ J (the share's spread)
     wxv: np.ndarray | None = None
     j: np.ndarray | None = None
     x: np.ndarray | None = None
@@ -751,13 +885,23 @@ def floor_tests(problem: Problem, datasets: Mapping[str, Dataset], theta: np.nda
     (tests, global)
         ``(dataset, name) → FloorTest`` and one :class:`DatasetTest` per dataset.
     """
+    assumed = {}
+    for ds in datasets.values():
+        entries = _entries(problem, ds)
+        assumed[ds.name] = difference_variances(problem, ds, theta, tuple(entries.names),
+                                                entries.exprs, entries.declared)
     share = None
     if fit.dataset in datasets and np.any(fit.free):
-        share = _estimate_share(problem, fit, datasets[fit.dataset], theta)
+        names = _entries(problem, datasets[fit.dataset]).names
+        share = _estimate_share(
+            problem, fit, datasets[fit.dataset], theta,
+            {n: float(v) for n, v in zip(names, assumed[fit.dataset], strict=True)
+             if not np.isnan(v)})
     out: dict[tuple[str, str], FloorTest] = {}
     tests = []
     for ds in datasets.values():
-        found, joint = _dataset_tests(problem, ds, theta, fit, share, theta0)
+        found, joint = _dataset_tests(problem, ds, theta, fit, share, theta0,
+                                      assumed[ds.name])
         out.update({(ds.name, k): v for k, v in found.items()})
         tests.append(joint)
     return out, tuple(tests)
@@ -897,7 +1041,8 @@ def _joined(a: _Sums, b: _Sums, b_first: float | None) -> _Sums:
     if a.last is not None and b_first is not None:
         diff2 += (b_first - a.last) ** 2
     return _Sums(n=a.n + b.n, w=a.w + b.w, wr2=a.wr2 + b.wr2, wr=a.wr + b.wr, r=a.r + b.r,
-                 d=a.d + b.d, wd=a.wd + b.wd, wj=add(a.wj, b.wj), wxv=add(a.wxv, b.wxv),
+                 d=a.d + b.d, wd=a.wd + b.wd, wj=add(a.wj, b.wj), wjj=add(a.wjj, b.wjj),
+                 wxv=add(a.wxv, b.wxv),
                  j=add(a.j, b.j), x=add(a.x, b.x), exact=a.exact + b.exact, diff2=diff2,
                  last=b.last if b.last is not None else a.last, r2=a.r2 + b.r2)
 
@@ -1007,9 +1152,14 @@ def rows_plan(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
 
 
 def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
-                   share: _Estimate | None, theta0: np.ndarray | None = None
+                   share: _Estimate | None, theta0: np.ndarray | None = None,
+                   assumed: np.ndarray | None = None
                    ) -> tuple[dict[str, FloorTest], DatasetTest]:
     entries = _entries(problem, ds)
+    if assumed is not None and ds.name == fit.dataset:
+        # an entry with an estimated floor on the fitted rows correlates with the fitted
+        # constraints in a way nobody declared, unless it is one of them
+        assumed = np.where([n in fit.constraints for n in entries.names], assumed, np.nan)
     prop = _propagation(problem, ("entries", *entries.names), entries.exprs, fit.free)
     fitted = [entries.names.index(n) for n in fit.constraints] \
         if ds.name == fit.dataset else []
@@ -1028,6 +1178,7 @@ def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
         independent of every other chunk: on the executor's threads."""
         r, lmat, jac = prop.at(fn, u, theta, part)
         c = _gram(lmat)
+        c = _assume(c, assumed)     # an estimated floor is its entry's variance
         d = np.diagonal(c, axis1=1, axis2=2).copy()           # C_kk
         r0 = prop.residuals(u, theta0, part) if theta0 is not None else None
         e, x, jc, xa = d.copy(), None, None, None               # E_kk
@@ -1071,7 +1222,9 @@ def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
     found = {}
     for k, name in enumerate(entries.names):
         found[name] = _entry_test(sums[k], entries.declared[k], entries.centred[k],
-                                  ordered, share if use_share else None)
+                                  ordered, share if use_share else None,
+                                  assumed is not None and not np.isnan(assumed[k]),
+                                  ds.name == fit.dataset and k in fitted)
         if theta0 is not None and found[name].method == PROPAGATED and found[name].chi2 \
                 is not None:
             found[name] = replace(found[name],
@@ -1107,6 +1260,7 @@ def _accumulate(s: _Sums, rk: np.ndarray, d: np.ndarray, e: np.ndarray,
     if jk is not None:     # sums over the rows as products (a strided sum is slow)
         ones = np.ones(len(rk))
         s.add_vectors("wj", w @ jk)
+        s.add_vectors("wjj", (jk * w[:, None]).T @ jk)
         s.add_vectors("j", ones @ jk)
         if xk is not None:
             s.add_vectors("wxv", w @ xk)
@@ -1119,28 +1273,65 @@ def _accumulate(s: _Sums, rk: np.ndarray, d: np.ndarray, e: np.ndarray,
         s.last = float(rk[-1])
 
 
+def _expected(s: _Sums, centred: bool, share: _Estimate | None) -> float:
+    """``Σ w E_kk`` of an entry (C, the estimate's share and the fitted rows' term), about
+    its mean when ``centred``: the expectation of its ``χ²``."""
+    n = s.n
+    expected = s.wd
+    if centred and n > 1:
+        expected -= (2.0 / n) * _wd_plain(s) - s.w * s.d / n**2
+        if share is not None and s.wj is not None and s.j is not None:
+            jbar = s.j / n
+            expected -= 2.0 * float(jbar @ share.cov @ s.wj) - s.w * float(
+                jbar @ share.cov @ jbar)
+            if s.wxv is not None and s.x is not None:
+                xbar = s.x / n
+                expected += 2.0 * (float(xbar @ share.a_pinv @ s.wj)
+                                   + float(s.wxv @ share.a_pinv @ jbar)
+                                   - s.w * float(xbar @ share.a_pinv @ jbar))
+    return expected
+
+
+def _estimated_test(s: _Sums, centred: bool, share: _Estimate, fitted: bool, floor: float,
+                    chi2: float) -> FloorTest:
+    """The test of an entry whose floor was estimated by successive differences and
+    taken as its variance in the estimate's share (:func:`_assume`), so that the share is
+    counted: the estimate's error ``J_i δθ`` moves with the design, often in steps (one
+    per orientation, pose or run) that successive differences cannot see, and adds
+    ``Σ w J_i Cov J_iᵀ`` to the spread on held-out rows; on the fitted rows the fit takes
+    about one variance per parameter away.  Its spread: ``2 tr((G Cov)²) + 4 tr(G Cov)``
+    held out (the share's quadratic form and its cross term with the rows' own noise,
+    ``G = Σ w J_iᵀJ_i`` about the mean when ``centred``), ``2 tr((G Cov)²)`` on the
+    fitted rows (the fit's projection of their noise); the band
+    :func:`shared_ratio_band`."""
+    n = s.n
+    k = float(n - 1 if centred else n)
+    expected = max(_expected(s, centred, share), 1.0)
+    var_y = 0.0
+    if s.wjj is not None and s.wj is not None and share.cov.size:
+        g = s.wjj - (np.outer(s.wj, s.wj) / s.w if centred else 0.0)
+        gc = g @ share.cov
+        first, second = float(np.trace(gc)), float(np.trace(gc @ gc))
+        var_y = 2.0 * second + (0.0 if fitted else 4.0 * first)
+    sd = math.sqrt((k * ratio_sd(n, centred)) ** 2 + var_y) / expected
+    return FloorTest(floor, DIFFERENCES, chi2, expected,
+                     shared_ratio_band(n, centred, expected, sd), sd, rows=n)
+
+
 def _entry_test(s: _Sums, declared: bool, centred: bool, time_ordered: bool,
-                share: _Estimate | None) -> FloorTest:
-    """One entry's floor and test from its accumulators."""
+                share: _Estimate | None, estimated: bool = False, fitted: bool = False
+                ) -> FloorTest:
+    """One entry's floor and test from its accumulators (``estimated``: its floor,
+    estimated from the data, was its variance in the estimate's share and its
+    accumulators' weights; ``fitted``: it is a fitted constraint on the fitted rows)."""
     n = s.n
     if declared and n and s.d > 0 and s.w > 0:
         floor = math.sqrt(s.d / n)
         chi2 = s.wr2
-        expected = s.wd       # Σ w E_kk: C, the estimate's share and the fitted rows' term
         if centred and n > 1:
             mean = s.r / n
             chi2 = s.wr2 - 2.0 * mean * s.wr + mean * mean * s.w
-            expected -= (2.0 / n) * _wd_plain(s) - s.w * s.d / n**2
-            if share is not None and s.wj is not None and s.j is not None:
-                jbar = s.j / n
-                expected -= 2.0 * float(jbar @ share.cov @ s.wj) - s.w * float(
-                    jbar @ share.cov @ jbar)
-                if s.wxv is not None and s.x is not None:
-                    xbar = s.x / n
-                    expected += 2.0 * (float(xbar @ share.a_pinv @ s.wj)
-                                       + float(s.wxv @ share.a_pinv @ jbar)
-                                       - s.w * float(xbar @ share.a_pinv @ jbar))
-        expected = max(expected, 1.0)
+        expected = max(_expected(s, centred, share), 1.0)
         return FloorTest(floor, PROPAGATED, chi2, expected, chi2_band(expected),
                          math.sqrt(2.0 / expected))
     if declared and n and s.d == 0:
@@ -1151,6 +1342,8 @@ def _entry_test(s: _Sums, declared: bool, centred: bool, time_ordered: bool,
         spread = (s.r2 - 2.0 * mean * s.r + n * mean * mean)
         expected = float(n - 1 if centred else n)
         chi2 = spread / floor**2
+        if estimated and share is not None and s.w > 0:
+            return _estimated_test(s, centred, share, fitted, floor, chi2)
         return FloorTest(floor, DIFFERENCES, chi2, expected, ratio_band(n, centred),
                          ratio_sd(n, centred))
     return FloorTest(None, UNKNOWN)
@@ -1183,6 +1376,6 @@ def _combined(dataset: str, names: list[str], found: list[FloorTest]) -> Dataset
                            "chi2", sd)
     if len(found) == 1:         # one constraint, its floor estimated: its own band
         return DatasetTest(dataset, tuple(names), "combined", chi2, dof, found[0].band,
-                           "ratio", sd)
+                           "ratio", sd, found[0].rows)
     return DatasetTest(dataset, tuple(names), "combined", chi2, dof, normal_band(sd),
                        "normal", sd)
