@@ -54,8 +54,8 @@ def test_the_held_out_test_counts_the_estimates_share() -> None:
     """One seed: each floor is the noise's (3 mm/s^2, within 3 of its standard errors,
     ≈ σ·√(3/(4n)) for a von Neumann estimate); the held-out test's expectation is n plus
     the estimate's share, agreeing with numpy's ``Σ J_v (J_cᵀJ_c)⁻¹ J_vᵀ · σ̂_c²/σ̂_v²``
-    (equal weights on one constraint); its band is wider than a known floor's ratio band
-    and, on the calibration rows, the expectation is n less about one per parameter."""
+    (equal weights on one constraint); its band is wider than the ratio's band, which
+    the calibration rows keep."""
     data = _data(5003)
     result = symcal.solve(symcal.load_problem(EXAMPLE / "problem_fixed.yaml"), data)
     p = {name.split(".")[-1]: v.value for name, v in result.params.items()
@@ -78,10 +78,9 @@ def test_the_held_out_test_counts_the_estimates_share() -> None:
     assert held.rows == n_v and held.distribution == "ratio"
     band = ratio_band(n_v)
     assert held.band is not None and held.band[1] - held.band[0] > band[1] - band[0]
-    # the fitted rows: about one variance less per parameter
+    # the fitted rows keep the ratio's own test
     fitted = tests["calibration"]
-    n_c = data["calibration"].n
-    assert n_c - len(FREE) - 1 < fitted.dof < n_c - len(FREE) + 1
+    assert fitted.dof == data["calibration"].n and fitted.band == ratio_band(fitted.dof)
 
 
 def test_the_shared_band_holds_on_simulated_ratios() -> None:
