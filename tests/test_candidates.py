@@ -154,3 +154,29 @@ def test_a_fixed_parameter_that_is_off_is_named(tmp_path) -> None:
     assert lead.basis.kind == "fixed" and lead.basis.targets == ("cs.h",), lead.label
     c, se = lead.coefficient[0], lead.coefficient_se[0]
     assert abs(51.0 + c - truth(scenario)["parameters"]["h"]) < 3 * se, (c, se)
+
+
+@pytest.mark.slow
+def test_a_quadratic_is_written_about_zero_where_its_centre_is_absorbed(tmp_path) -> None:
+    """The triad's z axis gains 0.8e-3 s²/m times its force squared: the quadratic found
+    is written ``quad_az*az**2`` (its centre's constant and linear part are the z bias's and
+    scale factor's), so that after improve the scale factor and bias are still the truth
+    within 3 standard errors.  Written centred, ``quad_az*(az - c)**2`` made k_z its slope
+    at c: 32 standard errors off on this seed (acceptance run of 2026-11-27)."""
+    triad = ROOT / "examples" / "accelerometer_triad"
+    scenario = load_scenario(triad / "scenario.yaml").overlay(
+        {"effects": {"z_nonlinearity": {"on": True}}})
+    data = _data(scenario, 1000)
+    problem = triad / "problem_fixed.yaml"
+    diag = symcal.diagnose(symcal.solve(problem, data))
+    lead = diag.leads[0]
+    assert lead.label == "acc.fz += a quadratic dependence on az", lead.label
+    assert "fz: base.fz + quad_az*az**2" in diag.yaml[lead.label], diag.yaml[lead.label]
+    result = symcal.improve(problem, tmp_path / "out", data, max_rounds=2)
+    assert result.quiet and result.at_floor
+    final = result.rounds[-1].result.params
+    values = truth(scenario)["parameters"]
+    for name, true in (("acc.k_z", values["acc.k_z"]), ("acc.b_z", values["acc.b_z"]),
+                       ("acc.quad_az", values["acc.n_z"])):
+        p = final[name]
+        assert p.se is not None and abs(p.value - true) < 3 * p.se, (name, p.value, p.se)

@@ -163,6 +163,17 @@ def redundant_columns(design: Design, x: np.ndarray) -> list[int]:
     return out
 
 
+def absorbed(design: Design, x: np.ndarray) -> bool:
+    """Whether every column of ``x`` (M × m) lies in the nuisance's span: what adding it
+    changes, the free parameters already do (an offset where a bias is free)."""
+    qn = _basis(design)
+    for j in range(x.shape[1]):
+        raw = float(np.linalg.norm(x[:, j]))
+        if raw > 0.0 and float(np.linalg.norm(_project(x[:, j:j + 1], qn))) >= ABSORBED * raw:
+            return False
+    return True
+
+
 @dataclass(frozen=True)
 class _Nuisance:
     """The nuisance's SVD on its numerical range: its orthonormal basis ``u``, and what

@@ -33,6 +33,7 @@ from symcal.analysis.discovery import (
     Basis,
     Candidate,
     Design,
+    absorbed,
     gauge_fixes,
     redundant_columns,
     test_candidates,
@@ -448,6 +449,7 @@ def _without_redundant(entry: Entry, own: Design,
     """The candidate without the columns that add nothing on their own (a quadratic's
     linear part the sensor's gain already is): the same hypothesis, written without a
     parameter the data cannot determine."""
+    entry = _uncentred(entry, own, regressor)
     basis = entry.candidate.basis
     if basis.kind != "quadratic" or len(basis.terms) != len(basis.columns):
         return entry        # a harmonic's sine and cosine are one phase: both or none
@@ -464,6 +466,31 @@ def _without_redundant(entry: Entry, own: Design,
 
     return Entry(Candidate(entry.candidate.output, reduced), pick(entry.raw),
                  None if entry.extra is None else entry.extra)
+
+
+def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]) -> Entry:
+    """A linear or quadratic term written about the variable's zero, ``lin*v`` and
+    ``quad*v**2``, where what its centre c moves between it and the rest (a constant, and a
+    quadratic's linear part) the free parameters absorb: the same hypothesis, tested alike,
+    but one that leaves them their meaning (centred, ``quad*(v - c)**2`` would make a
+    sensor's scale factor its slope at c, and its bias its reading there)."""
+    basis = entry.candidate.basis
+    lower = entry.lower
+    if lower is None or basis.centre == 0.0 or not absorbed(own, regressor(lower)):
+        return entry
+    c = basis.centre
+    if basis.kind == "linear":          # v = (v - c) + c
+        def raw(i: int) -> np.ndarray:
+            return entry.raw(i) + c * lower(i)
+    else:                               # v² = (v - c)² + 2c (v - c) + c²
+        def raw(i: int) -> np.ndarray:
+            centred, ones = entry.raw(i), lower(i)[:, :, :1]
+            return np.concatenate([centred[:, :, :1] + c * ones,
+                                   centred[:, :, 1:] + 2 * c * centred[:, :, :1]
+                                   + c * c * ones], axis=2)
+    terms = tuple(t.replace("({v} - {centre})", "{v}") for t in basis.terms)
+    return Entry(Candidate(entry.candidate.output, replace(basis, centre=0.0, terms=terms)),
+                 raw, entry.extra)
 
 
 def _variant_differences(variant: Variant, blocks: list[Block], data: Mapping[str, Dataset],

@@ -59,6 +59,10 @@ class Entry:
     candidate: Candidate
     raw: Raw
     extra: Raw | None = None
+    # what the term's centre moves between it and the rest (a linear term's constant; a
+    # quadratic's constant and linear part): where the nuisance absorbs all of it, the term
+    # is written uncentred, so that the parameters absorbing it keep their meaning
+    lower: Raw | None = None
 
 
 @dataclass(frozen=True)
@@ -169,6 +173,7 @@ class _Shape:
     basis: Basis
     phi: Callable[[Block], np.ndarray]       # block -> (N, m)
     contains: tuple[str, ...] = ()           # variables of the linear terms it contains
+    lower: Callable[[Block], np.ndarray] | None = None  # see Entry.lower
 
 
 def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shape]:
@@ -201,12 +206,12 @@ def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shap
         if allowed("linear"):
             out.append(_Shape(Basis("linear", v.name, f"a term linear in {v.name}", ("lin",),
                                     ("({v} - {centre})",), unit=v.unit, centre=c),
-                              _linear(v.name, c)))
+                              _linear(v.name, c), lower=_ones))
         if allowed("quadratic"):
             out.append(_Shape(Basis("quadratic", v.name, f"a quadratic dependence on {v.name}",
                                     ("lin", "quad"), ("({v} - {centre})", "({v} - {centre})**2"),
                                     unit=v.unit, centre=c),
-                              _quadratic(v.name, c)))
+                              _quadratic(v.name, c), lower=_affine(v.name, c)))
     if allowed("product"):
         # uncentred: a gain growing with time is exactly c·v·t (centring would leave a
         # drift c·v̄·t behind); the linear terms it contains are allowed for in its test
@@ -241,6 +246,14 @@ def _linear(name: str, centre: float) -> Callable[[Block], np.ndarray]:
     return lambda b: (b.values(name) - centre)[:, None]
 
 
+def _ones(b: Block) -> np.ndarray:
+    return np.ones((b.hooks.shape[0], 1))
+
+
+def _affine(name: str, centre: float) -> Callable[[Block], np.ndarray]:
+    return lambda b: np.column_stack([np.ones(b.hooks.shape[0]), b.values(name) - centre])
+
+
 def _quadratic(name: str, centre: float) -> Callable[[Block], np.ndarray]:
     return lambda b: np.column_stack([b.values(name) - centre, (b.values(name) - centre) ** 2])
 
@@ -252,6 +265,11 @@ def _product(v: str, cv: float, w: str, cw: float) -> Callable[[Block], np.ndarr
 def _angle_harmonic(a: str, v: str, w: float) -> Callable[[Block], np.ndarray]:
     return lambda b: b.values(a)[:, None] * np.column_stack(
         [np.sin(w * b.values(v)), np.cos(w * b.values(v))])
+
+
+def _on_output(blocks: list[Block], h: int, f: Callable[[Block], np.ndarray]) -> Raw:
+    """Columns ``f`` (N × m per block) added to output ``h``: their raw regressor."""
+    return lambda i: blocks[i].hooks[:, :, h][:, :, None] * f(blocks[i])[:, None, :]
 
 
 def _in_space(groups: list[tuple[Variable, set[str]]], space: Space, never: set[str]
@@ -304,7 +322,8 @@ def output_entries(problem: Problem, blocks: list[Block], fit: int
                     f = np.column_stack([p(b) for p in parts])
                     return b.hooks[:, :, h][:, :, None] * f[:, None, :]
 
-            out.append(Entry(Candidate(output, basis), raw, extra))
+            lower = None if shape.lower is None else _on_output(blocks, h, shape.lower)
+            out.append(Entry(Candidate(output, basis), raw, extra, lower))
     return out, found
 
 
