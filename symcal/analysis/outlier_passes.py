@@ -10,6 +10,10 @@ largest of each piece (the largest of all are among them; rows numbered over the
 log).  Where outliers dominate a squared fit, the fit is solved again with them set
 aside: the flagged residuals are weighted 0 by a :class:`~symcal.solvers.weighed.Aside`
 that every pass evaluates from the rows it reads, so no mask of N rows is held either.
+Where the fit is weighted by the propagated covariances, the residuals are standardized
+by each row's propagated standard deviation, computed in the passes from the rows read
+(:class:`Standardized`), and the refit weighs the rows by their ``C_i^-½`` with the
+flagged residuals' rows set to 0 (:class:`KeptWeights`).
 """
 
 from __future__ import annotations
@@ -31,12 +35,14 @@ from symcal.analysis.outliers import (
     Outlier,
     Outliers,
 )
+from symcal.analysis.propagated import Covariances
 from symcal.base.numeric import chunks
 from symcal.solvers.objective import Source
 from symcal.solvers.weighed import (
     Flags,
     LossWeights,
     Residuals,
+    RowWeigher,
     map_pieces,
     read_both,
     read_piece,
@@ -48,11 +54,59 @@ Refit = Callable[[Flags], "np.ndarray | None"]
 
 
 @dataclass(frozen=True)
+class Standardized:
+    """The residual rows ``g/σ`` of a chunk over each row's propagated standard deviation
+    ``sqrt(C_i,kk)`` (the covariances at the estimate; 0 where that is 0), as
+    :func:`symcal.analysis.outliers.standardize`."""
+
+    rows: Residuals
+    covariances: Covariances
+
+    def __call__(self, u: np.ndarray) -> np.ndarray:
+        """``m × n_g``."""
+        g = self.rows(u)
+        sd = np.sqrt(np.diagonal(self.covariances(u), axis1=1, axis2=2))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(sd > 0, g / np.where(sd > 0, sd, 1.0), 0.0)
+
+    def at(self, theta: np.ndarray) -> Standardized:
+        """The residuals at another point, standardized as here."""
+        return Standardized(Residuals(self.rows.fn, np.array(theta, dtype=float)),
+                            self.covariances)
+
+
+@dataclass(frozen=True)
+class KeptWeights:
+    """The fit's row factors (``m × n_g × n_g``) with the rows of the residuals
+    ``flags`` flags set to 0: the propagated fit solved again without them."""
+
+    weigher: RowWeigher
+    flags: Flags
+
+    def __call__(self, u: np.ndarray) -> np.ndarray:
+        """``m × n_g × n_g`` factors."""
+        keep = (~self.flags(u)).astype(float)
+        return keep[:, :, None] * self.weigher(u)
+
+
+def _at(rows: Residuals | Standardized, theta: np.ndarray) -> Residuals | Standardized:
+    """``rows`` at another point."""
+    if isinstance(rows, Standardized):
+        return rows.at(theta)
+    return Residuals(rows.fn, np.array(theta, dtype=float))
+
+
+def _raw(rows: Residuals | Standardized) -> Residuals:
+    """The residual rows ``g/σ`` themselves."""
+    return rows.rows if isinstance(rows, Standardized) else rows
+
+
+@dataclass(frozen=True)
 class Deviations:
     """Residual values of a chunk: ``g`` (or ``|g - centre|``), counted where ``kept`` does
     not flag them (all without it)."""
 
-    rows: Residuals
+    rows: Residuals | Standardized
     centre: np.ndarray | None = None
     kept: Flags | None = None
 
@@ -76,7 +130,7 @@ class FlaggedZ:
         return self.z.z(u).reshape(-1, 1), self.flags(u).reshape(-1, 1)
 
 
-def _spreads(rows: Residuals, data: Source, columns: tuple[str, ...],
+def _spreads(rows: Residuals | Standardized, data: Source, columns: tuple[str, ...],
              kept: Flags | None = None) -> tuple[np.ndarray, np.ndarray, Counted]:
     """Each constraint's median and robust spread (as :func:`~symcal.analysis.outliers.robust_std`:
     1.4826 × the median absolute deviation, the RMS about the median where that is 0; 0
@@ -119,10 +173,12 @@ class _Listing:
         top: list[tuple] = []
         for part in chunks(u.shape[1]):
             block = u[:, part]
-            g = self.flags.rows(block)
+            v = self.flags.rows(block)
+            g = _raw(self.flags.rows)(block) if isinstance(self.flags.rows, Standardized) \
+                else v
             z = self.flags.z(block)
             w = np.ones_like(g) if self.weights is None else self.weights(block)
-            psi2 = (w * g) ** 2
+            psi2 = (w * v) ** 2
             beyond = z > THRESHOLD
             total += float(np.sum(psi2))
             share += float(np.sum(psi2[beyond]))
@@ -150,16 +206,26 @@ def find_outliers_passes(
     loss: str,
     time: str | None = None,
     refit: Refit | None = None,
+    covariances: Covariances | None = None,
 ) -> Outliers | None:
     """The outliers of one fit, by passes (see the module): as
     :func:`~symcal.analysis.outliers.find_outliers` on the residual rows ``rows`` of
     ``data`` (the problem's ``columns``), ``weights`` the fit's final IRLS weights (power
-    1; None for squared residuals), ``time`` the time column's name.  None where a
-    residual is not finite."""
-    centre, spread, counted = _spreads(rows, data, columns)
+    1; None for squared residuals), ``time`` the time column's name, ``covariances`` the
+    propagated covariances at the estimate where the fit is weighted by them (the
+    residuals standardized by their rows' standard deviations).  None where a residual
+    is not finite."""
+    raw_centre, raw_spread, counted = _spreads(rows, data, columns)
     if counted.nonfinite:
         return None
-    flags = Flags(rows, centre, spread, THRESHOLD)
+    tested: Residuals | Standardized = rows
+    centre, spread = raw_centre, raw_spread
+    if covariances is not None:
+        tested = Standardized(rows, covariances)
+        centre, spread, counted = _spreads(tested, data, columns)
+        if counted.nonfinite:
+            return None
+    flags = Flags(tested, centre, spread, THRESHOLD)  # type: ignore[arg-type]
     parts = map_pieces(_Listing(flags, weights, columns, time), data, "outliers")
     total = sum(p[0] for p in parts)
     inside = sum(p[1] for p in parts)
@@ -183,11 +249,13 @@ def find_outliers_passes(
             gross = measured[1]
     n = int(offset)
     return Outliers(dataset, loss,
-                    {nm: float(s * f) for nm, s, f in zip(names, spread, to_display,
+                    {nm: float(s * f) for nm, s, f in zip(names, raw_spread, to_display,
                                                          strict=True)},
                     dict(zip(names, units, strict=True)), int(by.sum()), n * len(names),
                     {nm: int(by[k]) for k, nm in enumerate(names)},
-                    int(sum(p[3] for p in parts)), share, listed, clean, gross)
+                    int(sum(p[3] for p in parts)), share, listed, clean, gross,
+                    None if covariances is None
+                    else {nm: float(s) for nm, s in zip(names, spread, strict=True)})
 
 
 @dataclass(frozen=True)
@@ -215,17 +283,18 @@ def _without_outliers(flags: Flags, data: Source, columns: tuple[str, ...], refi
     the fit is solved again without the flagged ones, flagged again until they stay the
     same; and whether the outliers are gross."""
     flagged = flags
-    again = flags
+    again = used = flags
     for _ in range(REFITS):
+        used = flagged                    # the residuals set aside by this refit
         theta = refit(flagged)
         if theta is None:
             return None
-        rows = Residuals(flags.rows.fn, np.array(theta, dtype=float))
+        rows = _at(flags.rows, theta)
         centre, spread, counted = _spreads(rows, data, columns, kept=flagged)
         if counted.nonfinite:
             return None
         centre = np.where(counted.n > 0, centre, 0.0)
-        again = Flags(rows, centre, spread, THRESHOLD)
+        again = Flags(rows, centre, spread, THRESHOLD)  # type: ignore[arg-type]
         parts = map_pieces(_Changed(flagged, again, columns), data, "outliers_again")
         if sum(p[0] for p in parts) == 0 or sum(p[1] for p in parts) == 0:
             break
@@ -235,4 +304,7 @@ def _without_outliers(flags: Flags, data: Source, columns: tuple[str, ...], refi
     if int(mask.n[0]):
         median, _ = medians(FlaggedZ(again, flagged), data, columns, mask)
         gross = float(median[0]) > GROSS
+    if isinstance(again.rows, Standardized):     # the spread of the residuals themselves
+        spread = _spreads(_raw(again.rows), data, columns, kept=used)[1]
+        return spread, gross
     return again.spread, gross

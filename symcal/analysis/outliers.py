@@ -3,13 +3,21 @@
 Each constraint's residual ``g/σ`` at the estimate, less its median, is whitened by a
 robust estimate of its spread (1.4826 × the median absolute deviation from the median,
 which a few gross errors do not move; the RMS where more than half of the residuals are
-equal).  A residual row is
+equal).  Where the fit weighs each row by the covariance propagated from its readings'
+declared noise (``weighting: propagated``), a row's residual is first divided by its
+own propagated standard deviation ``sqrt(C_i,kk)`` (*standardized*, as least-squares
+adjustment standardizes its residuals for the w-test; the parameters' leverage, about
+p/N, is neglected): the noise of such rows may differ by orders of magnitude (a
+thermistor's 1 to 25 mK across its range), and one spread for all of them would flag
+the noisiest rows of clean data.  The robust spread of the standardized residuals (near 1
+where the noise is as declared) then takes the place of the residual's.  A residual row is
 an outlier when its whitened residual exceeds :data:`THRESHOLD` (a Gaussian residual does
 so with probability 6e-7).  The outliers *dominate* when they carry more than
 :data:`DOMINATE` of the fit's influence ``Σ ψ²``, ``ψ = w g`` each row's contribution to
-the gradient (``w`` the final weight of a robust loss, 1 for squared residuals): with
-squared residuals that is their share of the cost Σ (g/σ)²; a robust loss that
-down-weights them leaves them a small share.
+the gradient (``w`` the final weight of a robust loss, 1 for squared residuals; ``g`` the
+standardized residual where there is one): with squared residuals that is their share of
+the cost Σ (g/σ)² (of the propagated fit's cost, one constraint per row); a robust loss
+that down-weights them leaves them a small share.
 
 The remedy (:func:`remedy_yaml`) must work when applied as printed.  The squared fit's
 residuals are a poor guide to the noise: the outliers pull the estimate, and the
@@ -25,6 +33,14 @@ beyond :data:`GROSS` such spreads are gross, and the remedy is a redescending lo
 1 % and 5 % of the rows, at worst over every parameter: the printed Cauchy loss lands
 0.34-0.77 standard errors from a squared fit without the slipped rows (seeds 11 and
 14-20); the former Huber at twice the squared fit's spread 3.8-89 (seeds 11-13).
+
+Where the residuals were standardized, the outliers are flagged and refitted on the
+standardized residuals (the refit keeps the propagated weights, the flagged residuals'
+set to 0), but the remedy's scale is still the robust spread of the residual itself, in
+its unit (``clean_std``): symcal does not combine a robust loss with the propagated
+weighting, so the loss printed replaces it by equal weights, and its one scale is a
+spread of the residual as written.  On heteroscedastic rows that loss is a compromise
+(the noisiest rows are down-weighted with the outliers); the report says so.
 """
 
 from __future__ import annotations
@@ -123,6 +139,12 @@ class Outliers:
     gross
         Whether the outliers lie beyond :data:`GROSS` of those spreads (a redescending
         loss is then the remedy).
+    standardized_std
+        Where each row's residual was divided by its propagated standard deviation
+        before the test (see the module docstring): each constraint's robust standard
+        deviation of those standardized residuals (near 1 where the noise is as
+        declared), which the threshold multiplies; else None (the threshold multiplies
+        ``robust_std``).
     """
 
     dataset: str
@@ -137,6 +159,7 @@ class Outliers:
     listed: tuple[Outlier, ...]
     clean_std: dict[str, float] | None = None
     gross: bool = False
+    standardized_std: dict[str, float] | None = None
 
     @property
     def dominate(self) -> bool:
@@ -158,18 +181,22 @@ class Outliers:
                 "share": self.share, "dominate": self.dominate,
                 "listed": [o.to_dict() for o in self.listed],
                 "clean_std": None if self.clean_std is None else dict(self.clean_std),
-                "gross": self.gross}
+                "gross": self.gross,
+                "standardized_std": None if self.standardized_std is None
+                else dict(self.standardized_std)}
 
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any]) -> Outliers:
         """Inverse of :meth:`to_dict`."""
         units = {k: "" if v == "(internal)" else v for k, v in doc["units"].items()}
         clean = doc.get("clean_std")
+        standardized = doc.get("standardized_std")
         return cls(doc["dataset"], doc["loss"], dict(doc["robust_std"]), units,
                    doc["count"], doc["rows"], dict(doc["by_constraint"]),
                    doc["observations"], doc["share"],
                    tuple(Outlier.from_dict(o) for o in doc["listed"]),
-                   None if clean is None else dict(clean), bool(doc.get("gross", False)))
+                   None if clean is None else dict(clean), bool(doc.get("gross", False)),
+                   None if standardized is None else dict(standardized))
 
 
 def robust_std(values: np.ndarray) -> float:
@@ -184,6 +211,15 @@ def robust_std(values: np.ndarray) -> float:
     return float(np.sqrt(np.mean((values - centre) ** 2)))
 
 
+def standardize(g: np.ndarray, sd: np.ndarray | None) -> np.ndarray:
+    """``g`` over each row's propagated standard deviation ``sd`` (0 where that is 0: a
+    row its readings leave exact); ``g`` itself without ``sd``."""
+    if sd is None:
+        return g
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(sd > 0, g / np.where(sd > 0, sd, 1.0), 0.0)
+
+
 def find_outliers(
     dataset: str,
     names: tuple[str, ...],
@@ -194,6 +230,7 @@ def find_outliers(
     loss: str,
     time: np.ndarray | None = None,
     refit: Refit | None = None,
+    sd: np.ndarray | None = None,
 ) -> Outliers:
     """The outliers of one fit.
 
@@ -218,18 +255,24 @@ def find_outliers(
         Solves the fit again with some residuals set aside (:data:`Refit`): where
         outliers dominate a squared fit, to measure the noise without them
         (``clean_std``, ``gross``).  None: not measured.
+    sd
+        Each row's propagated standard deviation of ``g`` (``N × n_g``, the units of
+        ``g``) where the fit is weighted by it: the residuals are standardized by it
+        before the test (see the module docstring).  None: one spread for all rows.
 
     Returns
     -------
     Outliers
     """
     n, ng = g.shape
-    stds = np.array([robust_std(g[:, k]) for k in range(ng)])
-    centre = np.median(g, axis=0) if n else np.zeros(ng)
+    u = standardize(g, sd)
+    raw = np.array([robust_std(g[:, k]) for k in range(ng)])
+    stds = raw if sd is None else np.array([robust_std(u[:, k]) for k in range(ng)])
+    centre = np.median(u, axis=0) if n else np.zeros(ng)
     with np.errstate(divide="ignore", invalid="ignore"):
-        z = np.where(stds[None, :] > 0, np.abs(g - centre[None, :]) / stds[None, :], 0.0)
+        z = np.where(stds[None, :] > 0, np.abs(u - centre[None, :]) / stds[None, :], 0.0)
     w = np.ones_like(g) if weights is None else weights
-    psi2 = (w * g) ** 2
+    psi2 = (w * u) ** 2
     beyond = z > THRESHOLD
     total = float(np.sum(psi2))
     share = float(np.sum(psi2[beyond])) / total if total > 0 else 0.0
@@ -242,39 +285,46 @@ def find_outliers(
         for i in order)
     clean, gross = None, False
     if refit is not None and weights is None and share > DOMINATE:
-        measured = _without_outliers(g, beyond, refit)
+        measured = _without_outliers(beyond, refit, sd)
         if measured is not None:
             clean = {nm: float(s * f)
                      for nm, s, f in zip(names, measured[0], to_display, strict=True)}
             gross = measured[1]
     return Outliers(dataset, loss,
-                    {nm: float(s * f) for nm, s, f in zip(names, stds, to_display, strict=True)},
+                    {nm: float(s * f) for nm, s, f in zip(names, raw, to_display, strict=True)},
                     dict(zip(names, units, strict=True)), int(beyond.sum()), n * ng,
                     {nm: int(beyond[:, k].sum()) for k, nm in enumerate(names)},
-                    int(np.any(beyond, axis=1).sum()), share, listed, clean, gross)
+                    int(np.any(beyond, axis=1).sum()), share, listed, clean, gross,
+                    None if sd is None else {nm: float(s) for nm, s in zip(names, stds,
+                                                                           strict=True)})
 
 
-def _without_outliers(g: np.ndarray, flagged: np.ndarray, refit: Refit
+def _without_outliers(flagged: np.ndarray, refit: Refit, sd: np.ndarray | None = None
                       ) -> tuple[np.ndarray, bool] | None:
     """Each constraint's robust spread of ``g/σ`` once the fit is solved again without the
-    flagged residuals, flagged again against that fit until they stay the same; and
+    flagged residuals, flagged again against that fit until they stay the same (on the
+    residuals standardized by ``sd`` where given, the spread still of ``g/σ``); and
     whether the outliers are gross.  None when a refit fails."""
     flagged = flagged.copy()
     for _ in range(REFITS):
-        h = refit(flagged)
-        if h is None or not np.all(np.isfinite(h)):
+        found = refit(flagged)
+        if found is None or not np.all(np.isfinite(found)):
             return None
+        h = found
         kept = ~flagged
-        stds = np.array([robust_std(h[kept[:, k], k]) for k in range(h.shape[1])])
-        centre = np.array([np.median(h[kept[:, k], k]) if kept[:, k].any() else 0.0
+        v = standardize(h, sd)
+        stds = np.array([robust_std(v[kept[:, k], k]) for k in range(h.shape[1])])
+        centre = np.array([np.median(v[kept[:, k], k]) if kept[:, k].any() else 0.0
                            for k in range(h.shape[1])])
         with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.where(stds[None, :] > 0, np.abs(h - centre[None, :]) / stds[None, :], 0.0)
+            z = np.where(stds[None, :] > 0, np.abs(v - centre[None, :]) / stds[None, :], 0.0)
         again = z > THRESHOLD
         if np.array_equal(again, flagged) or not again.any():
             break
         flagged = again
     gross = bool(flagged.any() and float(np.median(z[flagged])) > GROSS)
+    if sd is not None:
+        stds = np.array([robust_std(h[kept[:, k], k]) for k in range(h.shape[1])])
     return stds, gross
 
 

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from symcal.analysis.outlier_passes import find_outliers_passes
+from symcal.analysis.outlier_passes import KeptWeights, find_outliers_passes
 from symcal.analysis.outliers import Outliers
 from symcal.analysis.propagated import (
     Covariances,
@@ -96,14 +96,21 @@ def _check_finite(objective: Objective, data: Source, theta: np.ndarray) -> None
 
 def _outliers(plain: Objective, data: Source, columns: Any, theta: np.ndarray,
               robust: RobustPasses | None, losses: RowLosses | None,
-              solve_again: Callable[[Objective], SolverOutput]) -> Outliers | None:
+              solve_again: Callable[[Objective], SolverOutput],
+              weighted: Objective | None = None) -> Outliers | None:
     """The observations the stage's fit treats as outliers (as ``symcal.solve``'s), by
-    passes; ``solve_again`` solves the stage's objective with per-row weights."""
+    passes; ``solve_again`` solves the stage's objective with per-row weights;
+    ``weighted``, the fit's objective where it is weighted by the propagated covariances
+    (a :class:`~symcal.solvers.weighed.Weighed`): the residuals standardized by each
+    row's propagated standard deviation, the refit weighed as the fit."""
     problem = plain.problem
     quantities = [problem.constraint(n) for n in plain.constraints]
+    weigher = getattr(weighted, "weigher", None)
+    cov = None if weigher is None else covariances(problem, plain.constraints, theta)
 
     def refit(flags: Flags) -> np.ndarray | None:
-        out = solve_again(Weighed.of(plain, Aside(flags)))
+        rows: Any = Aside(flags) if weigher is None else KeptWeights(weigher, flags)
+        out = solve_again(Weighed.of(plain, rows))
         return out.theta if out.success else None
 
     weights = None if robust is None else replace(robust.weights, power=1.0)
@@ -112,7 +119,7 @@ def _outliers(plain: Objective, data: Source, columns: Any, theta: np.ndarray,
         np.array([q.sigma / DISPLAY_UNITS[q.unit] for q in quantities]),
         residual_rows(plain, theta, data.n), data, tuple(problem.columns), weights,
         "squared" if losses is None else "; ".join(losses.texts),
-        time_column(problem, columns), refit)
+        time_column(problem, columns), refit, cov)
 
 
 def run_stage_passes(problem: Problem, stage: Stage, data: Source, sample: Dataset,
@@ -170,11 +177,11 @@ class InPasses:
         return serial_passes(objective, self.data, out)
 
     def outliers(self, objective: Objective, theta: np.ndarray, robust: RobustPasses | None,
-                 losses: RowLosses | None, solve_again: Callable[[Objective], SolverOutput]
-                 ) -> Outliers | None:
+                 losses: RowLosses | None, solve_again: Callable[[Objective], SolverOutput],
+                 weighted: Objective | None = None) -> Outliers | None:
         """Exact medians and spreads by passes."""
         return _outliers(objective, self.data, self.sample.columns, theta, robust, losses,
-                         solve_again)
+                         solve_again, weighted)
 
 
 #: The propagated covariances at a point and their mean variance per constraint.

@@ -50,11 +50,14 @@ Progress = Callable[[str], None] | None
 
 def _outliers(objective: Objective, data: Dataset, theta: np.ndarray,
               weights: np.ndarray | None, losses: RowLosses | None,
-              solve_again: Callable[[Objective], SolverOutput] | None = None
-              ) -> Outliers | None:
+              solve_again: Callable[[Objective], SolverOutput] | None = None,
+              weighted: Objective | None = None) -> Outliers | None:
     """The observations the stage's fit treats as outliers (None where a residual is not
     finite at the estimate); ``solve_again`` solves the stage's objective with per-row
-    weights, for the outliers' noise measured without them."""
+    weights, for the outliers' noise measured without them.  ``weighted``: the fit's
+    objective where it is weighted by the propagated covariances (its rows' ``C_i^-½``):
+    the residuals are then standardized by each row's propagated standard deviation at
+    the estimate, and the refit keeps those weights."""
     problem = objective.problem
     g = objective.residuals(data, theta)
     if not np.all(np.isfinite(g)):
@@ -62,20 +65,30 @@ def _outliers(objective: Objective, data: Dataset, theta: np.ndarray,
     quantities = [problem.constraint(n) for n in objective.constraints]
     time_col = next((c for c, spec in problem.column_specs.items()
                      if spec.role == "time" and c in data.columns), None)
+    sd = None
+    if weighted is not None:
+        cov = row_covariances(problem, objective.constraints, data, theta)
+        sd = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
     return find_outliers(
         data.name, objective.constraints, tuple(q.unit for q in quantities),
         np.array([q.sigma / DISPLAY_UNITS[q.unit] for q in quantities]), g, weights,
         "squared" if losses is None else "; ".join(losses.texts),
         None if time_col is None else np.asarray(data.columns[time_col], dtype=float),
-        None if solve_again is None else _refit(objective, data, solve_again))
+        None if solve_again is None else _refit(objective, data, solve_again, weighted),
+        sd)
 
 
 def _refit(objective: Objective, data: Dataset,
-           solve_again: Callable[[Objective], SolverOutput]) -> Callable[[np.ndarray],
-                                                                          np.ndarray | None]:
-    """The residual rows of the stage solved again with some residuals set aside."""
+           solve_again: Callable[[Objective], SolverOutput],
+           weighted: Objective | None = None) -> Callable[[np.ndarray], np.ndarray | None]:
+    """The residual rows of the stage solved again with some residuals set aside (the
+    rows of ``weighted``'s ``C_i^-½`` of those residuals set to 0 where given)."""
+    base = None if weighted is None else weighted.row_weights
+
     def refit(aside: np.ndarray) -> np.ndarray | None:
-        out = solve_again(objective.with_row_weights((~aside).astype(float)))
+        keep = (~aside).astype(float)
+        factors = keep if base is None else keep[:, :, None] * base
+        out = solve_again(objective.with_row_weights(factors))
         return objective.residuals(data, out.theta) if out.success else None
 
     return refit
@@ -151,10 +164,11 @@ class InMemory:
 
     def outliers(self, objective: Objective, theta: np.ndarray,
                  robust: RobustOutput[np.ndarray] | None, losses: RowLosses | None,
-                 solve_again: Callable[[Objective], SolverOutput]) -> Outliers | None:
+                 solve_again: Callable[[Objective], SolverOutput],
+                 weighted: Objective | None = None) -> Outliers | None:
         """:func:`_outliers`, weighted by the robust solve's final weights."""
         return _outliers(objective, self.data, theta, None if robust is None
-                         else robust.weights, losses, solve_again)
+                         else robust.weights, losses, solve_again, weighted)
 
 
 @dataclass(frozen=True)

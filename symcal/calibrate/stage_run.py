@@ -117,9 +117,12 @@ class StageData(Protocol):
 
     def outliers(self, objective: Objective, theta: np.ndarray,
                  robust: RobustOutput[Any] | None, losses: RowLosses | None,
-                 solve_again: Callable[[Objective], SolverOutput]) -> Outliers | None:
+                 solve_again: Callable[[Objective], SolverOutput],
+                 weighted: Objective | None = None) -> Outliers | None:
         """The observations the fit at ``theta`` treats as outliers; ``solve_again``
-        solves the stage's objective with per-row weights."""
+        solves the stage's objective with per-row weights; ``weighted``, the fit's
+        objective where it is weighted by the propagated covariances (the residuals are
+        then standardized by each row's propagated standard deviation)."""
         ...
 
 
@@ -208,7 +211,9 @@ def run_stage_on(
     def solve_again(weighted: Objective) -> SolverOutput:
         return solve_stage(weighted, data, final.theta, method, None, stage.name, options)[0]
 
-    outliers = held.outliers(plain, out.theta, robust, losses, solve_again)
+    propagated = objective if problem.weighting == "propagated" and objective is not plain \
+        else None
+    outliers = held.outliers(plain, out.theta, robust, losses, solve_again, propagated)
     result = StageResult(
         stage.name, stage.doc, out.method, out.success, out.status, out.message,
         out.iterations, out.seconds, names, _constraint_costs(plain, data, theta, out.theta),

@@ -286,8 +286,9 @@ def outlier_text(outliers: Outliers) -> str | None:
     if outliers.count == 0:
         return None
     n_obs = outliers.rows // max(len(outliers.units), 1)
+    kind = "standardized residual" if outliers.standardized_std is not None else "residual"
     what = (f"{outliers.observations} of {n_obs} observations of {outliers.dataset} have a "
-            f"residual beyond {THRESHOLD:g} robust standard deviations")
+            f"{kind} beyond {THRESHOLD:g} robust standard deviations")
     if outliers.squared:
         carry = f"they carry {outliers.share:.0%} of the cost Σ(g/σ)²"
     else:
@@ -307,6 +308,12 @@ def _outlier_lines(outliers: Outliers) -> list[str]:
                        for name, std in outliers.robust_std.items())
     loss = "squared residuals" if outliers.squared else f"robust loss {outliers.loss}"
     lines = [f"  {loss}; robust standard deviation (1.4826 × MAD) of each residual: {spread}"]
+    if outliers.standardized_std is not None:
+        scaled = ", ".join(f"{name} {std:.3g}"
+                           for name, std in outliers.standardized_std.items())
+        lines.append("  each residual tested over its row's own standard deviation propagated "
+                     "from the readings' noise (as the propagated weighting weighs it); "
+                     f"robust standard deviation of those standardized residuals: {scaled}")
     sentence = outlier_text(outliers)
     if sentence is None:
         lines.append(f"  no residual lies beyond {THRESHOLD:g} robust standard deviations")
@@ -332,6 +339,9 @@ def _outlier_lines(outliers: Outliers) -> list[str]:
                             for name, std in spreads_of.items())
         lines.append(f"  To give these constraints a robust loss ({what}; scale {factor:g} × "
                      f"the {measured}: {spreads}), add to the problem file:")
+        if outliers.standardized_std is not None:
+            lines.append("  (a robust loss replaces the propagated weighting: one scale for "
+                         "rows whose noise differs, so the noisiest are down-weighted too)")
         lines += [f"    {ln}" for ln in remedy_yaml(outliers).splitlines()]
     return lines
 
