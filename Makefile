@@ -1,6 +1,6 @@
 # symcal: `make demo` runs the bundled default calibration, `make test` runs the suite,
-# `make test-fast` the suite without the tests marked slow (about 1 min of CPU on 2 cores;
-# 2 min 49 s measured at load average 5-6 on 2 cores),
+# `make test-fast` the suite without the tests marked slow (about 1 min of CPU; 74 s of
+# wall time on 2 cores at load average 3),
 # `make docs` builds the documentation site into build/site (strict: a broken link, a
 # page missing from the nav or a stale API name fails it).
 # Each target creates .venv and installs what it needs.
@@ -12,6 +12,10 @@ DEMO_DIR := build/demo
 # by threadpoolctl whatever the import order), for the tests' own numpy too.  OpenBLAS's
 # threads made it 2.5x slower on 2 busy cores.
 TEST_ENV := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
+# The suite runs on every core (pytest-xdist; `make test TEST_WORKERS=0` runs it in one
+# process), the longest tests handed out first-come by work stealing.
+TEST_WORKERS ?= auto
+PYTEST := $(TEST_ENV) $(BIN)/python -m pytest -n $(TEST_WORKERS) --dist worksteal
 
 .PHONY: demo test test-fast lint docs bench clean
 
@@ -49,10 +53,10 @@ docs: $(VENV)/.installed-test
 	$(BIN)/mkdocs build --strict
 
 test: lint docs
-	$(TEST_ENV) $(BIN)/python -m pytest
+	$(PYTEST)
 
 test-fast: $(VENV)/.installed-test
-	$(TEST_ENV) $(BIN)/python -m pytest -m "not slow"
+	$(PYTEST) -m "not slow"
 
 bench: $(VENV)/.installed-bench
 	$(BIN)/python benchmarks/run.py

@@ -465,35 +465,31 @@ def test_monte_carlo_detects_the_term_as_often_as_its_mde_says(fifth):
     sees worst), each noise draw calibrated and diagnosed as a user would, counting the
     draws whose diagnosis finds it significant:
 
-    - on the designed motion at its predicted MDE (0.469 um), 100 seeds: about 80 %;
-    - on the designed motion at the target amplitude (0.5 um), 60 seeds: more often (the
-      design leaves the MDE a little below the target: whole observations, the draws of
-      a new n);
-    - on the given motion at the target amplitude, 40 seeds: almost never.
+    - on the designed motion at its predicted MDE (0.469 um), 40 seeds: about 80 %;
+    - on the given motion at the target amplitude, 20 seeds: almost never.
 
     The MDE is discovery.py's: 80 % power by the χ² approximation of its F-test, which is
     what is expected here (0.80 at the MDE, 0.88 at 0.5 um, 0.002 on the given motion;
     the F-test's own power with its residual degrees of freedom is lower: 0.75, 0.85).
-    Measured: 84 of 100 at the MDE, 53 of 60 at 0.5 um, 1 of 40 on the given motion.
-    Bounds: 3 binomial standard deviations around each expected share (at least 2 %)."""
+    Measured (the full run, 200 diagnoses, 163 s of the suite before it was cut to the
+    two counts above): 84 of 100 at the MDE, on the designed motion at the target
+    amplitude 0.5 um 53 of 60 (more often: the design leaves the MDE a little below the
+    target), 1 of 40 on the given motion.  Bounds: 3 binomial standard deviations around
+    each expected share (at least 2 %)."""
     problem, scenario, det, out, _ = fifth
     prediction = predict(det.problem, out.scenario, "calibration")
     n = int(out.after["n"])
     at_mde = with_motion(_hidden(det, prediction, out.mde_after, scenario), "calibration",
                          out.after)
-    found = _detected(problem, at_mde, det.label, range(100, 200))
+    found = _detected(problem, at_mde, det.label, range(100, 140))
     assert _power(det, out.mde_after, out.mde_after) == pytest.approx(0.8)
     assert 0.7 < _power(det, out.mde_after, out.mde_after, n) < 0.8
-    assert _within(found, 100, 0.8), found
-    at_target = with_motion(_hidden(det, prediction, det.value, scenario), "calibration",
-                            out.after)
-    more = _detected(problem, at_target, det.label, range(200, 260))
-    expected_more = _power(det, out.mde_after, det.value)
-    assert expected_more > 0.8 and _within(more, 60, expected_more), (more, expected_more)
+    assert _within(found, 40, 0.8), found
+    assert _power(det, out.mde_after, det.value) > 0.8
     given = _detected(problem, _hidden(det, prediction, det.value, scenario), det.label,
-                      range(100, 140))
+                      range(100, 120))
     expected_given = _power(det, out.mde_before, det.value)
-    assert expected_given < 0.05 and _within(given, 40, expected_given), given
+    assert expected_given < 0.05 and _within(given, 20, expected_given), given
     assert given < found / 4
 
 

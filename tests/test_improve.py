@@ -165,10 +165,16 @@ def test_clean_data_is_quiet_after_the_approximation(tmp_path) -> None:
     assert not diagnose(symcal.solve(IMPLICIT, data)).significant
 
 
+#: Each hidden effect from either start, on one of two seeds (the 12 combinations of two
+#: seeds × three effects × two starts passed on 2026-11-27; the acceptance runner,
+#: benchmarks/acceptance.py, runs such cases on more systems and seeds).
+ONE_EACH = [(71, "harmonic", "explicit"), (72, "harmonic", "implicit"),
+            (72, "drift", "explicit"), (71, "drift", "implicit"),
+            (71, "angle-dependent gain", "implicit"), (72, "angle-dependent gain", "explicit")]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("start", ["explicit", "implicit"])
-@pytest.mark.parametrize("case", list(CASES))
-@pytest.mark.parametrize("seed", [71, 72])
+@pytest.mark.parametrize(("seed", "case", "start"), ONE_EACH)
 def test_one_hidden_effect_is_named_and_fixed(case, start, seed, tmp_path) -> None:
     effects, truth = CASES[case]
     scenario = _scenario(effects)

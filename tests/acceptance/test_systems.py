@@ -238,3 +238,20 @@ def test_tables_count_what_the_records_say() -> None:
         {"name": "mag.drift_t", "z": 4.0}]}}) is False
     [line] = harness.failures([rec])
     assert line.startswith("- `improve` exit 1 (1 runs: magnetometer_drift ×1): internal error")
+
+
+def test_an_aliased_case_may_keep_only_the_models_own_approximation() -> None:
+    """Aliased: nothing kept in the effect's place; the explicit courier model's own
+    approximation (needed on the courier's physics whatever is hidden) is not such a term."""
+    from symcal.revise.diagnose import APPROXIMATION
+
+    case = CASES["dual_spacing_explicit"]
+
+    def rec(added: list[str]) -> dict[str, Any]:
+        return {"improve": {"document": True, "rc": 0, "quiet": True, "at_floor": True,
+                            "rounds": len(added), "added": added}}
+
+    assert harness.meets(case, rec([])) is True
+    assert harness.meets(case, rec([APPROXIMATION])) is True
+    assert harness.meets(case, rec([APPROXIMATION, "cs.c_x += a term linear in psi_x"])) \
+        is False
