@@ -549,3 +549,23 @@ def test_a_log_is_diagnosed_on_its_rows_spread_over_the_whole_log(tmp_path,
     assert sample.n == 400 and np.all(np.diff(t) > 0)
     np.testing.assert_array_equal(t, np.asarray(cols["t"])[::3])
     assert "(one row in 3 of its 1200: 400 rows)" in sample.source
+
+
+@pytest.mark.slow
+def test_estimated_floors_on_shards_equal_those_in_memory(tmp_path) -> None:
+    """A problem that declares no reading noise (the triad: every floor estimated by
+    successive differences) with its calibration log as shards and its validation held
+    out: the held-out test's estimate share takes the floors estimated on the log, found
+    in passes over the shards (the differences across each boundary included), and the
+    whole document equals the in-memory solve's."""
+    triad = ROOT / "examples" / "accelerometer_triad"
+    problem = symcal.load_problem(triad / "problem_fixed.yaml")
+    cols = simulate_run(load_scenario(triad / "scenario.yaml"), "calibration", seed=5)
+    folder = write_shards(tmp_path / "log", cols, "npz", (400, 500, 300))
+    memory = make_dataset("calibration", "memory", cols, needed_columns(problem))
+    sharded = solve_partitioned(problem, folder, executor=SerialExecutor())
+    full = symcal.solve(problem, {"calibration": memory})
+    assert sharded.success and full.success
+    held = next(t for t in full.floor_tests if t.dataset == "validation")
+    assert held.method == "combined" and held.rows        # the estimate's share counted
+    assert differences(sharded.to_dict(), full.to_dict()) == []

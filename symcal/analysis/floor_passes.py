@@ -24,12 +24,17 @@ import numpy as np
 
 from symcal.analysis.floors import (
     DatasetTest,
+    Differences,
+    DifferencesPlan,
     Fit,
     FloorTest,
     RowsPlan,
     RowSums,
     SharePlan,
     _dataset_tests,
+    _entries,
+    difference_variances,
+    differences_plan,
     rows_plan,
     share_finish,
     share_plan,
@@ -58,6 +63,15 @@ class _Rows:
         return self.plan.reduce(piece.dataset(self.plan.dataset))
 
 
+@dataclass(frozen=True)
+class _Diffs:
+    plan: DifferencesPlan
+    name: str
+
+    def __call__(self, piece: Any) -> Differences:
+        return self.plan.reduce(piece.dataset(self.name))
+
+
 def floor_tests_passes(problem: Problem, log: Source, sample: Dataset,
                        held: Mapping[str, Dataset], theta: np.ndarray, fit: Fit,
                        ordered: bool, theta0: np.ndarray | None = None
@@ -68,7 +82,7 @@ def floor_tests_passes(problem: Problem, log: Source, sample: Dataset,
     :func:`~symcal.analysis.floors.floor_tests` gives them on all the data in memory."""
     share = None
     if fit.dataset == log.name and np.any(fit.free):
-        plan = share_plan(problem, fit)
+        plan = share_plan(problem, fit, _log_variances(problem, log, sample, theta, ordered))
         if plan is not None:
             parts = map_pieces(_Share(plan, np.array(theta, dtype=float), log.name), log,
                                 "floor_share")
@@ -83,7 +97,28 @@ def floor_tests_passes(problem: Problem, log: Source, sample: Dataset,
     out = {(log.name, k): v for k, v in found.items()}
     tests = [joint]
     for ds in held.values():
-        more, test = _dataset_tests(problem, ds, theta, fit, share, theta0)
+        entries = _entries(problem, ds)
+        assumed = difference_variances(problem, ds, theta, tuple(entries.names),
+                                       entries.exprs, entries.declared)
+        more, test = _dataset_tests(problem, ds, theta, fit, share, theta0, assumed)
         out.update({(ds.name, k): v for k, v in more.items()})
         tests.append(test)
     return out, tuple(tests)
+
+
+def _log_variances(problem: Problem, log: Source, sample: Dataset, theta: np.ndarray,
+                   ordered: bool) -> dict[str, float]:
+    """The floors squared of the log's entries of undeclared noise, estimated by
+    successive differences in passes over its shards (in their order, the boundaries
+    included), as :func:`~symcal.analysis.floors.difference_variances` gives them in
+    memory: what the estimate's share takes for those constraints."""
+    entries = _entries(problem, sample)
+    if all(entries.declared) or not ordered or log.n < 3:
+        return {}
+    plan = differences_plan(problem, theta, tuple(entries.names), entries.exprs)
+    parts = map_pieces(_Diffs(plan, log.name), log, "floor_differences")
+    total = parts[0]
+    for p in parts[1:]:
+        total = total.join(p)
+    found = total.variances(list(entries.declared))
+    return {n: float(v) for n, v in zip(entries.names, found, strict=True) if not np.isnan(v)}

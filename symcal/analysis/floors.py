@@ -748,26 +748,75 @@ def difference_variances(problem: Problem, ds: Dataset, theta: np.ndarray,
     ``ds`` at ``theta`` (half the mean square of its successive differences), NaN where
     its noise is declared or the rows are not time-ordered: the variances the estimate's
     share is taken with where no noise is declared (one pass over the residuals)."""
-    out = np.full(len(names), np.nan)
     if all(declared) or not time_ordered(problem, ds):
+        return np.full(len(names), np.nan)
+    return differences_plan(problem, theta, names, exprs).reduce(ds).variances(declared)
+
+
+@dataclass(frozen=True)
+class Differences:
+    """The successive differences of a piece of rows: its first and last residual rows,
+    the sum of the squared differences within it, and its number of rows."""
+
+    first: np.ndarray | None
+    last: np.ndarray | None
+    diff2: np.ndarray
+    n: int
+
+    def join(self, later: Differences) -> Differences:
+        """These rows followed by ``later``'s (the difference across the boundary)."""
+        diff2 = (later.diff2 if not len(self.diff2) else self.diff2 if not len(later.diff2)
+                 else self.diff2 + later.diff2)
+        if self.last is not None and later.first is not None:
+            diff2 = diff2 + (later.first - self.last) ** 2
+        return Differences(self.first if self.first is not None else later.first,
+                           later.last if later.last is not None else self.last, diff2,
+                           self.n + later.n)
+
+    def variances(self, declared: list[bool]) -> np.ndarray:
+        """Each undeclared entry's floor squared (half the mean square of the successive
+        differences), NaN where declared."""
+        out = np.full(len(declared), np.nan)
+        for k, known in enumerate(declared):
+            if not known and len(self.diff2) and self.diff2[k] > 0:
+                out[k] = self.diff2[k] / (2.0 * (self.n - 1))
         return out
-    prop = _propagation(problem, ("entries", *names), exprs,
-                        np.zeros(len(problem.parameters), dtype=bool))
-    u = ds.matrix(prop.columns)
-    diff2 = np.zeros(len(names))
-    last: np.ndarray | None = None
-    for part in chunks(ds.n):
-        r = prop.residuals(u, theta, part)
-        if not len(r):
-            continue
-        if last is not None:
-            diff2 += (r[0] - last) ** 2
-        diff2 += np.sum(np.diff(r, axis=0) ** 2, axis=0)
-        last = r[-1]
-    for k, known in enumerate(declared):
-        if not known and diff2[k] > 0:
-            out[k] = diff2[k] / (2.0 * (ds.n - 1))
-    return out
+
+
+@dataclass(frozen=True)
+class DifferencesPlan:
+    """How a piece of rows is reduced to its :class:`Differences` (picklable: a task of a
+    log kept as shards runs it on its own rows)."""
+
+    prop: _Propagation
+    theta: np.ndarray
+
+    def reduce(self, ds: Dataset) -> Differences:
+        """The first and last residual rows of ``ds`` and the sum of its squared
+        successive differences (one pass over its rows)."""
+        u = ds.matrix(self.prop.columns)
+        diff2: np.ndarray = np.zeros(0)
+        first: np.ndarray | None = None
+        last: np.ndarray | None = None
+        for part in chunks(ds.n):
+            r = self.prop.residuals(u, self.theta, part)
+            if not len(r):
+                continue
+            if last is not None:
+                diff2 = diff2 + (r[0] - last) ** 2
+            else:
+                first, diff2 = r[0], np.zeros(r.shape[1])
+            diff2 = diff2 + np.sum(np.diff(r, axis=0) ** 2, axis=0)
+            last = r[-1]
+        return Differences(first, last, diff2, ds.n)
+
+
+def differences_plan(problem: Problem, theta: np.ndarray, names: tuple[str, ...],
+                     exprs: list[ca.SX]) -> DifferencesPlan:
+    """The plan of the successive differences of the entries ``names`` at ``theta``."""
+    return DifferencesPlan(_propagation(problem, ("entries", *names), exprs,
+                                        np.zeros(len(problem.parameters), dtype=bool)),
+                           np.asarray(theta, dtype=float))
 
 
 @dataclass(frozen=True)
@@ -784,14 +833,9 @@ def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray,
     where a fitted constraint reads a column of undeclared noise and ``assumed`` has no
     variance for it (its floor estimated on ``ds``: :func:`difference_variances`)."""
     quantities = [problem.constraint(n) for n in fit.constraints]
-    assumed = assumed or {}
-    undeclared = [k for k, (n, q) in enumerate(zip(fit.constraints, quantities, strict=True))
-                  if problem.undeclared(q.sx)]
-    if any(fit.constraints[k] not in assumed for k in undeclared):
+    known, variances = _assumed_variances(problem, fit, assumed)
+    if not known:
         return None
-    variances = np.full(len(quantities), np.nan)
-    for k in undeclared:
-        variances[k] = assumed[fit.constraints[k]]
     noisy = problem.noisy
     sigma = np.array([q.sigma for q in quantities])
     prop = _propagation(problem, ("share", *fit.constraints),
@@ -969,13 +1013,14 @@ class SharePlan:
     prop: _Propagation
     fit: Fit
     sigma: np.ndarray
+    variances: np.ndarray | None = None   # see _estimate_share's assumed
 
     def sums(self, ds: Dataset, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(A, B)``: ``Σ J_iᵀW_iJ_i`` and ``Σ J_iᵀW_iC_iW_iJ_i`` over the rows of ``ds``."""
         n_p = self.prop.n_p
         a, b = np.zeros((n_p, n_p)), np.zeros((n_p, n_p))
         for _, _, lmat, jac in self.prop.rows(ds, theta):
-            c = np.einsum("mae,mbe->mab", lmat, lmat)
+            c = _assume(np.einsum("mae,mbe->mab", lmat, lmat), self.variances)
             w = _weights(self.fit, c, self.sigma)
             wj = np.einsum("mab,mbp->map", w, jac)
             a += np.einsum("map,maq->pq", jac, wj)
@@ -983,15 +1028,36 @@ class SharePlan:
         return a, b
 
 
-def share_plan(problem: Problem, fit: Fit) -> SharePlan | None:
+def share_plan(problem: Problem, fit: Fit, assumed: Mapping[str, float] | None = None
+               ) -> SharePlan | None:
     """The plan of the estimate's share, as :func:`_estimate_share` sums it (None where a
-    fitted constraint reads a column of undeclared noise)."""
+    fitted constraint reads a column of undeclared noise and ``assumed`` has no variance
+    for it)."""
     quantities = [problem.constraint(n) for n in fit.constraints]
-    if any(problem.undeclared(q.sx) for q in quantities):
+    known, variances = _assumed_variances(problem, fit, assumed)
+    if not known:
         return None
     noisy = problem.noisy
     prop = _Propagation(problem, [noisy.constraint(n).sx for n in fit.constraints], fit.free)
-    return SharePlan(prop, fit, np.array([q.sigma for q in quantities]))
+    return SharePlan(prop, fit, np.array([q.sigma for q in quantities]), variances)
+
+
+def _assumed_variances(problem: Problem, fit: Fit, assumed: Mapping[str, float] | None
+                       ) -> tuple[bool, np.ndarray | None]:
+    """Whether every fitted constraint has a variance (declared, or in ``assumed``: its
+    floor estimated on the fitted rows), and those of the undeclared ones (NaN for the
+    others; None where every one is declared)."""
+    assumed = assumed or {}
+    undeclared = [k for k, n in enumerate(fit.constraints)
+                  if problem.undeclared(problem.constraint(n).sx)]
+    if not undeclared:
+        return True, None
+    if any(fit.constraints[k] not in assumed for k in undeclared):
+        return False, None
+    variances = np.full(len(fit.constraints), np.nan)
+    for k in undeclared:
+        variances[k] = assumed[fit.constraints[k]]
+    return True, variances
 
 
 def share_finish(a: np.ndarray, b: np.ndarray) -> _Estimate:

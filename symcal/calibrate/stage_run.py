@@ -303,12 +303,8 @@ def _propagated(
                          f"not succeed ({second.message}); kept the estimate weighted at "
                          "the start")
             second, when = first, "at the start"
-    merged = SolverOutput(
-        second.theta, second.free, second.method, second.success, second.status,
-        second.message + "; weighted by the covariance propagated from the readings' noise",
-        second.r_factor, second.rows, second.rss,
-        first.iterations + (second.iterations if second is not first else 0),
-        first.seconds + (second.seconds if second is not first else 0.0))
+    merged = _chained(first, second,
+                      "; weighted by the covariance propagated from the readings' noise")
     floor = weights.floor(second.theta, again, second is first)
     sizes = []
     for k, name in enumerate(plain.constraints):
@@ -319,6 +315,17 @@ def _propagated(
             f"propagated from the readings' declared noise, {when} (noise floor "
             f"{', '.join(sizes)})")
     return weighted, merged, [*notes, note]
+
+
+def _chained(first: SolverOutput, second: SolverOutput, how: str) -> SolverOutput:
+    """The second solve's output (``how`` added to its message), counting the iterations
+    and time of both (once where the second is the first)."""
+    again = second is not first
+    return SolverOutput(
+        second.theta, second.free, second.method, second.success, second.status,
+        second.message + how, second.r_factor, second.rows, second.rss,
+        first.iterations + (second.iterations if again else 0),
+        first.seconds + (second.seconds if again else 0.0))
 
 
 def _reweighted(
@@ -334,11 +341,7 @@ def _reweighted(
     whitened = Objective(objective.problem, objective.constraints, objective.free,
                          whitening(cov)[0])
     second, _ = solve_stage(whitened, data, first.theta, method, progress, label, options)
-    merged = SolverOutput(
-        second.theta, second.free, second.method, second.success, second.status,
-        second.message + "; weighted by the estimated covariance of the constraints",
-        second.r_factor, second.rows, second.rss, first.iterations + second.iterations,
-        first.seconds + second.seconds)
+    merged = _chained(first, second, "; weighted by the estimated covariance of the constraints")
     problem = objective.problem
     sizes = []
     for k, name in enumerate(objective.constraints):

@@ -223,7 +223,8 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
     local = _ident(basis.variable.replace(f"{instance}.", ""))
     if basis.other:
         local += "_" + _ident(basis.other.replace(f"{instance}.", ""))
-    tag = _TAGS[basis.kind] + (str(basis.order) if basis.kind == "harmonic" else "")
+    tag = _TAGS[basis.kind] + (str(basis.order) if basis.kind == "harmonic" or (
+        basis.kind == "angle_harmonic" and basis.order > 1) else "")
     if basis.angle:
         tag += "_" + _ident(basis.angle.replace(f"{instance}.", ""))
     tag += "_" + local

@@ -10,7 +10,8 @@ it (``candidates:`` on the instance, the model, or the problem: ``declared``).
 **The shapes** on each output of the instance: a harmonic of a periodic variable (orders 1
 to :data:`HARMONICS`), a term linear in a variable, a quadratic, a drift in time, the
 product of two of the instance's variables (tested beyond the two linear terms it
-contains: it is tried after them), an angle times a harmonic.  Besides terms on outputs:
+contains: it is tried after them), an angle times a harmonic (the orders of the plain
+harmonics).  Besides terms on outputs:
 
 - **latency**: an instance's readings stamped late by a constant delay τ, the term
   ``τ·Σ_j ∂r/∂c_j · dc_j/dt`` over the columns it reads, where the rows are time-ordered
@@ -228,14 +229,24 @@ def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shap
         for a in angles:
             for v in periodic:
                 period = float(v.period or 1.0)
-                w_ = 2 * np.pi / period
-                out.append(_Shape(Basis(
-                    "angle_harmonic", v.name, f"the angle {a.name} times harmonic 1 of {v.name}",
-                    ("ah_sin", "ah_cos"),
-                    ("{a}*sin(2*pi*{v}/{period})", "{a}*cos(2*pi*{v}/{period})"), a.name,
-                    unit=v.unit, angle_unit=a.unit, period=period),
-                    _angle_harmonic(a.name, v.name, w_)))
+                for n in space.harmonics:
+                    out.append(_Shape(Basis(
+                        "angle_harmonic", v.name,
+                        f"the angle {a.name} times harmonic {n} of {v.name}",
+                        *_angle_columns(n), a.name, order=n,
+                        unit=v.unit, angle_unit=a.unit, period=period),
+                        _angle_harmonic(a.name, v.name, 2 * np.pi * n / period)))
     return out
+
+
+def _angle_columns(n: int) -> tuple[tuple[str, str], tuple[str, str]]:
+    """The coefficient names and YAML terms of the angle times harmonic ``n`` (order 1
+    keeps its first names, ``ah_sin``, ``ah_cos``)."""
+    tag = "ah" if n == 1 else f"ah{n}"
+    factor = "2" if n == 1 else str(2 * n)
+    return ((f"{tag}_sin", f"{tag}_cos"),
+            (f"{{a}}*sin({factor}*pi*{{v}}/{{period}})",
+             f"{{a}}*cos({factor}*pi*{{v}}/{{period}})"))
 
 
 def _harmonic(name: str, w: float) -> Callable[[Block], np.ndarray]:
