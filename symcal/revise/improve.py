@@ -36,7 +36,7 @@ from symcal.revise.watch import Watch, design_hint, new_parameters, wald, watch
 
 #: How many of the leading candidates are tried in a round before giving up.
 TRIES = 3
-#: A held-out reference comparison may get worse by at most this fraction.
+#: A reference comparison may get worse by at most this fraction.
 WORSE = 0.10
 #: How many members of a group of indistinguishable candidates are tried.
 GROUP = DIAGNOSED
@@ -151,8 +151,8 @@ def _pays(new: Result, old: Result, alpha: float,
     falls, the new term's coefficients are not zero within their noise (a Wald test at
     ``alpha``), the held-out constraint residuals fall (on average), no existing
     parameter becomes much less determined (:data:`INFLATION`) while the old model was
-    already at its noise floor, and no held-out reference comparison gets worse by more
-    than :data:`WORSE`."""
+    already at its noise floor, and no reference comparison (the fit never uses one, on
+    the fitted dataset too) gets worse by more than :data:`WORSE`."""
     if not new.success:
         return "the solve failed"
     if new.bic >= old.bic:
@@ -169,8 +169,8 @@ def _pays(new: Result, old: Result, alpha: float,
     inflated = _inflated(new, old, physical) if old.at_floor is not False else None
     if inflated:
         return inflated
-    for s in new.statistics:
-        if s.dataset != new.problem.fit_dataset and s.kind == "comparison":
+    for s in new.statistics:       # a reference is no part of the fit, on any dataset
+        if s.kind == "comparison":
             before = _spread(old, s.name, s.dataset)
             if before and s.after.std > (1 + WORSE) * before:
                 return (f"{s.dataset} {s.name} against the reference gets worse "
