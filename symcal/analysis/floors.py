@@ -855,12 +855,7 @@ def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray,
     for da, db in default_executor(ds.n).map(piece, chunks(ds.n)):   # in order
         a += da
         b += db
-    if n_p == 0:
-        return _Estimate(a, b)
-    vals, vecs = np.linalg.eigh(a)
-    keep = vals > 1e-10 * max(float(vals.max(initial=0.0)), 1e-300)
-    a_pinv = (vecs[:, keep] / vals[keep]) @ vecs[:, keep].T
-    return _Estimate(a_pinv, a_pinv @ b @ a_pinv)
+    return share_finish(a, b)
 
 
 @dataclass(frozen=True)
