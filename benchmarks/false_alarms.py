@@ -30,6 +30,7 @@ from symcal.data.dataset import make_dataset  # noqa: E402
 from symcal.simulation import Scenario, load_scenario, simulate_run  # noqa: E402
 
 BATH = ROOT / "tests" / "data" / "bath"
+ACCEPTANCE = ROOT / "tests" / "acceptance"
 
 
 def _bath_declared() -> Path:
@@ -58,6 +59,14 @@ SYSTEMS: dict[str, Callable[[], tuple[Path, Scenario, tuple[str, ...]]]] = {
     "accelerometer triad": lambda: (
         ROOT / "examples" / "accelerometer_triad" / "problem_fixed.yaml",
         load_scenario(ROOT / "examples" / "accelerometer_triad" / "scenario.yaml"),
+        ("calibration", "validation")),
+    "two NTC thermistors in one bath (noise 1-25 mK across the range)": lambda: (
+        ACCEPTANCE / "thermistor_bath" / "problem.yaml",
+        load_scenario(ACCEPTANCE / "thermistor_bath" / "scenario.yaml"),
+        ("calibration", "validation")),
+    "magnetometer tumbled by hand": lambda: (
+        ACCEPTANCE / "magnetometer" / "problem.yaml",
+        load_scenario(ACCEPTANCE / "magnetometer" / "scenario.yaml"),
         ("calibration", "validation")),
     "differential drive": lambda: (
         ROOT / "examples" / "diff_drive" / "problem_fixed.yaml",
