@@ -70,6 +70,12 @@ CLEAN = {
 ALARMS = 11
 
 
+def _most(seeds: int, level: float = 0.05) -> int:
+    """The most false alarms of ``seeds`` a decision at ``level`` may give: its level plus
+    three binomial standard deviations (11 of 100, 8 of 60)."""
+    return int(level * seeds + 3 * np.sqrt(seeds * level * (1 - level)))
+
+
 def _alarms(problem, scenario, runs, seeds) -> tuple[int, dict[str, int]]:
     """How many seeds' results are not at the floor (``at_floor`` False), and how many
     times each dataset was off its own 95 % band."""
@@ -122,9 +128,10 @@ def test_an_estimated_floor_is_at_its_nominal_level_on_clean_data(tmp_path) -> N
     """Clean courier data (the implicit platen model is exact on it) and models that
     declare no noise: every floor is estimated by successive differences, and its band is
     the one of the ratio it is (the spread over a floor estimated from the same rows),
-    not a known floor's.  100 seeds (7000-7099): at_floor is False in about 5 %.
+    not a known floor's.  60 seeds (7000-7059): at_floor is False in about 5 %.
 
-    Measured on these 100 seeds: 4 False; the calibration off its own band 5 times (3
+    Measured on seeds 7000-7099 (the test ran 100 of them until it was cut to 60 for the
+    suite's time): 4 False; the calibration off its own band 5 times (3
     above, 2 below), the fly-by 8 times (1 above, 7 below).  The held-out fly-by's test
     counts the estimate's error in its residual (smooth along the line, which successive
     differences do not see), with the estimate's covariance from the floors estimated on
@@ -133,7 +140,7 @@ def test_an_estimated_floor_is_at_its_nominal_level_on_clean_data(tmp_path) -> N
     (benchmarks/FALSE_ALARMS.md).  The fly-by's 7 below, above its nominal 2.5 %, says the
     share is somewhat overstated here, where the constraints share readings.  Over 200
     seeds (7000-7199) with the earlier test: 14 False (7 %; the normal band before that:
-    30, 15 %).  Bound: nominal plus 3 binomial σ (11)."""
+    30, 15 %).  Bound: nominal plus 3 binomial σ (8 of 60)."""
     problems = _undeclared(tmp_path)
     problem = symcal.load_problem(problems / "platen_self_calibration_implicit.yaml")
     scenario = load_scenario(SCENARIOS / "courier_platen_clean.yaml")
@@ -142,8 +149,8 @@ def test_an_estimated_floor_is_at_its_nominal_level_on_clean_data(tmp_path) -> N
     assert {s.noise.method for s in result.statistics if s.noise is not None} == {
         "successive differences"}
     false, off = _alarms(problem, scenario, {"calibration": "calibration", "flyby": "flyby"},
-                         range(7000, 7100))
-    assert false <= ALARMS, (false, off)
+                         range(7000, 7060))
+    assert false <= _most(60), (false, off)
 
 
 @pytest.mark.slow
