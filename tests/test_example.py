@@ -58,7 +58,8 @@ def test_walkthrough(capsys, tmp_path, monkeypatch) -> None:
     fly_basic, fly_revised = map(float, rows["flyby g_p std"])
     assert fly_revised < 0.6 * fly_basic
     assert float(rows["BIC"][1]) < float(rows["BIC"][0]) - 100
-    for line in ("calibration g_p std (µm)               1.928                0.9606",
+    for line in ("BIC (calibration)                     1518.3                 133.7",
+                 "calibration g_p std (µm)               1.928                0.9606",
                  "flyby g_p std (µm)                     2.083                 1.033"):
         assert line in out and line in readme
     # and nothing significant is left

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from symcal.analysis.fit import SeriesStats, Spread
-from symcal.analysis.floors import DatasetTest, at_floor, family_document
+from symcal.analysis.floors import PROPAGATED, DatasetTest, at_floor, family_document
 from symcal.analysis.gauges import GaugeAnalysis
 from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
 from symcal.analysis.implicit import ImplicitCheck
@@ -505,7 +505,18 @@ class Result:
 
     @property
     def rss(self) -> float:
-        """The last stage's cost Σ (g/σ)²."""
+        """The calibration fit's residual sum of squares, as the information criteria take
+        it: where the weights are propagated from the readings' declared noise, the fitted
+        dataset's χ² at the estimate (each row's residual whitened by its propagated
+        covariance, the weighting the fit minimises); otherwise the last stage's cost
+        Σ (g/σ)².  Two revisions whose rows differ in noise are then compared by how
+        well they fit each row against its own noise, not by their noisiest rows."""
+        if self.problem.weighting == "propagated":
+            fit = self.problem.fit_dataset
+            chi2 = next((t.chi2 for t in self.floor_tests if t.dataset == fit
+                         and t.method == PROPAGATED and t.chi2 is not None), None)
+            if chi2 is not None:
+                return float(chi2)
         return float(self.stages[-1].cost_after)
 
     @property
