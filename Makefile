@@ -1,6 +1,6 @@
 # symcal: `make demo` runs the bundled default calibration, `make test` runs the suite,
-# `make test-fast` the suite without the tests marked slow (about 1 min of CPU; 74 s of
-# wall time on 2 cores at load average 3),
+# `make test-fast` the suite without the tests marked slow (about 1 min of CPU; 26 s of
+# wall time on 2 idle cores, 74 s at load average 3),
 # `make docs` builds the documentation site into build/site (strict: a broken link, a
 # page missing from the nav or a stale API name fails it).
 # Each target creates .venv and installs what it needs.
