@@ -96,6 +96,12 @@ def test_aic_bic_on_the_result_and_in_the_ladder(project) -> None:
         assert res.aic == pytest.approx(n * np.log(res.rss / n) + 2 * k)
         assert res.bic == pytest.approx(n * np.log(res.rss / n) + k * np.log(n))
         assert (rung.aic, rung.bic) == (res.aic, res.bic)
+        # propagated weights (the bundled default): the RSS is the fitted dataset's χ²,
+        # each row whitened by its own propagated covariance, not the plain Σ(g/σ)²
+        assert res.problem.weighting == "propagated"
+        fit = next(t for t in res.floor_tests if t.dataset == res.problem.fit_dataset)
+        assert fit.method == "propagated" and res.rss == fit.chi2
+        assert res.rss != pytest.approx(res.stages[-1].cost_after, rel=1e-3)
 
 
 def test_a_changed_base_of_an_overlay_makes_the_result_stale(project, tmp_path) -> None:
