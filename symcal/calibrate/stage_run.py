@@ -19,7 +19,7 @@ dataset itself in memory).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any, Protocol, TypeVar
 
@@ -306,15 +306,20 @@ def _propagated(
     merged = _chained(first, second,
                       "; weighted by the covariance propagated from the readings' noise")
     floor = weights.floor(second.theta, again, second is first)
-    sizes = []
-    for k, name in enumerate(plain.constraints):
-        q = problem.constraint(name)
-        sizes.append(f"{name} {floor[k] * q.sigma / DISPLAY_UNITS[q.unit]:.3g} "
-                     f"{symbol(q.unit)}")
     note = ("weighting: each observation's constraints whitened by their covariance "
             f"propagated from the readings' declared noise, {when} (noise floor "
-            f"{', '.join(sizes)})")
+            f"{_sizes(problem, plain.constraints, floor)})")
     return weighted, merged, [*notes, note]
+
+
+def _sizes(problem: Problem, names: Sequence[str], scaled: np.ndarray) -> str:
+    """``name size unit, ...``: each constraint's spread (``scaled``, in units of its
+    scale σ) in its display unit."""
+    out = []
+    for k, name in enumerate(names):
+        q = problem.constraint(name)
+        out.append(f"{name} {scaled[k] * q.sigma / DISPLAY_UNITS[q.unit]:.3g} {symbol(q.unit)}")
+    return ", ".join(out)
 
 
 def _chained(first: SolverOutput, second: SolverOutput, how: str) -> SolverOutput:
@@ -342,15 +347,10 @@ def _reweighted(
                          whitening(cov)[0])
     second, _ = solve_stage(whitened, data, first.theta, method, progress, label, options)
     merged = _chained(first, second, "; weighted by the estimated covariance of the constraints")
-    problem = objective.problem
-    sizes = []
-    for k, name in enumerate(objective.constraints):
-        q = problem.constraint(name)
-        sizes.append(f"{name} {np.sqrt(cov[k, k]) * q.sigma / DISPLAY_UNITS[q.unit]:.3g} "
-                     f"{q.unit or '(internal)'}")
     note = ("weighting: solved with equal weights, then again with each observation's "
             "constraints whitened by their covariance estimated from those residuals "
-            f"(residual std {', '.join(sizes)})")
+            f"(residual std "
+            f"{_sizes(objective.problem, objective.constraints, np.sqrt(np.diag(cov)))})")
     return whitened, merged, note
 
 
