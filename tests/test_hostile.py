@@ -27,7 +27,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from symcal.base import files
-from symcal.base.errors import SymcalError
+from symcal.base.errors import SpecError, SymcalError
 from symcal.cli import main
 from symcal.data.dataset import Table, read_table
 from symcal.language.yamlio import MAX_BYTES, load_yaml
@@ -141,6 +141,26 @@ def test_yaml_scalars_follow_the_core_schema(tmp_path: Path, text: str, value: o
     (tmp_path / "x.yaml").write_text(f"a: {text}\n")
     doc, _ = load_yaml(tmp_path / "x.yaml")
     assert doc["a"] == value and type(doc["a"]) is type(value)
+
+
+def test_a_file_parsed_once_is_handed_out_as_a_copy_and_read_again(tmp_path: Path) -> None:
+    """Documents are parsed once per process by (source, text): a caller that changes
+    its copy changes no other's, an edited file is parsed again, and a file that failed
+    to parse is not remembered once it is fixed."""
+    path = tmp_path / "x.yaml"
+    path.write_text("a: {b: [1, 2]}\n")
+    first, _ = load_yaml(path)
+    first["a"]["b"].append(3)
+    first["c"] = 4
+    second, _ = load_yaml(path)
+    assert second == {"a": {"b": [1, 2]}} and second["a"].line == 1
+    path.write_text("a: {b: [5]}\n")
+    assert load_yaml(path)[0] == {"a": {"b": [5]}}
+    path.write_text("a: [\n")
+    with pytest.raises(SpecError, match="invalid YAML"):
+        load_yaml(path)
+    path.write_text("a: 1\n")
+    assert load_yaml(path)[0] == {"a": 1}
 
 
 def test_exponent_numbers_work_as_parameter_values(toy: Path, capsys) -> None:
@@ -1038,7 +1058,7 @@ def test_a_scheduler_address_that_does_not_speak_dask_is_refused(toy: Path,
 
 def test_workers_are_bounded_by_the_cores(toy: Path, capsys, monkeypatch) -> None:
     _fleet(toy)
-    monkeypatch.setattr("symcal.solvers.executor.usable_cores", lambda: 2)
+    monkeypatch.setattr("symcal.base.cores.usable_cores", lambda: 2)
     code, _, err = _run(["solve", "prob.yaml", "--fleet", "units", "--workers", "30"], capsys)
     assert code == 2
     assert err == ("symcal: error: --workers 30: at most 2 on this machine (one worker "

@@ -128,3 +128,28 @@ def test_a_mapped_function_is_safe_to_share_between_threads(dual) -> None:
         w.join()
     for k in range(4):
         np.testing.assert_array_equal(got[k], alone[k])
+
+
+def test_a_chunk_split_over_the_cores_equals_the_serial_chunk(dual, monkeypatch) -> None:
+    """Outside the pass threads a chunk's rows are split over the cores by CasADi's
+    threaded map; every row is the same code, so the result is the serial one bit for
+    bit.  Inside a pass thread nothing is split again (threads never multiply)."""
+    from symcal.base import numeric
+    from symcal.base.cores import inner_threads
+
+    _, data, _, _, theta = dual
+    serial, _ = _pair(dual)
+    fn = serial._mapped("linearised", [serial.g, serial.jac.T])
+    assert fn.fn.n_instructions() * 4096 >= numeric.SPLIT_WORK
+    u = data.matrix(serial.problem.columns)[:, :4000]
+    monkeypatch.setenv("SYMCAL_THREADS", "1")
+    alone = [x.copy() for x in fn(theta, u)]
+    monkeypatch.setenv("SYMCAL_THREADS", "2")
+    assert inner_threads() == 2
+    split = fn(theta, u)
+    assert (4096, 2) in fn._maps       # the threaded form was the one evaluated
+    assert fn._maps[(4096, 2)].class_name() == "ThreadMap"
+    for a, b in zip(alone, split, strict=True):
+        np.testing.assert_array_equal(a, b)
+    seen = ex.threads(2).map(lambda _: inner_threads(), range(4))
+    assert list(seen) == [1, 1, 1, 1]

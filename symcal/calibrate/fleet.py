@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from symcal.base.cores import mark_pool_thread, usable_cores
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, SymcalError, excerpt
 from symcal.base.files import display_path
@@ -39,7 +40,6 @@ from symcal.calibrate.solve import solve
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
 from symcal.solvers.dask_executor import DaskExecutor
-from symcal.solvers.executor import usable_cores
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -315,7 +315,9 @@ def _tasks(problem: Problem, units: list[Unit], data: Mapping[str, str | Path],
 
 def solve_units(tasks: tuple[UnitTask, ...]) -> list[dict[str, Any]]:
     """Solve a batch of units one after the other (one Dask task): their outcomes as
-    :func:`solve_unit` gives them, in order."""
+    :func:`solve_unit` gives them, in order.  The worker's thread is one of its pass
+    threads: a unit's evaluations are not split again."""
+    mark_pool_thread()
     return [solve_unit(task) for task in tasks]
 
 

@@ -36,6 +36,7 @@ from symcal.analysis.fit import SeriesStats, Spread, series_statistics
 from symcal.analysis.floor_passes import floor_tests_passes
 from symcal.analysis.implicit import ImplicitCheck, implicit_checks
 from symcal.analysis.serial_passes import time_ordered_passes
+from symcal.base.cores import thread_count
 from symcal.base.errors import DataError
 from symcal.base.options import SolveOptions
 from symcal.base.progress import Bars, Meter, reporting
@@ -60,14 +61,7 @@ from symcal.data.loading import load_datasets, needed_columns
 from symcal.data.shards import ShardedDataset, open_shards
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
-from symcal.solvers.executor import (
-    Executor,
-    SerialExecutor,
-    current,
-    thread_count,
-    threads,
-    using,
-)
+from symcal.solvers.executor import Executor, SerialExecutor, current, threads, using
 
 if TYPE_CHECKING:
     from distributed import Client

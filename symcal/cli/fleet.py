@@ -69,7 +69,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         raise SymcalError(f"--workers {args.workers}: must be at least 1")
     if args.scheduler is not None and args.workers is not None:
         raise SymcalError("--workers applies to the local cluster, not with --scheduler")
-    from symcal.solvers.executor import usable_cores
+    from symcal.base.cores import usable_cores
 
     cores = usable_cores()
     if args.workers is not None and args.workers > cores:

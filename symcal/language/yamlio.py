@@ -22,6 +22,7 @@ UTF-8 in a regular file, nested at most :data:`MAX_NESTING` levels, and at most
 
 from __future__ import annotations
 
+import copy
 import re
 from pathlib import Path
 from typing import Any
@@ -195,8 +196,25 @@ _Loader.add_constructor("tag:yaml.org,2002:float", _construct_float)
 _core_schema()
 
 
+#: Documents parsed in this process, by (source, text): a loop that loads revisions of one
+#: problem (``improve``: each revision extends the last and shares its model files) parses
+#: each file once.  A copy is handed out, so no caller sees another's changes.
+_PARSED: dict[tuple[str, str], Any] = {}
+#: At most this many documents are kept (the oldest go first).
+PARSED_KEPT = 256
+
+
 def _parse(text: str, source: str) -> Any:
     """One YAML document, its keys and items marked as written by ``source``."""
+    key = (source, text)
+    if key not in _PARSED:
+        _PARSED[key] = _parse_now(text, source)   # a failure raises: nothing is kept
+        while len(_PARSED) > PARSED_KEPT:
+            del _PARSED[next(iter(_PARSED))]
+    return copy.deepcopy(_PARSED[key])
+
+
+def _parse_now(text: str, source: str) -> Any:
     loader = _Loader(text)
     loader.source = source
     try:

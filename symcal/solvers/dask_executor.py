@@ -12,20 +12,23 @@ from __future__ import annotations
 
 import concurrent.futures
 import contextlib
+import functools
 import logging
 from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from symcal.base.cores import mark_pool_thread, usable_cores
 from symcal.base.errors import SymcalError, excerpt
-from symcal.solvers.executor import usable_cores
 
 if TYPE_CHECKING:
     from distributed import Client
 
 T = TypeVar("T")
 
-#: Environment of the embedded cluster's workers: one BLAS thread each.
-WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+#: Environment of the embedded cluster's workers: one BLAS thread and one symcal thread
+#: each (a worker process is one core's worth: its passes and evaluations stay serial).
+WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+              "SYMCAL_THREADS": "1"}
 #: Seconds a scheduler address has to connect and answer Dask's handshake and an
 #: ``identity`` request; an address that listens but does not speak Dask (an HTTP server, a
 #: silent port) is refused after this.
@@ -55,7 +58,7 @@ class DaskExecutor:
         items = list(pieces)
         if not items:
             return iter(())
-        futures = self.client.map(task, items, pure=False)
+        futures = self.client.map(functools.partial(_pool_task, task), items, pure=False)
         return self._gather(futures)
 
     @staticmethod
@@ -69,6 +72,13 @@ class DaskExecutor:
 
     def __repr__(self) -> str:
         return f"DaskExecutor({self.client!r})"
+
+
+def _pool_task(task: Callable[[Any], T], piece: Any) -> T:
+    """``task(piece)`` on a worker's thread, marked as a pass thread: the worker's
+    threads are its parallelism, an evaluation is not split again."""
+    mark_pool_thread()
+    return task(piece)
 
 
 @contextlib.contextmanager

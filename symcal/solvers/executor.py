@@ -41,6 +41,7 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, ParamSpec, Protocol, TypeVar
 
+from symcal.base.cores import mark_pool_thread, thread_count
 from symcal.base.errors import SymcalError
 
 T = TypeVar("T")
@@ -98,7 +99,8 @@ class ThreadExecutor:
     def _get_pool(self) -> ThreadPoolExecutor:
         with self._lock:
             if self._pool is None:
-                self._pool = ThreadPoolExecutor(self.workers, "symcal-pass")
+                self._pool = ThreadPoolExecutor(self.workers, "symcal-pass",
+                                                initializer=mark_pool_thread)
             return self._pool
 
     def map(self, task: Callable[[Any], T], pieces: Iterable[Any]) -> Iterator[T]:
@@ -120,29 +122,6 @@ class ThreadExecutor:
 
     def __repr__(self) -> str:
         return f"ThreadExecutor({self.workers})"
-
-
-def usable_cores() -> int:
-    """Cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
-def thread_count() -> int:
-    """Threads of an in-memory pass: ``SYMCAL_THREADS`` if set, else the usable cores."""
-    text = os.environ.get("SYMCAL_THREADS", "").strip()
-    if not text:
-        return usable_cores()
-    try:
-        value = int(text)
-    except ValueError:
-        raise SymcalError(f"SYMCAL_THREADS must be a whole number of threads, not "
-                          f"'{text}'") from None
-    if value < 1:
-        raise SymcalError(f"SYMCAL_THREADS must be at least 1, not {value}")
-    return value
 
 
 _SERIAL = SerialExecutor()
