@@ -120,6 +120,24 @@ def test_each_unit_equals_its_local_solve(fleet, result) -> None:
     assert {d.name: d.file for d in result.results["b_npz"].provenance}["flyby"] is None
 
 
+def test_a_units_document_is_what_json_gives_back(fleet) -> None:
+    """A unit's document (made without writing JSON text) equals its result's
+    ``symcal solve --json`` document read back, to the type; an odd document too."""
+    from symcal.base.files import json_text
+    from symcal.calibrate.fleet import _clean, _document
+
+    fleet_dir, _ = fleet
+    local = symcal.solve(PROBLEM, _local(fleet_dir, "a_csv"))
+    doc = _document(local)
+    back = json.loads(json_text(local.to_dict()))
+    assert doc == back
+    assert json.dumps(doc, sort_keys=True) == json.dumps(back, sort_keys=True)
+    odd = {2: (np.float64(2.5), float("nan")), True: {None: [float("-inf")]}, "a": 3}
+    assert _clean(odd) == json.loads(json.dumps(odd).replace("NaN", "null")
+                                     .replace("-Infinity", "null"))
+    assert type(_clean(odd)["2"][0]) is float
+
+
 @pytest.mark.slow
 def test_units_recover_their_own_truth(result, fleet) -> None:
     _, truths = fleet

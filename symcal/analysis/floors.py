@@ -32,6 +32,7 @@ Rows are evaluated chunk by chunk; nothing of size N × (residuals × readings) 
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
@@ -100,10 +101,12 @@ def _chi2_density(x: float, nu: float) -> float:
     return math.exp((k - 1.0) * math.log(x) - x / 2.0 - k * math.log(2.0) - math.lgamma(k))
 
 
+@functools.lru_cache(maxsize=4096)
 def chi2_quantile(p: float, nu: float) -> float:
     """The ``p`` quantile of χ²_ν, to 1e-12 relative (SciPy is not needed for a solve):
     Newton's method on the distribution function from the Wilson–Hilferty
-    approximation, kept inside a bracket (bisection where a step leaves it)."""
+    approximation, kept inside a bracket (bisection where a step leaves it).  Kept per
+    (p, ν): a result's bands are asked for again by its report and its document."""
     if nu <= 0:
         return 0.0
     lo, hi = 0.0, max(nu, 1.0)

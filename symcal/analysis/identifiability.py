@@ -111,10 +111,7 @@ class Uncertainty:
 
     def to_dict(self) -> dict:
         """Plain-data form (correlation with None where undefined)."""
-        corr = [[None if not np.isfinite(v) else float(v) for v in row] for row in
-                self.correlation]
-        cov = [[None if not np.isfinite(v) else float(v) for v in row] for row in
-               self.covariance]
+        corr, cov = _rows(self.correlation), _rows(self.covariance)
         return {"residual_variance": self.residual_variance, "dof": self.dof,
                 "se": dict(self.se), "reason": dict(self.reason),
                 "correlation": {"names": list(self.names), "matrix": corr},
@@ -125,13 +122,21 @@ class Uncertainty:
         """Inverse of :meth:`to_dict`."""
         names = tuple(doc["correlation"]["names"])
 
-        def matrix(rows: list) -> np.ndarray:
-            return np.array([[np.nan if v is None else v for v in row] for row in rows],
-                            dtype=float).reshape(len(names), len(names))
+        def matrix(rows: list) -> np.ndarray:     # None (not finite) becomes NaN
+            return np.array(rows, dtype=float).reshape(len(names), len(names))
 
         return cls(_float(doc["residual_variance"]), doc["dof"], names, dict(doc["se"]),
                    dict(doc["reason"]), matrix(doc["covariance"]),
                    matrix(doc["correlation"]["matrix"]))
+
+
+def _rows(matrix: np.ndarray) -> list[list[float | None]]:
+    """A matrix as lists of floats, None where it is not finite (converted in numpy: a
+    fleet's document holds one per unit)."""
+    out = np.asarray(matrix, dtype=float).astype(object)
+    out[~np.isfinite(np.asarray(matrix, dtype=float))] = None
+    rows: list[list[float | None]] = out.tolist()
+    return rows
 
 
 def _float(value: float | None) -> float:
