@@ -293,3 +293,35 @@ def test_minimal_detectable_effect_is_detected_with_its_power() -> None:
         r = rng.normal(size=n) + x @ coefficient
         found += next(c for c in run(r) if c.output == "y").significant
     assert 0.75 <= found / 400 <= 0.85, found / 400
+
+
+def test_a_chunks_share_computed_apart_adds_up_to_the_sequential_sums() -> None:
+    """The pass's threads compute each chunk's share of an entry's sums without the rows
+    before it (``_part``); folded in order they give the sequential sums bit for bit,
+    also where the rows before a chunk make some of its rows exact (its variances tiny
+    against their mean): there the lead computes that share again."""
+    from symcal.analysis.floors import _accumulate, _fits, _fold, _part, _Sums
+
+    rng = np.random.default_rng(5)
+    sizes, scales = [300, 257, 1, 400, 64], [1.0, 2.0, 1e-14, 1e-20, 3.0]
+    pieces = []
+    for n, scale in zip(sizes, scales, strict=True):
+        d = scale * rng.uniform(0.5, 2.0, n)
+        d[rng.random(n) < 0.1] = 0.0                 # declared exact
+        pieces.append((rng.normal(size=n), d, d * 1.1, rng.normal(size=(n, 4)),
+                       rng.normal(size=(n, 4))))
+    sequential, folded, again = _Sums(), _Sums(), 0
+    for r, d, e, j, x in pieces:
+        _accumulate(sequential, r, d, e, j, x)
+        part = _part(r, d, e, j, x, 0.0)
+        if _fits(part, folded, d):
+            _fold(folded, part)
+        else:
+            again += 1
+            _accumulate(folded, r, d, e, j, x)
+    assert again >= 1          # the tiny chunks are judged against the rows before them
+    for name in ("n", "w", "wr2", "wr", "r", "r2", "d", "wd", "exact", "diff2", "last"):
+        assert getattr(folded, name) == getattr(sequential, name), name
+    for name in ("wj", "wjj", "j", "wxv", "x"):
+        np.testing.assert_array_equal(getattr(folded, name), getattr(sequential, name))
+    assert sequential.exact > sum(int(np.sum(p[1] == 0)) for p in pieces)

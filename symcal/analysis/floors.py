@@ -873,6 +873,8 @@ class _Chunk:
     r0: np.ndarray | None       # m × n_e residuals at the initial parameters
     chi2: float                 # the joint test's terms
     dof: float
+    parts: tuple[_Part, ...] = ()    # each entry's share of its sums (at the estimate)
+    parts0: tuple[_Part, ...] = ()   # and at the initial parameters
 
 
 @dataclass
@@ -1272,18 +1274,34 @@ def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
                     xj = xa[:, cons, :] @ jcons
                     expect = expect - (xj + np.swapaxes(xj, 1, 2))
             dof_part = float(np.einsum("mab,mba->", pinv, expect))
-        return _Chunk(r, d, e, jac if use_share else None, x, r0, chi2_part, dof_part)
+        jac_s = jac if use_share else None
+        parts = tuple(_part(r[:, k], d[:, k], e[:, k], None if jac_s is None else
+                            jac_s[:, k, :], None if x is None else x[:, k, :], 0.0)
+                      for k in range(r.shape[1]))
+        parts0 = () if r0 is None else tuple(
+            _part(r0[:, k], d[:, k], d[:, k], None, None, 0.0) for k in range(r0.shape[1]))
+        return _Chunk(r, d, e, jac_s, x, r0, chi2_part, dof_part, parts, parts0)
 
     for chunk in default_executor(ds.n).map(piece, chunks(ds.n)):      # in order
+        # each entry's share was computed on the pass's threads without the rows before
+        # it; where those rows change which of its rows count as exact (rare), it is
+        # computed again here as the rows before it say: the sums are the same either way
         if chunk.r0 is not None:
             for k, s in enumerate(before):
-                _accumulate(s, chunk.r0[:, k], chunk.d[:, k], chunk.d[:, k], None, None)
+                dk = chunk.d[:, k]
+                if _fits(chunk.parts0[k], s, dk):
+                    _fold(s, chunk.parts0[k])
+                else:
+                    _accumulate(s, chunk.r0[:, k], dk, dk, None, None)
         chi2 += chunk.chi2
         dof += chunk.dof
         for k, s in enumerate(sums):
-            _accumulate(s, chunk.r[:, k], chunk.d[:, k], chunk.e[:, k],
-                        None if chunk.jac is None else chunk.jac[:, k, :],
-                        None if chunk.x is None else chunk.x[:, k, :])
+            if _fits(chunk.parts[k], s, chunk.d[:, k]):
+                _fold(s, chunk.parts[k])
+            else:
+                _accumulate(s, chunk.r[:, k], chunk.d[:, k], chunk.e[:, k],
+                            None if chunk.jac is None else chunk.jac[:, k, :],
+                            None if chunk.x is None else chunk.x[:, k, :])
     ordered = time_ordered(problem, ds)
     found = {}
     for k, name in enumerate(entries.names):
@@ -1311,32 +1329,83 @@ def _accumulate(s: _Sums, rk: np.ndarray, d: np.ndarray, e: np.ndarray,
     """Add one chunk of one entry: its residuals ``rk``, variances ``d`` (C_kk),
     expectations ``e`` (E_kk), Jacobian rows ``jk`` and fitted-rows term ``xk`` (with the
     estimate's share only)."""
-    top = float(d.max(initial=0.0))
-    live = d > EXACT * max(top, s.d / max(s.n, 1), 1e-300)
-    s.exact += int(np.sum(~live))
+    _fold(s, _part(rk, d, e, jk, xk, s.d / max(s.n, 1)))
+
+
+@dataclass
+class _Part:
+    """One chunk's share of one entry's sums (:func:`_part`), to be added in order
+    (:func:`_fold`); ``bound`` is the variance at or below which a row counted as exact."""
+
+    bound: float
+    exact: int
+    n: int
+    w: float
+    wr2: float
+    wr: float
+    r: float
+    r2: float
+    d: float
+    wd: float
+    vectors: tuple[tuple[str, np.ndarray], ...]
+    first: float | None
+    last: float | None
+    diff2: float
+
+
+def _bound(d: np.ndarray, mean: float) -> float:
+    """The variance at or below which a row is exact: :data:`EXACT` of the chunk's
+    largest, of the mean of the rows before it, or of the smallest positive number."""
+    return EXACT * max(float(d.max(initial=0.0)), mean, 1e-300)
+
+
+def _part(rk: np.ndarray, d: np.ndarray, e: np.ndarray, jk: np.ndarray | None,
+          xk: np.ndarray | None, mean: float) -> _Part:
+    """One chunk's share of an entry's sums (as :func:`_accumulate` describes), the rows
+    before it having a mean variance ``mean``: heavy work that needs nothing of the other
+    chunks, so a pass's threads do it."""
+    bound = _bound(d, mean)
+    live = d > bound
     w = np.where(live, 1.0 / np.where(live, d, 1.0), 0.0)
-    s.n += len(rk)
-    s.w += float(w.sum())
-    s.wr2 += float(np.sum(w * rk * rk))
-    s.wr += float(np.sum(w * rk))
-    s.r += float(rk.sum())
-    s.r2 += float(np.sum(rk * rk))
-    s.d += float(d.sum())
-    s.wd += float(np.sum(w * e))
+    vectors: list[tuple[str, np.ndarray]] = []
     if jk is not None:     # sums over the rows as products (a strided sum is slow)
         ones = np.ones(len(rk))
-        s.add_vectors("wj", w @ jk)
-        s.add_vectors("wjj", (jk * w[:, None]).T @ jk)
-        s.add_vectors("j", ones @ jk)
+        vectors += [("wj", w @ jk), ("wjj", (jk * w[:, None]).T @ jk), ("j", ones @ jk)]
         if xk is not None:
-            s.add_vectors("wxv", w @ xk)
-            s.add_vectors("x", ones @ xk)
-    if len(rk):
-        first = float(rk[0])
+            vectors += [("wxv", w @ xk), ("x", ones @ xk)]
+    return _Part(bound, int(np.sum(~live)), len(rk), float(w.sum()),
+                 float(np.sum(w * rk * rk)), float(np.sum(w * rk)), float(rk.sum()),
+                 float(np.sum(rk * rk)), float(d.sum()), float(np.sum(w * e)),
+                 tuple(vectors), float(rk[0]) if len(rk) else None,
+                 float(rk[-1]) if len(rk) else None,
+                 float(np.sum(np.diff(rk) ** 2)) if len(rk) else 0.0)
+
+
+def _fits(part: _Part, s: _Sums, d: np.ndarray) -> bool:
+    """Whether ``part`` (computed without the rows before it) is what :func:`_accumulate`
+    adds after ``s``: every row is exact or not alike under both bounds."""
+    bound = _bound(d, s.d / max(s.n, 1))
+    return bound == part.bound or bool(np.array_equal(d > bound, d > part.bound))
+
+
+def _fold(s: _Sums, part: _Part) -> None:
+    """Add one chunk's share to an entry's sums (in the chunks' order)."""
+    s.exact += part.exact
+    s.n += part.n
+    s.w += part.w
+    s.wr2 += part.wr2
+    s.wr += part.wr
+    s.r += part.r
+    s.r2 += part.r2
+    s.d += part.d
+    s.wd += part.wd
+    for name, value in part.vectors:
+        s.add_vectors(name, value)
+    if part.first is not None:
         if s.last is not None:
-            s.diff2 += (first - s.last) ** 2
-        s.diff2 += float(np.sum(np.diff(rk) ** 2))
-        s.last = float(rk[-1])
+            s.diff2 += (part.first - s.last) ** 2
+        s.diff2 += part.diff2
+        s.last = part.last
 
 
 def _expected(s: _Sums, centred: bool, share: _Estimate | None) -> float:
