@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import copy
 import re
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -200,6 +201,7 @@ _core_schema()
 #: problem (``improve``: each revision extends the last and shares its model files) parses
 #: each file once.  A copy is handed out, so no caller sees another's changes.
 _PARSED: dict[tuple[str, str], Any] = {}
+_PARSED_LOCK = threading.Lock()
 #: At most this many documents are kept (the oldest go first).
 PARSED_KEPT = 256
 
@@ -207,11 +209,15 @@ PARSED_KEPT = 256
 def _parse(text: str, source: str) -> Any:
     """One YAML document, its keys and items marked as written by ``source``."""
     key = (source, text)
-    if key not in _PARSED:
-        _PARSED[key] = _parse_now(text, source)   # a failure raises: nothing is kept
-        while len(_PARSED) > PARSED_KEPT:
-            del _PARSED[next(iter(_PARSED))]
-    return copy.deepcopy(_PARSED[key])
+    with _PARSED_LOCK:
+        doc = _PARSED.get(key)
+    if doc is None:
+        doc = _parse_now(text, source)     # a failure raises: nothing is kept
+        with _PARSED_LOCK:
+            _PARSED[key] = doc
+            while len(_PARSED) > PARSED_KEPT:
+                del _PARSED[next(iter(_PARSED))]
+    return copy.deepcopy(doc)
 
 
 def _parse_now(text: str, source: str) -> Any:
