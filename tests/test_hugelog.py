@@ -7,6 +7,8 @@ import json
 import math
 import os
 import re
+import subprocess
+import sys
 import textwrap
 from pathlib import Path
 from typing import Any
@@ -207,6 +209,28 @@ def test_a_folder_of_shards_from_the_command_line(tmp_path, capsys) -> None:
     assert docs[0]["stages"][0]["outliers"] is not None
     assert docs[0]["floor_tests"][0]["dataset"] == "calibration"
     assert texts[0] == texts[1]
+
+
+@pytest.mark.slow
+def test_a_folder_of_large_shards_from_the_command_line_finishes(tmp_path) -> None:
+    """Shards above the passes' thread threshold, from the command line, in a fresh
+    process: it ends (with the default threads) and its estimate is the serial one."""
+    from symcal.solvers import executor as ex
+
+    problem = ROOT / "problems/platen_self_calibration.yaml"
+    cols = _columns("", "problems/scenarios/courier_platen.yaml", 2 * ex.THREAD_MIN + 100,
+                    seed=8)
+    folder = write_shards(tmp_path / "log", cols, "npz",
+                          (ex.THREAD_MIN + 50, ex.THREAD_MIN + 50))
+    values = []
+    for threads in ("2", "1"):
+        out = subprocess.run(
+            [sys.executable, "-m", "symcal", "solve", str(problem), "--json", "--data",
+             f"calibration={folder}"], capture_output=True, text=True, timeout=600,
+            env={**os.environ, "SYMCAL_THREADS": threads})
+        assert out.returncode in (0, 1), out.stderr
+        values.append({p["name"]: p["value"] for p in json.loads(out.stdout)["parameters"]})
+    assert values[0] == values[1]
 
 
 # ------------------------------------------------- robust losses, outliers, serial rows

@@ -153,3 +153,28 @@ def test_a_chunk_split_over_the_cores_equals_the_serial_chunk(dual, monkeypatch)
         np.testing.assert_array_equal(a, b)
     seen = ex.threads(2).map(lambda _: inner_threads(), range(4))
     assert list(seen) == [1, 1, 1, 1]
+
+
+def test_a_pass_started_inside_a_pass_thread_runs_in_that_thread(monkeypatch) -> None:
+    """A pass over a shard inside a pass over the shards: the inner pass runs in the
+    outer pass's thread (waiting on the same busy pool deadlocked: `symcal solve --data
+    calibration=DIR` hung on shards of 1e5 rows)."""
+    monkeypatch.setenv("SYMCAL_THREADS", "2")
+    monkeypatch.setattr(ex, "THREAD_MIN", 1)
+    pool = ex.ThreadExecutor(2)
+    done: list[list[tuple[int, str]]] = []
+
+    def shard(i: int) -> list[tuple[int, str]]:
+        inner = ex.default_executor(10**6)
+        assert inner is ex.default_executor(1) and isinstance(inner, ex.SerialExecutor)
+        return list(pool.map(lambda k: (k * i, threading.current_thread().name), range(6)))
+
+    worker = threading.Thread(target=lambda: done.append(list(pool.map(shard, range(4)))),
+                              daemon=True)
+    worker.start()
+    worker.join(timeout=60)
+    assert not worker.is_alive(), "a pass inside a pass thread waited on its own pool"
+    for i, rows in enumerate(done[0]):
+        assert [k for k, _ in rows] == [k * i for k in range(6)]
+        assert len({name for _, name in rows}) == 1          # all in the shard's thread
+

@@ -3,7 +3,8 @@
 :func:`thread_count` is the policy every parallel part of symcal follows: the usable
 cores, or ``SYMCAL_THREADS``.  A thread of symcal's own pass pool marks itself
 (:func:`mark_pool_thread`), so that work it runs is not split again
-(:func:`inner_threads` is then 1): threads never multiply.
+(:func:`inner_threads` is then 1) and a pass it starts runs in it
+(:func:`in_pool_thread`): threads never multiply, and a pool never waits on itself.
 """
 
 from __future__ import annotations
@@ -44,7 +45,13 @@ def mark_pool_thread() -> None:
     _LOCAL.pool = True
 
 
+def in_pool_thread() -> bool:
+    """Whether the calling thread is one of symcal's pass threads (or a worker's task
+    thread): a pass it starts runs in it (waiting on its own pool would deadlock)."""
+    return bool(getattr(_LOCAL, "pool", False))
+
+
 def inner_threads() -> int:
     """Threads the calling thread may split one evaluation over: 1 inside symcal's pass
     pool (the pool already uses the cores), else :func:`thread_count`."""
-    return 1 if getattr(_LOCAL, "pool", False) else thread_count()
+    return 1 if in_pool_thread() else thread_count()

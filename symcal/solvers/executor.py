@@ -41,7 +41,7 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, ParamSpec, Protocol, TypeVar
 
-from symcal.base.cores import mark_pool_thread, thread_count
+from symcal.base.cores import in_pool_thread, mark_pool_thread, thread_count
 from symcal.base.errors import SymcalError
 
 T = TypeVar("T")
@@ -106,6 +106,9 @@ class ThreadExecutor:
     def map(self, task: Callable[[Any], T], pieces: Iterable[Any]) -> Iterator[T]:
         """``task(piece)`` for every piece, in order (at most ``2 × workers`` pieces in
         flight, so results waiting to be reduced stay few)."""
+        if in_pool_thread():    # a task of a pass: its own pass runs here, never
+            yield from (task(piece) for piece in pieces)   # waiting on a busy pool
+            return
         pool = self._get_pool()
         window = 2 * self.workers
         pending: list[Any] = []
@@ -139,9 +142,10 @@ def threads(workers: int) -> ThreadExecutor:
 
 def default_executor(observations: int) -> Executor:
     """The executor of an in-memory pass over ``observations`` observations: threads (one
-    per usable core, or ``SYMCAL_THREADS``) from :data:`THREAD_MIN` on, else serial."""
+    per usable core, or ``SYMCAL_THREADS``) from :data:`THREAD_MIN` on, else serial; and
+    serial inside a pass thread (a shard's pass inside a pass over the shards)."""
     workers = thread_count()
-    if workers <= 1 or observations < THREAD_MIN:
+    if workers <= 1 or observations < THREAD_MIN or in_pool_thread():
         return _SERIAL
     return threads(workers)
 
