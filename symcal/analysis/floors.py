@@ -1022,9 +1022,10 @@ class SharePlan:
         for _, _, lmat, jac in self.prop.rows(ds, theta):
             c = _assume(np.einsum("mae,mbe->mab", lmat, lmat), self.variances)
             w = _weights(self.fit, c, self.sigma)
-            wj = np.einsum("mab,mbp->map", w, jac)
-            a += np.einsum("map,maq->pq", jac, wj)
-            b += np.einsum("map,mab,mbq->pq", wj, c, wj)
+            wj = w @ jac                 # products, not einsum loops (as in memory)
+            flat = wj.reshape(-1, n_p)
+            a += jac.reshape(-1, n_p).T @ flat
+            b += flat.T @ (c @ wj).reshape(-1, n_p)
         return a, b
 
 
@@ -1156,12 +1157,14 @@ class RowsPlan:
                     _accumulate(s, r0[:, k], d[:, k], d[:, k], None, None)
             expect = c.copy()
             x = None
-            if share is not None:
-                expect += np.einsum("map,pq,mbq->mab", jac, share.cov, jac)
+            if share is not None:     # products as in memory (a 3-operand einsum loops)
+                m, n_e, n_p = jac.shape
+                jac_t = np.swapaxes(jac, 1, 2)
+                expect += (jac.reshape(-1, n_p) @ share.cov).reshape(m, n_e, n_p) @ jac_t
                 if fitted:
                     w = _weights(fit, c[:, fitted][:, :, fitted], self.sigma_f)
-                    x = np.einsum("maf,mfg,mgp->map", c[:, :, fitted], w, jac[:, fitted, :])
-                    xa = np.einsum("map,pq,mbq->mab", x, share.a_pinv, jac)
+                    x = (c[:, :, fitted] @ w) @ jac[:, fitted, :]
+                    xa = (x.reshape(-1, n_p) @ share.a_pinv).reshape(m, n_e, n_p) @ jac_t
                     expect -= xa + np.transpose(xa, (0, 2, 1))
             if self.joint_ok:
                 sub = np.ix_(range(c.shape[0]), cons, cons)

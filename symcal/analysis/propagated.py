@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from symcal.analysis.floors import _Propagation, inverse_sqrt_rows
+from symcal.base import jit
 from symcal.base.numeric import Mapped, chunks
 from symcal.problem.symbolic import Problem
 from symcal.solvers.objective import Source
@@ -40,7 +41,7 @@ class Covariances:
         """The chunk's covariances."""
         m = u.shape[1]
         ext = np.vstack([u, np.zeros((self.n_eps, m))])
-        lt = self.fn.chunk(self.theta, ext)[1]
+        lt = jit.select(self.fn, m).chunk(self.theta, ext)[1]   # compiled when it pays
         lmat = lt.reshape(m, self.n_g, self.n_eps) / self.sigma[None, :, None]
         return np.einsum("mae,mbe->mab", lmat, lmat)
 
