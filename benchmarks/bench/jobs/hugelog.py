@@ -18,8 +18,8 @@ calibration=DIR --quiet`` (the bundled problem as a user runs it: its three stag
 estimated weighting, the simulated fly-by held out, the whole analysis) on folders of
 :data:`CLI_SHARDS` shards of :data:`CLI_ROWS` rows, the whole command timed (start-up
 included).  Its cost is ``a + b·shards``: the fixed part and the cost per shard, fitted
-to the runs, give the 1e8 projection on this path (the command reads the shards one
-after the other in its own process).
+to the runs, give the 1e8 projection on this path (the command reads the shards in its
+own process, one shard per thread and one thread per usable core).
 """
 
 from __future__ import annotations
@@ -252,8 +252,9 @@ def _cli_table(cli: dict[str, Any]) -> list[str]:
              f"`symcal solve {CLI_PROBLEM} --data calibration=DIR --quiet`, the whole "
              "command (start-up, the problem's build, its simulated fly-by, three stages "
              "with estimated weighting, the analysis), DIR holding Parquet shards of "
-             f"{fmt_n(cli['rows_per_shard'])} rows each.  The command reads the shards one "
-             "after the other in its own process (one core).", "",
+             f"{fmt_n(cli['rows_per_shard'])} rows each.  The command reads the shards in "
+             "its own process, one shard per thread and one thread per usable core (a "
+             "shard's own passes run in its thread).", "",
              "| shards | rows | time |", "|---|---|---|"]
     lines += [f"| {r['shards']} | {fmt_n(r['rows'])} | {r['seconds']:.1f} s |"
               for r in cli["runs"]]
