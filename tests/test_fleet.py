@@ -123,8 +123,8 @@ def test_each_unit_equals_its_local_solve(fleet, result) -> None:
 def test_a_units_document_is_what_json_gives_back(fleet) -> None:
     """A unit's document (made without writing JSON text) equals its result's
     ``symcal solve --json`` document read back, to the type; an odd document too."""
-    from symcal.base.files import json_text
-    from symcal.calibrate.fleet import _clean, _document
+    from symcal.base.files import json_plain, json_text
+    from symcal.calibrate.fleet import _document
 
     fleet_dir, _ = fleet
     local = symcal.solve(PROBLEM, _local(fleet_dir, "a_csv"))
@@ -133,9 +133,9 @@ def test_a_units_document_is_what_json_gives_back(fleet) -> None:
     assert doc == back
     assert json.dumps(doc, sort_keys=True) == json.dumps(back, sort_keys=True)
     odd = {2: (np.float64(2.5), float("nan")), True: {None: [float("-inf")]}, "a": 3}
-    assert _clean(odd) == json.loads(json.dumps(odd).replace("NaN", "null")
+    assert json_plain(odd) == json.loads(json.dumps(odd).replace("NaN", "null")
                                      .replace("-Infinity", "null"))
-    assert type(_clean(odd)["2"][0]) is float
+    assert type(json_plain(odd)["2"][0]) is float
 
 
 @pytest.mark.slow

@@ -133,8 +133,9 @@ class Uncertainty:
 def _rows(matrix: np.ndarray) -> list[list[float | None]]:
     """A matrix as lists of floats, None where it is not finite (converted in numpy: a
     fleet's document holds one per unit)."""
-    out = np.asarray(matrix, dtype=float).astype(object)
-    out[~np.isfinite(np.asarray(matrix, dtype=float))] = None
+    values = np.asarray(matrix, dtype=float)
+    out = values.astype(object)
+    out[~np.isfinite(values)] = None
     rows: list[list[float | None]] = out.tolist()
     return rows
 

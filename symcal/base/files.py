@@ -88,18 +88,23 @@ def atomic_write_text(path: str | Path, text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def json_plain(doc: object) -> object:
+    """Plain data as JSON gives it back: non-finite numbers as None, tuples as lists,
+    float subclasses as floats, keys as JSON writes them (``1`` → ``"1"``, ``True`` →
+    ``"true"``)."""
+    if isinstance(doc, float):
+        return float(doc) if math.isfinite(doc) else None
+    if isinstance(doc, dict):
+        return {(k if isinstance(k, str) else json.dumps(k)): json_plain(v)
+                for k, v in doc.items()}
+    if isinstance(doc, list | tuple):
+        return [json_plain(v) for v in doc]
+    return doc
+
+
 def json_text(doc: object) -> str:
     """JSON text of plain data, indented; non-finite numbers become null."""
-    def clean(x: object) -> object:
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        if isinstance(x, dict):
-            return {k: clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        return x
-
-    return json.dumps(clean(doc), indent=2) + "\n"
+    return json.dumps(json_plain(doc), indent=2) + "\n"
 
 
 # ------------------------------------------------------------------------ paths and inputs

@@ -19,8 +19,6 @@ problem and data files at the same absolute paths).
 from __future__ import annotations
 
 import contextlib
-import json
-import math
 import time
 import uuid
 from collections.abc import Callable, Iterator, Mapping
@@ -31,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 from symcal.base.cores import mark_pool_thread, usable_cores
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, SymcalError, excerpt
-from symcal.base.files import display_path
+from symcal.base.files import display_path, json_plain
 from symcal.base.options import SolveOptions
 from symcal.base.progress import Bars, Progress, reporting
 from symcal.calibrate.fleet_summary import failure_reason, summarise
@@ -179,24 +177,12 @@ def _message(exc: BaseException) -> str:
             "it")
 
 
-def _clean(x: object) -> object:
-    """Plain data as JSON gives it back: non-finite numbers as None, tuples as lists,
-    float subclasses as floats, keys as JSON writes them (``1`` → ``"1"``, ``True`` →
-    ``"true"``)."""
-    if isinstance(x, float):
-        return float(x) if math.isfinite(x) else None
-    if isinstance(x, dict):
-        return {(k if isinstance(k, str) else json.dumps(k)): _clean(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_clean(v) for v in x]
-    return x
-
-
 def _document(result: Result) -> dict[str, Any]:
     """The unit's ``result.json`` document as JSON gives it back (the same values as
-    ``json.loads(json_text(...))``), made by :func:`_clean` without writing the text: the
-    round trip through JSON took a unit as long as a twentieth of its solve."""
-    doc = _clean(result.to_dict())
+    ``json.loads(json_text(...))``), made by :func:`~symcal.base.files.json_plain`
+    without writing the text: the round trip through JSON took a unit as long as a
+    twentieth of its solve."""
+    doc = json_plain(result.to_dict())
     assert isinstance(doc, dict)
     return doc
 
