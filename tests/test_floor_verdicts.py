@@ -312,13 +312,13 @@ def test_a_chunks_share_computed_apart_adds_up_to_the_sequential_sums() -> None:
                        rng.normal(size=(n, 4))))
     sequential, folded, again = _Sums(), _Sums(), 0
     for r, d, e, j, x in pieces:
-        _accumulate(sequential, r, d, e, j, x)
-        part = _part(r, d, e, j, x, 0.0)
+        _accumulate(sequential, r, d, e, j, x, spread=True)
+        part = _part(r, d, e, j, x, 0.0, spread=True)
         if _fits(part, folded, d):
             _fold(folded, part)
         else:
             again += 1
-            _accumulate(folded, r, d, e, j, x)
+            _accumulate(folded, r, d, e, j, x, spread=True)
     assert again >= 1          # the tiny chunks are judged against the rows before them
     for name in ("n", "w", "wr2", "wr", "r", "r2", "d", "wd", "exact", "diff2", "last"):
         assert getattr(folded, name) == getattr(sequential, name), name

@@ -56,6 +56,9 @@ DIFFERENCES = "successive differences"
 UNKNOWN = "unknown"
 #: A row's propagated variance below this share of the largest is an exact reading.
 EXACT = 1e-12
+#: How far above :data:`EXACT` a row's smallest eigenvalue must clearly be for its
+#: covariance to be inverted directly (:func:`_pinv_rows`).
+CLEAR = 1e3
 
 
 def normal_quantile(p: float) -> float:
@@ -678,12 +681,62 @@ class _Propagation:
 
 
 def _pinv_rows(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per row, the pseudo-inverse of a covariance (m × n × n) and its rank."""
-    w, v = np.linalg.eigh(c)
-    top = np.max(w, axis=1, keepdims=True)
-    keep = w > EXACT * np.maximum(top, 1e-300)
-    inv = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
-    return np.einsum("mab,mb,mcb->mac", v, inv, v), keep.sum(axis=1)
+    """Per row, the pseudo-inverse of a covariance (m × n × n) and its rank.
+
+    A row whose every eigenvalue is clearly above :data:`EXACT` of the largest
+    (``det > CLEAR·EXACT·trⁿ``: ``λ_min ≥ det / trⁿ⁻¹`` and ``λ_max ≤ tr``) has the inverse
+    for pseudo-inverse, in closed form up to 3 × 3 (the eigen-decomposition of many small
+    matrices is slow); the others (an exact reading, a nearly singular row) the
+    eigen-decomposition's, its eigenvalues below that share dropped."""
+    m, n = c.shape[0], c.shape[-1]
+    if n == 0:
+        return np.zeros_like(c), np.zeros(m, dtype=int)
+    inv, det = _inverse(c)
+    tr = np.trace(c, axis1=1, axis2=2)
+    with np.errstate(over="ignore", invalid="ignore"):
+        clear = (tr > 0) & (det > CLEAR * EXACT * tr**n) & np.all(np.isfinite(inv),
+                                                                   axis=(1, 2))
+    rank = np.full(m, n)
+    if not np.all(clear):
+        rest = ~clear
+        w, v = np.linalg.eigh(c[rest])
+        top = np.max(w, axis=1, keepdims=True)
+        keep = w > EXACT * np.maximum(top, 1e-300)
+        scaled = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
+        inv[rest] = np.einsum("mab,mb,mcb->mac", v, scaled, v)
+        rank[rest] = keep.sum(axis=1)
+    return inv, rank
+
+
+def _inverse(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row, the inverse of a square matrix (m × n × n) and its determinant: by
+    cofactors up to 3 × 3, by LAPACK beyond (a singular row gives non-finite values)."""
+    n = c.shape[-1]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if n == 1:
+            det = c[:, 0, 0].copy()
+            return (1.0 / det)[:, None, None], det
+        if n == 2:
+            a, b, d, e = c[:, 0, 0], c[:, 0, 1], c[:, 1, 0], c[:, 1, 1]
+            det = a * e - b * d
+            adj = np.stack([np.stack([e, -b], axis=1), np.stack([-d, a], axis=1)], axis=1)
+            return adj / det[:, None, None], det
+        if n == 3:
+            a, b, f = c[:, 0, 0], c[:, 0, 1], c[:, 0, 2]
+            d, e, g = c[:, 1, 0], c[:, 1, 1], c[:, 1, 2]
+            h, k, i = c[:, 2, 0], c[:, 2, 1], c[:, 2, 2]
+            c00, c01, c02 = e * i - g * k, g * h - d * i, d * k - e * h
+            det = a * c00 + b * c01 + f * c02
+            adj = np.stack([np.stack([c00, f * k - b * i, b * g - f * e], axis=1),
+                            np.stack([c01, a * i - f * h, f * d - a * g], axis=1),
+                            np.stack([c02, b * h - a * k, a * e - b * d], axis=1)], axis=1)
+            return adj / det[:, None, None], det
+        sign, logdet = np.linalg.slogdet(c)
+        det = sign * np.exp(logdet)
+        out = np.full_like(c, np.nan)
+        ok = det != 0
+        out[ok] = np.linalg.inv(c[ok])
+        return out, det
 
 
 def inverse_sqrt_rows(c: np.ndarray) -> tuple[np.ndarray, int]:
@@ -843,18 +896,15 @@ def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray,
     sigma = np.array([q.sigma for q in quantities])
     prop = _propagation(problem, ("share", *fit.constraints),
                         [noisy.constraint(n).sx for n in fit.constraints], fit.free)
-    n_p = prop.n_p
+    plan = SharePlan(prop, fit, sigma, variances)
     u = ds.matrix(prop.columns)
     fn = jit.select(prop.fn, ds.n)
 
     def piece(part: slice) -> tuple[np.ndarray, np.ndarray]:
         _, lmat, jac = prop.at(fn, u, theta, part)
-        c = _assume(_gram(lmat), variances)
-        wj = _weights(fit, c, sigma) @ jac
-        return (jac.reshape(-1, n_p).T @ wj.reshape(-1, n_p),
-                wj.reshape(-1, n_p).T @ (c @ wj).reshape(-1, n_p))
+        return plan.terms(lmat, jac)
 
-    a, b = np.zeros((n_p, n_p)), np.zeros((n_p, n_p))
+    a, b = np.zeros((prop.n_p, prop.n_p)), np.zeros((prop.n_p, prop.n_p))
     for da, db in default_executor(ds.n).map(piece, chunks(ds.n)):   # in order
         a += da
         b += db
@@ -863,18 +913,24 @@ def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray,
 
 @dataclass(frozen=True)
 class _Chunk:
-    """One chunk's share of a dataset's tests (see :func:`_dataset_tests`)."""
+    """One chunk's share of a dataset's tests (:meth:`RowsPlan.terms`): what the lead
+    folds in order, and what it needs to compute an entry's share again."""
 
     r: np.ndarray               # m × n_e residuals at the estimate
     d: np.ndarray               # m × n_e: each residual's propagated variance C_kk
     e: np.ndarray               # m × n_e: its expectation E_kk (the estimate's share in)
-    jac: np.ndarray | None      # m × n_e × n_p, with the estimate's share only
-    x: np.ndarray | None        # m × n_e × n_p, the fitted rows' term
+    vectors: dict[int, tuple[np.ndarray, np.ndarray | None, bool]]   # entry k: its
+    #   Jacobian rows, its fitted rows' term X_k and whether its spread Σ w JᵀJ is needed
     r0: np.ndarray | None       # m × n_e residuals at the initial parameters
     chi2: float                 # the joint test's terms
     dof: float
     parts: tuple[_Part, ...] = ()    # each entry's share of its sums (at the estimate)
     parts0: tuple[_Part, ...] = ()   # and at the initial parameters
+
+    def part(self, k: int, mean: float) -> _Part:
+        """Entry ``k``'s share after rows of mean variance ``mean``."""
+        jk, xk, spread = self.vectors.get(k, (None, None, False))
+        return _part(self.r[:, k], self.d[:, k], self.e[:, k], jk, xk, mean, spread)
 
 
 @dataclass
@@ -1020,13 +1076,19 @@ class SharePlan:
         n_p = self.prop.n_p
         a, b = np.zeros((n_p, n_p)), np.zeros((n_p, n_p))
         for _, _, lmat, jac in self.prop.rows(ds, theta):
-            c = _assume(np.einsum("mae,mbe->mab", lmat, lmat), self.variances)
-            w = _weights(self.fit, c, self.sigma)
-            wj = w @ jac                 # products, not einsum loops (as in memory)
-            flat = wj.reshape(-1, n_p)
-            a += jac.reshape(-1, n_p).T @ flat
-            b += flat.T @ (c @ wj).reshape(-1, n_p)
+            da, db = self.terms(lmat, jac)
+            a += da
+            b += db
         return a, b
+
+    def terms(self, lmat: np.ndarray, jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(A, B)`` of one chunk of rows from their ``L`` and ``J``
+        (:meth:`_Propagation.at`): products, not einsum loops."""
+        n_p = self.prop.n_p
+        c = _assume(_gram(lmat), self.variances)
+        wj = _weights(self.fit, c, self.sigma) @ jac
+        flat = wj.reshape(-1, n_p)
+        return jac.reshape(-1, n_p).T @ flat, flat.T @ (c @ wj).reshape(-1, n_p)
 
 
 def share_plan(problem: Problem, fit: Fit, assumed: Mapping[str, float] | None = None
@@ -1116,9 +1178,9 @@ def _joined(a: _Sums, b: _Sums, b_first: float | None) -> _Sums:
 
 @dataclass(frozen=True)
 class RowsPlan:
-    """How the rows of one dataset are reduced for its floors and tests, as
-    :func:`_dataset_tests` reduces them: :meth:`reduce` on each piece, the pieces' sums
-    joined in order (:meth:`RowSums.join`), then :meth:`finish`."""
+    """How the rows of one dataset are reduced for its floors and tests, in memory and on
+    a log kept as shards alike: :meth:`reduce` on each piece, the pieces' sums joined in
+    order (:meth:`RowSums.join`), then :meth:`finish`."""
 
     dataset: str
     names: tuple[str, ...]
@@ -1133,51 +1195,87 @@ class RowsPlan:
     share: _Estimate | None
     theta: np.ndarray
     theta0: np.ndarray | None
+    assumed: np.ndarray | None = None    # each entry's floor squared where estimated
+
+    def estimated(self, k: int) -> bool:
+        """Whether entry ``k``'s floor was estimated from the data (and is its variance)."""
+        return self.assumed is not None and not np.isnan(self.assumed[k])
 
     def reduce(self, ds: Dataset) -> RowSums:
-        """The sums of the rows of ``ds``, chunk by chunk."""
-        fit, share, fitted, cons = self.fit, self.share, list(self.fitted), list(self.cons)
-        prop, theta0, n = self.prop, self.theta0, len(self.names)
+        """The sums of the rows of ``ds``: each chunk's terms on the in-memory passes'
+        executor (threads for a large dataset), folded here in order."""
+        n = len(self.names)
         out = RowSums([_Sums() for _ in range(n)], [_Sums() for _ in range(n)], [None] * n,
                       [None] * n)
-        u = ds.matrix(prop.columns) if theta0 is not None else None
-        for part, r, lmat, jac in prop.rows(ds, self.theta):
-            c = np.einsum("mae,mbe->mab", lmat, lmat)
-            start = part.start == 0 and len(r) > 0      # the piece's first row is here
-            if start:
-                out.first = [float(v) for v in r[0]]
-            if theta0 is not None and u is not None:
-                block = u[:, part]
-                r0 = prop.fn.chunk(theta0, np.vstack([block, np.zeros((prop.n_eps,
-                                                                       block.shape[1]))]))[0]
-                if start:
-                    out.first_before = [float(v) for v in r0[0]]
-                d = np.diagonal(c, axis1=1, axis2=2)
-                for k, s in enumerate(out.before):
-                    _accumulate(s, r0[:, k], d[:, k], d[:, k], None, None)
-            expect = c.copy()
-            x = None
-            if share is not None:     # products as in memory (a 3-operand einsum loops)
-                m, n_e, n_p = jac.shape
-                jac_t = np.swapaxes(jac, 1, 2)
-                expect += (jac.reshape(-1, n_p) @ share.cov).reshape(m, n_e, n_p) @ jac_t
-                if fitted:
-                    w = _weights(fit, c[:, fitted][:, :, fitted], self.sigma_f)
-                    x = (c[:, :, fitted] @ w) @ jac[:, fitted, :]
-                    xa = (x.reshape(-1, n_p) @ share.a_pinv).reshape(m, n_e, n_p) @ jac_t
-                    expect -= xa + np.transpose(xa, (0, 2, 1))
-            if self.joint_ok:
-                sub = np.ix_(range(c.shape[0]), cons, cons)
-                pinv, _ = _pinv_rows(c[sub])
-                rc = r[:, cons]
-                out.chi2 += float(np.einsum("ma,mab,mb->", rc, pinv, rc))
-                out.dof += float(np.einsum("mab,mba->", pinv, expect[sub]))
-            d, e = np.diagonal(c, axis1=1, axis2=2), np.diagonal(expect, axis1=1, axis2=2)
-            for k, s in enumerate(out.sums):
-                _accumulate(s, r[:, k], d[:, k], e[:, k],
-                            None if share is None else jac[:, k, :],
-                            None if x is None else x[:, k, :])
+        prop, theta0 = self.prop, self.theta0
+        u = ds.matrix(prop.columns)
+        fn = jit.select(prop.fn, ds.n)
+
+        def piece(part: slice) -> _Chunk:
+            r, lmat, jac = prop.at(fn, u, self.theta, part)
+            r0 = prop.residuals(u, theta0, part) if theta0 is not None else None
+            return self.terms(r, lmat, jac, r0)
+
+        parts = list(chunks(ds.n))
+        for part, chunk in zip(parts, default_executor(ds.n).map(piece, parts), strict=True):
+            if part.start == 0 and len(chunk.r):     # the piece's first row is here
+                out.first = [float(v) for v in chunk.r[0]]
+                if chunk.r0 is not None:
+                    out.first_before = [float(v) for v in chunk.r0[0]]
+            _fold_chunk(out, chunk)
         return out
+
+    def terms(self, r: np.ndarray, lmat: np.ndarray, jac: np.ndarray,
+              r0: np.ndarray | None) -> _Chunk:
+        """One chunk's terms from its residuals, ``L`` and ``J`` (:meth:`_Propagation.at`)
+        and its residuals at the start: independent of every other chunk.
+
+        ``E_kk`` and the joint test's expectation need only the products of the rows' own
+        Jacobians with ``Z = J Cov − 2 X A⁺`` (the fitted rows' two cross terms are equal
+        under the trace with a symmetric ``C⁺``), and ``X A⁺ Jᵀ = α (J_f A⁺) Jᵀ`` with
+        ``α = C_·f W``: ``X`` itself is formed only for an entry whose mean is removed."""
+        c = _assume(_gram(lmat), self.assumed)
+        d = np.diagonal(c, axis1=1, axis2=2).copy()             # C_kk
+        m, n_e = r.shape
+        q = None                                                 # m × n_e × n_e: Z Jᵀ
+        alpha = None
+        share, fitted = self.share, list(self.fitted)
+        if share is not None:
+            n_p = jac.shape[2]
+            jac_t = np.swapaxes(jac, 1, 2)
+            q = (jac.reshape(-1, n_p) @ share.cov).reshape(m, n_e, n_p) @ jac_t
+            if fitted:
+                w = _weights(self.fit, c[:, fitted][:, :, fitted], self.sigma_f)
+                alpha = c[:, :, fitted] @ w                       # m × n_e × n_f
+                ja = (jac[:, fitted, :].reshape(-1, n_p) @ share.a_pinv).reshape(
+                    m, len(fitted), n_p)
+                q -= 2.0 * (alpha @ (ja @ jac_t))
+        e = d + np.diagonal(q, axis1=1, axis2=2) if q is not None else d.copy()   # E_kk
+        chi2 = dof = 0.0
+        if self.joint_ok:
+            cons = list(self.cons)
+            sub = np.ix_(range(m), cons, cons)
+            pinv, _ = _pinv_rows(c[sub])
+            rc = r[:, cons]
+            chi2 = float(np.einsum("ma,mab,mb->", rc, pinv, rc))
+            expect = c[sub] if q is None else c[sub] + q[sub]
+            dof = float(np.einsum("mab,mab->", pinv, expect))
+        vectors: dict[int, tuple[np.ndarray, np.ndarray | None, bool]] = {}
+        if share is not None:
+            for k in range(n_e):
+                if not (self.centred[k] or self.estimated(k)):
+                    continue         # its sums need no Jacobian (:func:`_expected`)
+                xk = None
+                if alpha is not None and self.centred[k]:
+                    xk = alpha[:, k, 0, None] * jac[:, fitted[0], :]
+                    for i in range(1, len(fitted)):
+                        xk += alpha[:, k, i, None] * jac[:, fitted[i], :]
+                vectors[k] = (jac[:, k, :], xk, self.estimated(k))
+        chunk = _Chunk(r, d, e, vectors, r0, chi2, dof)
+        parts = tuple(chunk.part(k, 0.0) for k in range(n_e))
+        parts0 = () if r0 is None else tuple(
+            _part(r0[:, k], d[:, k], d[:, k], None, None, 0.0) for k in range(n_e))
+        return replace(chunk, parts=parts, parts0=parts0)
 
     def finish(self, sums: RowSums, ordered: bool) -> tuple[dict[str, FloorTest], DatasetTest]:
         """Each entry's floor and test and the dataset's global test from the sums of all
@@ -1186,7 +1284,8 @@ class RowsPlan:
         found = {}
         for k, name in enumerate(names):
             found[name] = _entry_test(sums.sums[k], self.declared[k], self.centred[k],
-                                      ordered, self.share)
+                                      ordered, self.share, self.estimated(k),
+                                      self.dataset == self.fit.dataset and k in self.fitted)
             if self.theta0 is not None and found[name].method == PROPAGATED and \
                     found[name].chi2 is not None:
                 found[name] = replace(found[name],
@@ -1201,12 +1300,24 @@ class RowsPlan:
 
 
 def rows_plan(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
-              share: _Estimate | None, theta0: np.ndarray | None = None) -> RowsPlan:
+              share: _Estimate | None, theta0: np.ndarray | None = None,
+              assumed: np.ndarray | None = None, cached: bool = False) -> RowsPlan:
     """The plan of the floors and tests of the dataset ``ds`` (its name and columns: a
     sample of a log kept as shards will do), at the estimate ``theta`` (``theta0``: the
-    start too), with the estimate's share ``share`` from the fitted rows."""
+    start too), with the estimate's share ``share`` from the fitted rows; ``assumed``:
+    each entry's floor squared where estimated from the data on a held-out dataset (NaN
+    elsewhere; :func:`difference_variances`), its variance in the tests.  ``cached``:
+    the evaluation built once per problem (in memory) rather than for this plan alone
+    (a task of a log kept as shards carries its own)."""
     entries = _entries(problem, ds)
-    prop = _Propagation(problem, entries.exprs, fit.free)
+    if ds.name == fit.dataset:
+        # the fitted rows keep the ratio's test: what the fit takes from their spread
+        # depends on how their constraints' noise correlates, which nobody declared (on
+        # the courier with several fitted constraints, taking them independent put 13 of
+        # 100 clean calibration runs above their floor)
+        assumed = None
+    prop = _propagation(problem, ("entries", *entries.names), entries.exprs, fit.free) \
+        if cached else _Propagation(problem, entries.exprs, fit.free)
     fitted = [entries.names.index(n) for n in fit.constraints] \
         if ds.name == fit.dataset else []
     cons = [k for k, kind in enumerate(entries.kinds) if kind == "constraint"]
@@ -1217,122 +1328,49 @@ def rows_plan(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
                     tuple(entries.centred), prop, tuple(fitted), tuple(cons), joint_ok,
                     sigma_f, fit, share if use_share else None,
                     np.array(theta, dtype=float),
-                    None if theta0 is None else np.array(theta0, dtype=float))
+                    None if theta0 is None else np.array(theta0, dtype=float),
+                    None if assumed is None else np.array(assumed, dtype=float))
 
 
 def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
                    share: _Estimate | None, theta0: np.ndarray | None = None,
                    assumed: np.ndarray | None = None
                    ) -> tuple[dict[str, FloorTest], DatasetTest]:
-    entries = _entries(problem, ds)
-    if ds.name == fit.dataset:
-        # the fitted rows keep the ratio's test: what the fit takes from their spread
-        # depends on how their constraints' noise correlates, which nobody declared (on
-        # the courier with several fitted constraints, taking them independent put 13 of
-        # 100 clean calibration runs above their floor)
-        assumed = None
-    prop = _propagation(problem, ("entries", *entries.names), entries.exprs, fit.free)
-    fitted = [entries.names.index(n) for n in fit.constraints] \
-        if ds.name == fit.dataset else []
-    cons = [k for k, kind in enumerate(entries.kinds) if kind == "constraint"]
-    joint_ok = all(entries.declared[k] for k in cons) and bool(cons)
-    sums = [_Sums() for _ in entries.names]
-    chi2, dof = 0.0, 0.0
-    sigma_f = np.array([problem.constraint(entries.names[k]).sigma for k in fitted])
-    use_share = share is not None and prop.n_p > 0
-    before = [_Sums() for _ in entries.names]
-    u = ds.matrix(prop.columns)
-    fn = jit.select(prop.fn, ds.n)
-
-    def piece(part: slice) -> _Chunk:
-        """The heavy work of one chunk (evaluation, propagation, the joint test's terms),
-        independent of every other chunk: on the executor's threads."""
-        r, lmat, jac = prop.at(fn, u, theta, part)
-        c = _gram(lmat)
-        c = _assume(c, assumed)     # an estimated floor is its entry's variance
-        d = np.diagonal(c, axis1=1, axis2=2).copy()           # C_kk
-        r0 = prop.residuals(u, theta0, part) if theta0 is not None else None
-        e, x, jc, xa = d.copy(), None, None, None               # E_kk
-        if use_share:
-            assert share is not None
-            m, n_e, n_p = jac.shape
-            jc = (jac.reshape(-1, n_p) @ share.cov).reshape(m, n_e, n_p)
-            e += np.einsum("map,map->ma", jc, jac)
-            if fitted:
-                w = _weights(fit, c[:, fitted][:, :, fitted], sigma_f)
-                x = (c[:, :, fitted] @ w) @ jac[:, fitted, :]
-                xa = (x.reshape(-1, n_p) @ share.a_pinv).reshape(m, n_e, n_p)
-                e -= 2.0 * np.einsum("map,map->ma", xa, jac)
-        chi2_part = dof_part = 0.0
-        if joint_ok:
-            sub = np.ix_(range(c.shape[0]), cons, cons)
-            pinv, _ = _pinv_rows(c[sub])
-            rc = r[:, cons]
-            chi2_part = float(np.einsum("ma,mab,mb->", rc, pinv, rc))
-            expect = c[sub]
-            if jc is not None:
-                jcons = np.swapaxes(jac[:, cons, :], 1, 2)
-                expect = expect + jc[:, cons, :] @ jcons
-                if xa is not None:
-                    xj = xa[:, cons, :] @ jcons
-                    expect = expect - (xj + np.swapaxes(xj, 1, 2))
-            dof_part = float(np.einsum("mab,mba->", pinv, expect))
-        jac_s = jac if use_share else None
-        parts = tuple(_part(r[:, k], d[:, k], e[:, k], None if jac_s is None else
-                            jac_s[:, k, :], None if x is None else x[:, k, :], 0.0)
-                      for k in range(r.shape[1]))
-        parts0 = () if r0 is None else tuple(
-            _part(r0[:, k], d[:, k], d[:, k], None, None, 0.0) for k in range(r0.shape[1]))
-        return _Chunk(r, d, e, jac_s, x, r0, chi2_part, dof_part, parts, parts0)
-
-    for chunk in default_executor(ds.n).map(piece, chunks(ds.n)):      # in order
-        # each entry's share was computed on the pass's threads without the rows before
-        # it; where those rows change which of its rows count as exact (rare), it is
-        # computed again here as the rows before it say: the sums are the same either way
-        if chunk.r0 is not None:
-            for k, s in enumerate(before):
-                dk = chunk.d[:, k]
-                if _fits(chunk.parts0[k], s, dk):
-                    _fold(s, chunk.parts0[k])
-                else:
-                    _accumulate(s, chunk.r0[:, k], dk, dk, None, None)
-        chi2 += chunk.chi2
-        dof += chunk.dof
-        for k, s in enumerate(sums):
-            if _fits(chunk.parts[k], s, chunk.d[:, k]):
-                _fold(s, chunk.parts[k])
-            else:
-                _accumulate(s, chunk.r[:, k], chunk.d[:, k], chunk.e[:, k],
-                            None if chunk.jac is None else chunk.jac[:, k, :],
-                            None if chunk.x is None else chunk.x[:, k, :])
-    ordered = time_ordered(problem, ds)
-    found = {}
-    for k, name in enumerate(entries.names):
-        found[name] = _entry_test(sums[k], entries.declared[k], entries.centred[k],
-                                  ordered, share if use_share else None,
-                                  assumed is not None and not np.isnan(assumed[k]),
-                                  ds.name == fit.dataset and k in fitted)
-        if theta0 is not None and found[name].method == PROPAGATED and found[name].chi2 \
-                is not None:
-            found[name] = replace(found[name],
-                                  chi2_before=_chi2(before[k], entries.centred[k]))
-    if joint_ok and dof > 0:
-        joint = DatasetTest(ds.name, tuple(entries.names[k] for k in cons), PROPAGATED,
-                            chi2, dof, chi2_band(dof))
-        if use_share and share is not None and ds.name != fit.dataset:
-            joint = held_out_test(problem, ds, theta, fit, share, joint)
-    else:
-        joint = _combined(ds.name, [entries.names[k] for k in cons],
-                          [found[entries.names[k]] for k in cons])
+    plan = rows_plan(problem, ds, theta, fit, share, theta0, assumed, cached=True)
+    sums = plan.reduce(ds)
+    found, joint = plan.finish(sums, time_ordered(problem, ds))
+    if plan.share is not None and ds.name != fit.dataset and plan.joint_ok and sums.dof > 0:
+        joint = held_out_test(problem, ds, theta, fit, plan.share, joint)
     return found, joint
 
 
+def _fold_chunk(out: RowSums, chunk: _Chunk) -> None:
+    """Add one chunk's shares to a piece's sums, in the chunks' order.  Each entry's share
+    was computed on the pass's threads without the rows before it; where those rows change
+    which of its rows count as exact (rare), it is computed again here as the rows before
+    it say: the sums are the same either way."""
+    if chunk.r0 is not None:
+        for k, s in enumerate(out.before):
+            if _fits(chunk.parts0[k], s, chunk.d[:, k]):
+                _fold(s, chunk.parts0[k])
+            else:
+                dk = chunk.d[:, k]
+                _accumulate(s, chunk.r0[:, k], dk, dk, None, None)
+    out.chi2 += chunk.chi2
+    out.dof += chunk.dof
+    for k, s in enumerate(out.sums):
+        if _fits(chunk.parts[k], s, chunk.d[:, k]):
+            _fold(s, chunk.parts[k])
+        else:
+            _fold(s, chunk.part(k, s.d / max(s.n, 1)))
+
+
 def _accumulate(s: _Sums, rk: np.ndarray, d: np.ndarray, e: np.ndarray,
-                jk: np.ndarray | None, xk: np.ndarray | None) -> None:
+                jk: np.ndarray | None, xk: np.ndarray | None, spread: bool = False) -> None:
     """Add one chunk of one entry: its residuals ``rk``, variances ``d`` (C_kk),
     expectations ``e`` (E_kk), Jacobian rows ``jk`` and fitted-rows term ``xk`` (with the
-    estimate's share only)."""
-    _fold(s, _part(rk, d, e, jk, xk, s.d / max(s.n, 1)))
+    estimate's share only; ``spread``: :func:`_part`)."""
+    _fold(s, _part(rk, d, e, jk, xk, s.d / max(s.n, 1), spread))
 
 
 @dataclass
@@ -1363,19 +1401,24 @@ def _bound(d: np.ndarray, mean: float) -> float:
 
 
 def _part(rk: np.ndarray, d: np.ndarray, e: np.ndarray, jk: np.ndarray | None,
-          xk: np.ndarray | None, mean: float) -> _Part:
+          xk: np.ndarray | None, mean: float, spread: bool = False) -> _Part:
     """One chunk's share of an entry's sums (as :func:`_accumulate` describes), the rows
     before it having a mean variance ``mean``: heavy work that needs nothing of the other
-    chunks, so a pass's threads do it."""
+    chunks, so a pass's threads do it.  ``Σ w JᵀJ`` only where ``spread`` asks for it
+    (an estimated floor's band, :func:`_estimated_test`)."""
     bound = _bound(d, mean)
     live = d > bound
     w = np.where(live, 1.0 / np.where(live, d, 1.0), 0.0)
     vectors: list[tuple[str, np.ndarray]] = []
     if jk is not None:     # sums over the rows as products (a strided sum is slow)
-        ones = np.ones(len(rk))
-        vectors += [("wj", w @ jk), ("wjj", (jk * w[:, None]).T @ jk), ("j", ones @ jk)]
+        both = np.vstack([w, np.ones(len(rk))])
+        wj, j = both @ jk
+        vectors += [("wj", wj), ("j", j)]
+        if spread:
+            vectors.append(("wjj", (jk * w[:, None]).T @ jk))
         if xk is not None:
-            vectors += [("wxv", w @ xk), ("x", ones @ xk)]
+            wxv, x = both @ xk
+            vectors += [("wxv", wxv), ("x", x)]
     return _Part(bound, int(np.sum(~live)), len(rk), float(w.sum()),
                  float(np.sum(w * rk * rk)), float(np.sum(w * rk)), float(rk.sum()),
                  float(np.sum(rk * rk)), float(d.sum()), float(np.sum(w * e)),

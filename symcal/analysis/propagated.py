@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from symcal.analysis.floors import _Propagation, inverse_sqrt_rows
+from symcal.analysis.floors import _gram, _Propagation, inverse_sqrt_rows
 from symcal.base import jit
 from symcal.base.numeric import Mapped, chunks
 from symcal.problem.symbolic import Problem
@@ -43,7 +43,7 @@ class Covariances:
         ext = np.vstack([u, np.zeros((self.n_eps, m))])
         lt = jit.select(self.fn, m).chunk(self.theta, ext)[1]   # compiled when it pays
         lmat = lt.reshape(m, self.n_g, self.n_eps) / self.sigma[None, :, None]
-        return np.einsum("mae,mbe->mab", lmat, lmat)
+        return _gram(lmat)
 
     def at(self, theta: np.ndarray) -> Covariances:
         """The same covariances at another point."""
