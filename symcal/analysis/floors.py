@@ -1270,7 +1270,7 @@ class RowsPlan:
                     xk = alpha[:, k, 0, None] * jac[:, fitted[0], :]
                     for i in range(1, len(fitted)):
                         xk += alpha[:, k, i, None] * jac[:, fitted[i], :]
-                vectors[k] = (jac[:, k, :], xk, self.estimated(k))
+                vectors[k] = (jac[:, k, :].copy(), xk, self.estimated(k))   # not all J
         chunk = _Chunk(r, d, e, vectors, r0, chi2, dof)
         parts = tuple(chunk.part(k, 0.0) for k in range(n_e))
         parts0 = () if r0 is None else tuple(
