@@ -18,6 +18,7 @@ import signal
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -478,17 +479,34 @@ def test_a_signal_mid_solve_stops_at_once_and_keeps_earlier_results(
     before = _tree(dual_run / "res")
     proc = subprocess.Popen([sys.executable, "-m", "symcal", "solve", str(DUAL), "--data",
                              "calibration=big.csv", "--out", "res", "--json"],
-                            cwd=dual_run, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            cwd=dual_run, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     assert proc.stderr is not None
-    for line in proc.stderr:  # wait until IPOPT iterates on the full stage
-        if "full: iteration   1" in line:
-            break
+    fd = proc.stderr.fileno()     # read raw: no read-ahead hides what came when
+    seen = b""
+    while b"full: iteration   1" not in seen:    # IPOPT iterates on the full stage
+        chunk = os.read(fd, 65536)
+        assert chunk, seen.decode()
+        seen += chunk
+    # the process frozen, the lines it printed before the signal are drained, so that
+    # only what it prints after the signal is counted (a busy machine may read late)
+    proc.send_signal(signal.SIGSTOP)
+    while Path(f"/proc/{proc.pid}/stat").read_text().split(")")[-1].split()[0] not in "Tt":
+        time.sleep(0.01)
+    os.set_blocking(fd, False)
+    try:
+        while chunk := os.read(fd, 65536):
+            seen += chunk
+    except BlockingIOError:
+        pass
+    os.set_blocking(fd, True)
     proc.send_signal(sig)
-    out, err = proc.communicate(timeout=60)
+    proc.send_signal(signal.SIGCONT)
+    out_b, after_b = proc.communicate(timeout=60)
+    out, after = out_b.decode(), after_b.decode()
+    err = seen.decode() + after
     # at once: at most the iteration under way when the signal came is finished (counted
     # in iterations, not seconds: no test asserts a wall time)
-    assert sum(" iteration " in line for line in err.splitlines()) <= 1
+    assert sum(" iteration " in line for line in after.splitlines()) <= 1, after
     assert proc.returncode == code
     message = f"{words}; no output was written or changed"
     assert err.splitlines()[-1] == f"symcal: error: {message}"

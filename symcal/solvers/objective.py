@@ -210,10 +210,11 @@ class Objective:
         chunk in row order (``m × n_free`` each; in-memory data only), for standard
         errors that allow for correlated rows (:mod:`symcal.analysis.serial`)."""
         instrument.record_pass("linearised", "score_chunks", dataset.n)
-        fn = self._mapped("linearised", [self.g, self.jac.T])
+        fn = jit.select(self._mapped("linearised", [self.g, self.jac.T]), dataset.n)
         ng, n = self.g.shape[0], int(self.free.sum())
         u = dataset.matrix(self.problem.columns)
-        for part in chunks(dataset.n):
+
+        def scores(part: slice) -> np.ndarray:
             g, jt = (np.array(x) for x in fn.evaluate(theta, u[:, part]))
             m = g.shape[0]
             jac = jt.reshape(m, ng, n)
@@ -222,7 +223,10 @@ class Objective:
                 g, jac = np.einsum("mab,mb->ma", w, g), np.einsum("mab,mbn->man", w, jac)
             elif w is not None:
                 g, jac = g * w, jac * w[:, :, None]
-            yield np.einsum("ma,man->mn", g, jac)
+            return np.einsum("ma,man->mn", g, jac)
+
+        # on the passes' executor (threads for a large dataset), the chunks in order
+        yield from default_executor(dataset.n).map(scores, list(chunks(dataset.n)))
 
     def _kept_g(self, dataset: Source, theta: np.ndarray) -> np.ndarray | None:
         """The residuals kept from an earlier :meth:`residuals` of this dataset at this
