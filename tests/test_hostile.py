@@ -477,9 +477,16 @@ def dual_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_a_signal_mid_solve_stops_at_once_and_keeps_earlier_results(
         dual_run: Path, sig: signal.Signals, code: int, words: str) -> None:
     before = _tree(dual_run / "res")
-    proc = subprocess.Popen([sys.executable, "-m", "symcal", "solve", str(DUAL), "--data",
-                             "calibration=big.csv", "--out", "res", "--json"],
-                            cwd=dual_run, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    # started as from a terminal, where Ctrl-C reaches it: a process inherits an ignored
+    # SIGINT (a shell's background job runs so, and the tests with it) and Python keeps
+    # it ignored; a handled one is reset to the default at exec
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "symcal", "solve", str(DUAL),
+                                 "--data", "calibration=big.csv", "--out", "res", "--json"],
+                                cwd=dual_run, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert proc.stderr is not None
     fd = proc.stderr.fileno()     # read raw: no read-ahead hides what came when
     seen = b""
@@ -509,7 +516,7 @@ def test_a_signal_mid_solve_stops_at_once_and_keeps_earlier_results(
     assert sum(" iteration " in line for line in after.splitlines()) <= 1, after
     assert proc.returncode == code
     message = f"{words}; no output was written or changed"
-    assert err.splitlines()[-1] == f"symcal: error: {message}"
+    assert after.splitlines()[-1] == f"symcal: error: {message}", after
     assert "Traceback" not in err and "WARNING" not in err
     assert json.loads(out) == {"error": {"message": message, "exit_code": code}}
     assert _tree(dual_run / "res") == before
