@@ -12,7 +12,7 @@ import numpy as np
 
 from symcal.analysis.floors import FloorTest
 from symcal.base import jit
-from symcal.base.numeric import Mapped, chunks, mapped, owned
+from symcal.base.numeric import Mapped, mapped, owned
 from symcal.base.units import DISPLAY_UNITS
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
@@ -159,21 +159,12 @@ def series_statistics(
         notes.extend(series.notes)
         fn = jit.select(series.fn, 2 * ds.n)
         u = ds.matrix(problem.columns)
-        before, after = _rows(fn, theta0, u), _rows(fn, theta, u)
+        threads = default_executor(ds.n).map       # threads for a large dataset
+        before = fn(theta0, u, map_pieces=threads)[0]
+        after = fn(theta, u, map_pieces=threads)[0]
         for j, name in enumerate(series.names):
             stats.append(SeriesStats(name, series.kinds[j], ds.name, series.units[j], ds.n,
                                      Spread.of(before[:, j]), Spread.of(after[:, j]),
                                      series.means[j]))
     return tuple(stats), tuple(notes)
 
-
-def _rows(fn: Mapped, theta: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """``fn``'s first output on every observation of ``u`` (``n_u × N``), chunk by chunk on
-    the passes' executor (threads for a large dataset; the same bits as in one thread)."""
-    n = u.shape[1]
-    parts = list(chunks(n))
-    out = np.empty((n, fn.fn.nnz_out(0)))
-    values = default_executor(n).map(lambda part: fn.chunk(theta, u[:, part])[0], parts)
-    for part, value in zip(parts, values, strict=True):
-        out[part] = value
-    return out

@@ -891,27 +891,8 @@ def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray,
     """A⁺ and the covariance of the estimate from the calibration data's noise, or None
     where a fitted constraint reads a column of undeclared noise and ``assumed`` has no
     variance for it (its floor estimated on ``ds``: :func:`difference_variances`)."""
-    quantities = [problem.constraint(n) for n in fit.constraints]
-    known, variances = _assumed_variances(problem, fit, assumed)
-    if not known:
-        return None
-    noisy = problem.noisy
-    sigma = np.array([q.sigma for q in quantities])
-    prop = _propagation(problem, ("share", *fit.constraints),
-                        [noisy.constraint(n).sx for n in fit.constraints], fit.free)
-    plan = SharePlan(prop, fit, sigma, variances)
-    u = ds.matrix(prop.columns)
-    fn = jit.select(prop.fn, ds.n)
-
-    def piece(part: slice) -> tuple[np.ndarray, np.ndarray]:
-        _, lmat, jac = prop.at(fn, u, theta, part)
-        return plan.terms(lmat, jac)
-
-    a, b = np.zeros((prop.n_p, prop.n_p)), np.zeros((prop.n_p, prop.n_p))
-    for da, db in default_executor(ds.n).map(piece, chunks(ds.n)):   # in order
-        a += da
-        b += db
-    return share_finish(a, b)
+    plan = share_plan(problem, fit, assumed, cached=True)
+    return None if plan is None else share_finish(*plan.sums(ds, theta))
 
 
 @dataclass(frozen=True)
@@ -1076,10 +1057,16 @@ class SharePlan:
 
     def sums(self, ds: Dataset, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(A, B)``: ``Σ J_iᵀW_iJ_i`` and ``Σ J_iᵀW_iC_iW_iJ_i`` over the rows of ``ds``."""
-        n_p = self.prop.n_p
-        a, b = np.zeros((n_p, n_p)), np.zeros((n_p, n_p))
-        for _, _, lmat, jac in self.prop.rows(ds, theta):
-            da, db = self.terms(lmat, jac)
+        prop = self.prop
+        u = ds.matrix(prop.columns)
+        fn = jit.select(prop.fn, ds.n)
+
+        def piece(part: slice) -> tuple[np.ndarray, np.ndarray]:
+            _, lmat, jac = prop.at(fn, u, theta, part)
+            return self.terms(lmat, jac)
+
+        a, b = np.zeros((prop.n_p, prop.n_p)), np.zeros((prop.n_p, prop.n_p))
+        for da, db in default_executor(ds.n).map(piece, chunks(ds.n)):   # in order
             a += da
             b += db
         return a, b
@@ -1094,17 +1081,19 @@ class SharePlan:
         return jac.reshape(-1, n_p).T @ flat, flat.T @ (c @ wj).reshape(-1, n_p)
 
 
-def share_plan(problem: Problem, fit: Fit, assumed: Mapping[str, float] | None = None
-               ) -> SharePlan | None:
-    """The plan of the estimate's share, as :func:`_estimate_share` sums it (None where a
-    fitted constraint reads a column of undeclared noise and ``assumed`` has no variance
-    for it)."""
+def share_plan(problem: Problem, fit: Fit, assumed: Mapping[str, float] | None = None,
+               cached: bool = False) -> SharePlan | None:
+    """The plan of the estimate's share (None where a fitted constraint reads a column of
+    undeclared noise and ``assumed`` has no variance for it); ``cached``: the evaluation
+    built once per problem (in memory) rather than for this plan alone (a task of a log
+    kept as shards carries its own)."""
     quantities = [problem.constraint(n) for n in fit.constraints]
     known, variances = _assumed_variances(problem, fit, assumed)
     if not known:
         return None
-    noisy = problem.noisy
-    prop = _Propagation(problem, [noisy.constraint(n).sx for n in fit.constraints], fit.free)
+    exprs = [problem.noisy.constraint(n).sx for n in fit.constraints]
+    prop = _propagation(problem, ("share", *fit.constraints), exprs, fit.free) if cached \
+        else _Propagation(problem, exprs, fit.free)
     return SharePlan(prop, fit, np.array([q.sigma for q in quantities]), variances)
 
 
@@ -1251,7 +1240,9 @@ class RowsPlan:
             chi2 += chi2_b
             dof += dof_b
             for k, xk in x_b.items():
-                xs.setdefault(k, np.empty((m, xk.shape[1])))[rows] = xk
+                if k not in xs:
+                    xs[k] = np.empty((m, xk.shape[1]))
+                xs[k][rows] = xk
         vectors: dict[int, tuple[np.ndarray, np.ndarray | None, bool]] = {
             k: (jac[:, k, :].copy(), xs.get(k), self.estimated(k))   # not all of J
             for k in range(n_e) if self.share is not None

@@ -22,13 +22,17 @@ from __future__ import annotations
 import hashlib
 import threading
 import weakref
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any, TypeVar
 
 import casadi as ca
 import numpy as np
 
 from symcal.base.cores import inner_threads
+
+#: An executor's ``map``: a task over pieces, the results in the pieces' order.
+PieceMap = Callable[[Callable[[slice], list[np.ndarray]], list[slice]],
+                    Iterable[list[np.ndarray]]]
 
 #: An interpreted chunk of at least this much work (rows × the function's instructions),
 #: evaluated outside symcal's pass threads, is split over
@@ -132,13 +136,21 @@ class Mapped:
         """Evaluate on one chunk: ``u`` is ``n_u × n``; returns ``n × k`` arrays (copies)."""
         return [out.copy() for out in self.evaluate(theta, u)]
 
-    def __call__(self, theta: np.ndarray, u: np.ndarray, size: int = CHUNK) -> list[np.ndarray]:
-        """Evaluate over all observations (``u`` is ``n_u × N``)."""
+    def __call__(self, theta: np.ndarray, u: np.ndarray, size: int = CHUNK,
+                 map_pieces: PieceMap | None = None) -> list[np.ndarray]:
+        """Evaluate over all observations (``u`` is ``n_u × N``), chunk by chunk; with
+        ``map_pieces`` (an executor's ``map``: the chunks' results in order) on its
+        threads, the same bits."""
         n = u.shape[1]
         outs = [np.empty((n, self.fn.nnz_out(i))) for i in range(self.fn.n_out())]
-        for part in chunks(n, size):
-            for out, value in zip(outs, self.evaluate(theta, u[:, part]), strict=True):
-                out[part] = value
+        parts = list(chunks(n, size))
+        if map_pieces is None:
+            values: Iterable[list[np.ndarray]] = (self.evaluate(theta, u[:, p]) for p in parts)
+        else:
+            values = map_pieces(lambda part: self.chunk(theta, u[:, part]), parts)
+        for part, value in zip(parts, values, strict=True):
+            for out, column in zip(outs, value, strict=True):
+                out[part] = column
         return outs
 
 
