@@ -110,9 +110,9 @@ def test_clean_thermistor_data_have_no_outliers_and_the_numpy_chi2(seed: int) ->
     """Clean bath data: no outliers (seed 1000 had 87 under one spread), the standardized
     residuals' robust spread near 1, and symcal's calibration χ² equal to numpy's
     Σ g²/var_i at symcal's estimate (the noise propagated at the readings), its χ²/dof
-    within 1/(N - 3) of numpy's Σ g²/var_i / (N - 3) (symcal's dof is 1198 here, not
-    1197: the share of the estimate drops the least determined direction; see the
-    report of this branch)."""
+    within 1/(N - 3) of numpy's Σ g²/var_i / (N - 3), and its degrees of freedom N - 3
+    exactly (they were N - 2 while the estimate's share was cut on the unscaled normal
+    matrix, where the cubic coefficient's direction looked undetermined)."""
     cols = _calibration(seed)
     result = _solve(cols)
     assert result.success
@@ -126,6 +126,7 @@ def test_clean_thermistor_data_have_no_outliers_and_the_numpy_chi2(seed: int) ->
     assert test["dataset"] == "calibration"
     assert test["chi2"] == pytest.approx(chi2, rel=1e-6)
     assert test["chi2_dof"] == pytest.approx(chi2 / (g.size - 3), rel=1.01 / (g.size - 3))
+    assert test["dof"] == pytest.approx(g.size - 3, abs=1e-6)
 
 
 @pytest.mark.slow

@@ -36,7 +36,6 @@ from symcal.analysis.floors import (
     difference_variances,
     differences_plan,
     rows_plan,
-    share_finish,
     share_plan,
 )
 from symcal.data.dataset import Dataset
@@ -86,8 +85,8 @@ def floor_tests_passes(problem: Problem, log: Source, sample: Dataset,
         if plan is not None:
             parts = map_pieces(_Share(plan, np.array(theta, dtype=float), log.name), log,
                                 "floor_share")
-            share = share_finish(np.sum([p[0] for p in parts], axis=0),
-                                 np.sum([p[1] for p in parts], axis=0))
+            share = plan.finish(np.sum([p[0] for p in parts], axis=0),
+                                np.sum([p[1] for p in parts], axis=0))
     rows = rows_plan(problem, sample, theta, fit, share, theta0)
     parts = map_pieces(_Rows(rows), log, "floor_rows")
     total = parts[0]

@@ -892,7 +892,7 @@ def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray,
     where a fitted constraint reads a column of undeclared noise and ``assumed`` has no
     variance for it (its floor estimated on ``ds``: :func:`difference_variances`)."""
     plan = share_plan(problem, fit, assumed, cached=True)
-    return None if plan is None else share_finish(*plan.sums(ds, theta))
+    return None if plan is None else plan.finish(*plan.sums(ds, theta))
 
 
 @dataclass(frozen=True)
@@ -1053,7 +1053,12 @@ class SharePlan:
     prop: _Propagation
     fit: Fit
     sigma: np.ndarray
+    scales: np.ndarray                    # the free parameters' scales
     variances: np.ndarray | None = None   # see _estimate_share's assumed
+
+    def finish(self, a: np.ndarray, b: np.ndarray) -> _Estimate:
+        """The share from the sums of all rows (:func:`share_finish`)."""
+        return share_finish(a, b, self.scales)
 
     def sums(self, ds: Dataset, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(A, B)``: ``Σ J_iᵀW_iJ_i`` and ``Σ J_iᵀW_iC_iW_iJ_i`` over the rows of ``ds``."""
@@ -1094,7 +1099,8 @@ def share_plan(problem: Problem, fit: Fit, assumed: Mapping[str, float] | None =
     exprs = [problem.noisy.constraint(n).sx for n in fit.constraints]
     prop = _propagation(problem, ("share", *fit.constraints), exprs, fit.free) if cached \
         else _Propagation(problem, exprs, fit.free)
-    return SharePlan(prop, fit, np.array([q.sigma for q in quantities]), variances)
+    scales = np.array([p.scale for p in problem.parameters])[np.asarray(fit.free, bool)]
+    return SharePlan(prop, fit, np.array([q.sigma for q in quantities]), scales, variances)
 
 
 def _assumed_variances(problem: Problem, fit: Fit, assumed: Mapping[str, float] | None
@@ -1115,13 +1121,20 @@ def _assumed_variances(problem: Problem, fit: Fit, assumed: Mapping[str, float] 
     return True, variances
 
 
-def share_finish(a: np.ndarray, b: np.ndarray) -> _Estimate:
-    """A⁺ and the estimate's covariance ``A⁺ B A⁺`` from the sums of all rows."""
+def share_finish(a: np.ndarray, b: np.ndarray, scales: np.ndarray | None = None
+                 ) -> _Estimate:
+    """A⁺ and the estimate's covariance ``A⁺ B A⁺`` from the sums of all rows.
+
+    The pseudo-inverse is taken in the parameters' own scales (``D A D``, ``D`` their
+    ``scales``): a direction is dropped where the data do not determine it, not where a
+    parameter's unit makes its entries small (a cubic coefficient's directions were cut
+    from the unscaled ``A``, one degree of freedom too many in the tests)."""
     if a.shape[0] == 0:
         return _Estimate(a, b)
-    vals, vecs = np.linalg.eigh(a)
+    d = np.ones(a.shape[0]) if scales is None else np.asarray(scales, dtype=float)
+    vals, vecs = np.linalg.eigh(a * d[:, None] * d[None, :])
     keep = vals > 1e-10 * max(float(vals.max(initial=0.0)), 1e-300)
-    a_pinv = (vecs[:, keep] / vals[keep]) @ vecs[:, keep].T
+    a_pinv = d[:, None] * ((vecs[:, keep] / vals[keep]) @ vecs[:, keep].T) * d[None, :]
     return _Estimate(a_pinv, a_pinv @ b @ a_pinv)
 
 
