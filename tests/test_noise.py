@@ -212,6 +212,32 @@ def test_floor_agrees_with_finite_differences() -> None:
     assert 9.0 * UM < floor < 10.5 * UM
 
 
+def test_row_covariances_kept_for_the_last_points() -> None:
+    """A propagated solve asks for the row covariances at the same points again: the last
+    two asked of a dataset are returned read-only, the same bits, and a third point, another
+    dataset or another problem is computed again (equal to the first computation)."""
+    problem = symcal.load_problem(PROBLEMS / "dual_sensor_calibration.yaml")
+    data = _courier(problem, "courier_dual")
+    cal = data["calibration"]
+    theta = np.array([p.value for p in problem.parameters])
+    other = theta + 1e-3 * np.array([p.scale for p in problem.parameters])
+    third = theta - 1e-3 * np.array([p.scale for p in problem.parameters])
+    names = tuple(c.name for c in problem.constraints)
+    first = row_covariances(problem, names, cal, theta)
+    assert not first.flags.writeable
+    assert row_covariances(problem, names, cal, theta) is first
+    moved = row_covariances(problem, names, cal, other)
+    assert not np.array_equal(moved, first)
+    assert row_covariances(problem, names, cal, theta) is first      # still kept
+    row_covariances(problem, names, cal, third)                      # first is dropped
+    again = row_covariances(problem, names, cal, theta)
+    assert again is not first and np.array_equal(again, first)
+    flyby = row_covariances(problem, names, data["flyby"], theta)
+    assert flyby.shape[0] == data["flyby"].n
+    fresh = symcal.load_problem(PROBLEMS / "dual_sensor_calibration.yaml")
+    assert row_covariances(fresh, names, cal, theta) is not again
+
+
 def test_floor_agrees_with_a_monte_carlo_of_the_declared_noise() -> None:
     """Declared noise added to noiseless readings 400 times: the residuals' standard
     deviation on every observation equals the propagated floor within its sampling error

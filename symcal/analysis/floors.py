@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import functools
 import math
+import weakref
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from statistics import NormalDist
@@ -753,19 +754,38 @@ def inverse_sqrt_rows(c: np.ndarray) -> tuple[np.ndarray, int]:
     return np.einsum("mab,mb,mcb->mac", v, inv, v), singular
 
 
+#: Row covariances kept per problem and constraints (the last points asked, at most
+#: this many values in each): a propagated solve asks for them at the start and the
+#: estimate of each of its solves, its floor, the next stage's start and the outliers,
+#: at about half as many distinct points.
+KEEP_COVARIANCES = 2
+KEEP_VALUES = 1 << 23
+
+
 def row_covariances(problem: Problem, constraints: tuple[str, ...], ds: Dataset,
                     theta: np.ndarray) -> np.ndarray:
     """The propagated covariance of each observation's weighted constraints g/σ
-    (N × n_g × n_g), at ``theta``: the weights of ``weighting: propagated``."""
+    (N × n_g × n_g, read-only), at ``theta``: the weights of ``weighting: propagated``.
+    The last :data:`KEEP_COVARIANCES` asked of a dataset in memory are kept (the same
+    bits, without another pass)."""
     noisy = problem.noisy
     quantities = [noisy.constraint(n) for n in constraints]
     sigma = np.array([q.sigma for q in quantities])
     prop = _propagation(problem, ("covariances", *constraints), [q.sx for q in quantities],
                         np.zeros(len(problem.parameters), dtype=bool))
+    kept: list[tuple[Any, bytes, np.ndarray]] = owned(
+        problem, ("row covariances", tuple(constraints)), list)
+    key = np.ascontiguousarray(theta, dtype=float).tobytes()
+    for ref, at, found in list(kept):
+        if ref() is ds and at == key:
+            return found
     out = np.empty((ds.n, len(constraints), len(constraints)))
     for part, _, lmat, _ in prop.rows(ds, theta):
         lmat = lmat / sigma[None, :, None]
         out[part] = _gram(lmat)
+    out.setflags(write=False)
+    if out.size <= KEEP_VALUES:
+        kept[:] = [*kept[1 - KEEP_COVARIANCES:], (weakref.ref(ds), key, out)]
     return out
 
 
