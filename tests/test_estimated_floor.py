@@ -15,7 +15,8 @@ import pytest
 from conftest import ROOT
 
 import symcal
-from symcal.analysis.floors import DatasetTest, ratio_band, ratio_sd, shared_ratio_band
+from symcal.analysis.bands import ratio_band, ratio_sd, shared_ratio_band
+from symcal.analysis.verdicts import DatasetTest
 from symcal.data.dataset import make_dataset
 from symcal.simulation import load_scenario, simulate_run
 

@@ -12,7 +12,7 @@ import pytest
 from conftest import ROOT
 
 import symcal
-from symcal.analysis.floors import LEVEL
+from symcal.analysis.bands import LEVEL
 from symcal.data.dataset import make_dataset
 from symcal.report.text import verdict_lines
 from symcal.simulation import load_scenario, simulate_run
@@ -334,7 +334,7 @@ def test_row_pseudo_inverses_by_cofactors_agree_with_the_eigen_decomposition(n) 
     that dropping the eigenvalues below EXACT of the largest gives, row by row, for
     regular rows of every scale, rows with an exact reading (singular) and rows whose
     smallest eigenvalue sits just above and just below the cut."""
-    from symcal.analysis.floors import EXACT, _pinv_rows
+    from symcal.analysis.row_noise import EXACT, row_pinv
 
     rng = np.random.default_rng(11 + n)
     rows = []
@@ -348,7 +348,7 @@ def test_row_pseudo_inverses_by_cofactors_agree_with_the_eigen_decomposition(n) 
         vals[0] = ratio * vals[-1]
         rows.append((q * vals) @ q.T)
     c = np.array(rows)
-    got, rank = _pinv_rows(c)
+    got, rank = row_pinv(c)
     for k, ck in enumerate(c):
         w, v = np.linalg.eigh(ck)
         keep = w > EXACT * max(w.max(), 1e-300)

@@ -14,7 +14,9 @@ from conftest import ROOT
 
 import symcal
 import symcal.simulation
-from symcal.analysis.floors import Fit, chi2_band, floor_tests, row_covariances
+from symcal.analysis.bands import chi2_band
+from symcal.analysis.floors import floor_tests
+from symcal.analysis.row_noise import Fit, row_covariances
 from symcal.base.errors import SpecError
 from symcal.base.numeric import mapped
 from symcal.data.dataset import make_dataset
@@ -293,7 +295,7 @@ def test_chi2_band_against_scipy() -> None:
 def test_beta_function_and_quantiles_against_scipy() -> None:
     from scipy import stats
 
-    from symcal.analysis.floors import beta_cdf, beta_quantile
+    from symcal.analysis.bands import beta_cdf, beta_quantile
 
     for a, b in ((1.5, 2.5), (10.0, 30.0), (75.0, 74.0), (500.0, 499.0), (5e4, 5e4 + 7)):
         for x in (0.1, 0.3, 0.49, 0.5, 0.51, 0.7, 0.9):
@@ -309,7 +311,7 @@ def test_the_band_of_an_estimated_floor_holds_on_white_noise(n: int, centred: bo
     rows: 10000 draws fall beyond each end of the 95 % band 2.5 % of the time (binomial
     3σ: ±0.47 %); the normal band used before let 3.3-4.7 % above it.  The relative spread
     is the first-order one (8 % low at n = 60, 1 % at 400)."""
-    from symcal.analysis.floors import ratio_band, ratio_sd
+    from symcal.analysis.bands import ratio_band, ratio_sd
 
     rng = np.random.default_rng(11 + n + centred)
     r = rng.normal(size=(10_000, n)) + (3.0 if centred else 0.0)
@@ -324,7 +326,8 @@ def test_the_band_of_an_estimated_floor_holds_on_white_noise(n: int, centred: bo
 
 
 def test_a_dataset_test_gives_its_band_at_any_level() -> None:
-    from symcal.analysis.floors import DatasetTest, normal_band, ratio_band
+    from symcal.analysis.bands import normal_band, ratio_band
+    from symcal.analysis.verdicts import DatasetTest
 
     chi2 = DatasetTest("a", ("g",), "propagated", 1000.0, 967.0, chi2_band(967.0))
     assert chi2.band_at(0.99) == pytest.approx(chi2_band(967.0, 0.99))
@@ -347,7 +350,7 @@ def test_at_floor_is_one_decision_for_the_datasets_together() -> None:
     """Two datasets: one just above its own 95 % band but inside the Šidák band (each at
     0.95^(1/2)) is at the floor with the other; the report keeps its own band and says
     why; a third dataset widens the family's bands further."""
-    from symcal.analysis.floors import DatasetTest, at_floor, family_bands, family_level
+    from symcal.analysis.verdicts import DatasetTest, at_floor, family_bands, family_level
     from symcal.report.text import family_note
 
     assert family_level(2) == pytest.approx(0.95 ** 0.5)

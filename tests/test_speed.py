@@ -360,7 +360,7 @@ def test_a_repeated_solve_builds_nothing_again_and_finds_the_same(monkeypatch) -
     """The second solve of one problem on the same data reuses the analysis' functions
     (series statistics, noise floors: one object per problem and dataset layout) and its
     Result is the same document, every number equal, as the first's."""
-    from symcal.analysis import fit, floors
+    from symcal.analysis import fit, row_noise
     from symcal.base import numeric
 
     problem = symcal.load_problem(ROOT / "problems" / "platen_self_calibration.yaml")
@@ -374,7 +374,7 @@ def test_a_repeated_solve_builds_nothing_again_and_finds_the_same(monkeypatch) -
         return numeric.mapped(theta, u, outputs, name)
 
     monkeypatch.setattr(fit, "mapped", counted)
-    monkeypatch.setattr(floors, "mapped", counted)
+    monkeypatch.setattr(row_noise, "mapped", counted)
     second = symcal.solve(problem, dict(first.data))
     assert built == []
     assert all(numeric._OWNED[problem][k] is v for k, v in kept.items())

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from symcal.analysis.floors import EXACT
+from symcal.analysis.row_noise import EXACT
 from symcal.base.numeric import mapped
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem

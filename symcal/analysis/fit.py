@@ -10,7 +10,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from symcal.analysis.floors import FloorTest
+from symcal.analysis.verdicts import FloorTest
 from symcal.base import jit
 from symcal.base.numeric import Mapped, mapped, owned
 from symcal.base.units import DISPLAY_UNITS
@@ -41,7 +41,7 @@ class SeriesStats:
     ``kind`` is ``"constraint"`` (model against itself: the redundancy) or ``"comparison"``
     (model against an independent reference sensor; ``remove_mean`` says that its mean is
     an arbitrary zero, e.g. the interferometer's, and carries no information).  ``noise``
-    is its noise floor and the test against it (:class:`~symcal.analysis.floors.FloorTest`,
+    is its noise floor and the test against it (:class:`~symcal.analysis.verdicts.FloorTest`,
     found at solve time; None before).
     """
 

@@ -8,7 +8,7 @@ shards (the successive differences across each boundary included); the held-out 
 in memory are tested as usual, with the estimate's share from the log.
 
 One rule is not the same maths on shards: a row whose propagated variance is below
-:data:`~symcal.analysis.floors.EXACT` of the largest so far counts as an exact reading, the
+:data:`~symcal.analysis.row_noise.EXACT` of the largest so far counts as an exact reading, the
 largest taken over the rows accumulated before it; that running scale starts again at each
 shard, so a row within 1e-12 of the scale could count otherwise (rows declared exact have
 a variance of 0 and count the same).
@@ -23,21 +23,19 @@ from typing import Any
 import numpy as np
 
 from symcal.analysis.floors import (
-    DatasetTest,
     Differences,
     DifferencesPlan,
-    Fit,
-    FloorTest,
     RowsPlan,
     RowSums,
     SharePlan,
     _dataset_tests,
-    _entries,
     difference_variances,
     differences_plan,
     rows_plan,
     share_plan,
 )
+from symcal.analysis.row_noise import Fit, entries_of
+from symcal.analysis.verdicts import DatasetTest, FloorTest
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
 from symcal.solvers.objective import Source
@@ -96,7 +94,7 @@ def floor_tests_passes(problem: Problem, log: Source, sample: Dataset,
     out = {(log.name, k): v for k, v in found.items()}
     tests = [joint]
     for ds in held.values():
-        entries = _entries(problem, ds)
+        entries = entries_of(problem, ds)
         assumed = difference_variances(problem, ds, theta, tuple(entries.names),
                                        entries.exprs, entries.declared)
         more, test = _dataset_tests(problem, ds, theta, fit, share, theta0, assumed)
@@ -111,7 +109,7 @@ def _log_variances(problem: Problem, log: Source, sample: Dataset, theta: np.nda
     successive differences in passes over its shards (in their order, the boundaries
     included), as :func:`~symcal.analysis.floors.difference_variances` gives them in
     memory: what the estimate's share takes for those constraints."""
-    entries = _entries(problem, sample)
+    entries = entries_of(problem, sample)
     if all(entries.declared) or not ordered or log.n < 3:
         return {}
     plan = differences_plan(problem, theta, tuple(entries.names), entries.exprs)

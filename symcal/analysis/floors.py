@@ -32,792 +32,41 @@ Rows are evaluated chunk by chunk; nothing of size N × (residuals × readings) 
 
 from __future__ import annotations
 
-import functools
 import math
-import weakref
-from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field, replace
-from statistics import NormalDist
-from typing import Any
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 
 import casadi as ca
 import numpy as np
 
+from symcal.analysis.bands import chi2_band, normal_band, ratio_band, ratio_sd, shared_ratio_band
+from symcal.analysis.row_noise import (
+    EXACT,
+    Fit,
+    RowPropagation,
+    assumed_covariance,
+    entries_of,
+    fit_weights,
+    row_grams,
+    row_pinv,
+    row_propagation,
+)
+from symcal.analysis.verdicts import (
+    DIFFERENCES,
+    PROPAGATED,
+    UNKNOWN,
+    DatasetTest,
+    FloorTest,
+)
 from symcal.base import jit
-from symcal.base.numeric import Mapped, chunks, mapped, owned
+from symcal.base.numeric import chunks
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
 from symcal.solvers.executor import default_executor
 
-#: The level of every band: a χ²/dof inside its central 95 % interval is at the floor.
-LEVEL = 0.95
-#: How a floor was found.
-PROPAGATED = "propagated"
-DIFFERENCES = "successive differences"
-UNKNOWN = "unknown"
-#: A row's propagated variance below this share of the largest is an exact reading.
-EXACT = 1e-12
 #: Rows per block of a chunk's products in :meth:`RowsPlan.terms` (they stay in the
 #: cache: 20 % faster than whole chunks on the dual problem).
 BLOCK = 1024
-#: How far above :data:`EXACT` a row's smallest eigenvalue must clearly be for its
-#: covariance to be inverted directly (:func:`_pinv_rows`).
-CLEAR = 1e3
-
-
-def normal_quantile(p: float) -> float:
-    """The standard normal quantile of ``p``."""
-    return NormalDist().inv_cdf(p)
-
-
-def _lower_gamma(a: float, x: float) -> float:
-    """The regularised lower incomplete gamma function P(a, x) (its power series below
-    a + 1, else one minus the continued fraction of Q, evaluated by Lentz's method)."""
-    if x <= 0:
-        return 0.0
-    log_front = a * math.log(x) - x - math.lgamma(a)
-    if x < a + 1.0:
-        term = total = 1.0 / a
-        k = a
-        while abs(term) > 1e-16 * abs(total):
-            k += 1.0
-            term *= x / k
-            total += term
-        return min(1.0, total * math.exp(log_front))
-    tiny = 1e-300
-    b = x + 1.0 - a
-    c, d = 1.0 / tiny, 1.0 / b
-    h = d
-    for i in range(1, 10_000):
-        an = -i * (i - a)
-        b += 2.0
-        d = an * d + b
-        d = tiny if abs(d) < tiny else d
-        c = b + an / c
-        c = tiny if abs(c) < tiny else c
-        d = 1.0 / d
-        h *= d * c
-        if abs(d * c - 1.0) < 1e-16:
-            break
-    return max(0.0, 1.0 - math.exp(log_front) * h)
-
-
-def _chi2_density(x: float, nu: float) -> float:
-    """The density of χ²_ν at ``x`` > 0."""
-    k = nu / 2.0
-    return math.exp((k - 1.0) * math.log(x) - x / 2.0 - k * math.log(2.0) - math.lgamma(k))
-
-
-@functools.lru_cache(maxsize=4096)
-def chi2_quantile(p: float, nu: float) -> float:
-    """The ``p`` quantile of χ²_ν, to 1e-12 relative (SciPy is not needed for a solve):
-    Newton's method on the distribution function from the Wilson–Hilferty
-    approximation, kept inside a bracket (bisection where a step leaves it).  Kept per
-    (p, ν): a result's bands are asked for again by its report and its document."""
-    if nu <= 0:
-        return 0.0
-    lo, hi = 0.0, max(nu, 1.0)
-    while _lower_gamma(nu / 2.0, hi / 2.0) < p:
-        lo, hi = hi, 2.0 * hi
-    h = 2.0 / (9.0 * nu)
-    x = nu * max(1.0 - h + normal_quantile(p) * math.sqrt(h), 1e-3) ** 3
-    if not lo < x < hi:
-        x = 0.5 * (lo + hi)
-    for _ in range(200):
-        f = _lower_gamma(nu / 2.0, x / 2.0) - p
-        if f < 0:
-            lo = x
-        else:
-            hi = x
-        density = _chi2_density(x, nu)
-        step = f / density if density > 0 else math.inf
-        new = x - step
-        if not lo < new < hi:
-            new = 0.5 * (lo + hi)
-        if abs(new - x) <= 1e-13 * new or hi - lo <= 1e-12 * hi:
-            return new
-        x = new
-    return x
-
-
-def chi2_band(nu: float, level: float = LEVEL) -> tuple[float, float]:
-    """The central ``level`` interval of χ²_ν / ν."""
-    tail = (1.0 - level) / 2.0
-    return chi2_quantile(tail, nu) / nu, chi2_quantile(1.0 - tail, nu) / nu
-
-
-def normal_band(sd: float, level: float = LEVEL) -> tuple[float, float]:
-    """``1 ± z·sd`` (the central ``level`` interval of a ratio with that spread)."""
-    z = normal_quantile(0.5 + level / 2.0)
-    return max(1.0 - z * sd, 0.0), 1.0 + z * sd
-
-
-@dataclass(frozen=True)
-class FloorTest:
-    """The noise floor of one residual or comparison on one dataset, and its test.
-
-    Attributes
-    ----------
-    floor
-        The standard deviation noise alone leaves (internal units), None when unknown.
-    method
-        :data:`PROPAGATED`, :data:`DIFFERENCES` or :data:`UNKNOWN`.
-    chi2, dof
-        The test statistic and its expectation (effective degrees of freedom); None
-        when unknown.
-    band
-        The central 95 % interval of ``chi2 / dof`` when at the floor.
-    sd
-        The relative standard deviation of ``chi2 / dof`` (to combine tests).
-    chi2_before
-        The same statistic with the initial parameters (same weights), when known.
-    rows
-        For a floor estimated by successive differences whose test carries the
-        estimate's share (:func:`shared_ratio_band`): the rows it was estimated on.
-    """
-
-    floor: float | None
-    method: str
-    chi2: float | None = None
-    dof: float | None = None
-    band: tuple[float, float] | None = None
-    sd: float | None = None
-    chi2_before: float | None = None
-    rows: int | None = None
-
-    @property
-    def worse(self) -> bool:
-        """Whether calibration made the residual worse by more than its noise allows: it
-        is above its floor, and its χ²/dof grew from the initial parameters by more than
-        noise moves a χ²/dof at the floor (its band's upper half-width)."""
-        value = self.chi2_dof
-        if value is None or self.chi2_before is None or self.band is None or not self.dof:
-            return False
-        return (self.verdict == "above"
-                and value - self.chi2_before / self.dof > self.band[1] - 1.0)
-
-    @property
-    def chi2_dof(self) -> float | None:
-        """χ²/ν, or None when unknown."""
-        if self.chi2 is None or not self.dof:
-            return None
-        return self.chi2 / self.dof
-
-    @property
-    def ratio(self) -> float | None:
-        """√(χ²/ν): how many times the floor the residual's spread is."""
-        value = self.chi2_dof
-        return None if value is None else math.sqrt(max(value, 0.0))
-
-    @property
-    def verdict(self) -> str | None:
-        """``"at"``, ``"above"`` or ``"below"`` the floor; None when unknown."""
-        return verdict_of(self.chi2_dof, self.band)
-
-    def to_dict(self, scale: float = 1.0) -> dict[str, Any]:
-        """Plain data, the floor in a unit of size ``scale``."""
-        return {"floor": None if self.floor is None else self.floor / scale,
-                "method": self.method, "chi2": self.chi2, "dof": self.dof,
-                "band": None if self.band is None else list(self.band), "sd": self.sd,
-                "chi2_before": self.chi2_before, "worse": self.worse, "rows": self.rows}
-
-    @classmethod
-    def from_dict(cls, doc: Mapping[str, Any], scale: float = 1.0) -> FloorTest:
-        """Inverse of :meth:`to_dict`."""
-        floor = doc.get("floor")
-        band = doc.get("band")
-        return cls(None if floor is None else float(floor) * scale, str(doc["method"]),
-                   doc.get("chi2"), doc.get("dof"),
-                   None if band is None else (float(band[0]), float(band[1])), doc.get("sd"),
-                   doc.get("chi2_before"), doc.get("rows"))
-
-
-def verdict_of(value: float | None, band: tuple[float, float] | None) -> str | None:
-    """Where ``value`` lies against ``band``: ``"below"``, ``"at"``, ``"above"``, None."""
-    if value is None or band is None or math.isnan(value):
-        return None
-    if math.isinf(value):
-        return "above"
-    if value > band[1]:
-        return "above"
-    if value < band[0]:
-        return "below"
-    return "at"
-
-
-# ------------------------------------------------ a floor estimated by successive differences
-
-
-def _log_beta_front(x: float, a: float, b: float) -> float:
-    return (math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x)
-            + b * math.log1p(-x))
-
-
-def _beta_fraction(x: float, a: float, b: float) -> float:
-    """The continued fraction of the incomplete beta function (modified Lentz)."""
-    tiny = 1e-300
-    c, d = 1.0, 1.0 - (a + b) * x / (a + 1.0)
-    d = 1.0 / (tiny if abs(d) < tiny else d)
-    h = d
-    for m in range(1, 100_000):
-        for num in (m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m)),
-                    -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1))):
-            d = 1.0 + num * d
-            d = 1.0 / (tiny if abs(d) < tiny else d)
-            c = 1.0 + num / c
-            c = tiny if abs(c) < tiny else c
-            h *= d * c
-        if abs(d * c - 1.0) < 1e-15:
-            break
-    return h
-
-
-def beta_cdf(x: float, a: float, b: float) -> float:
-    """The regularised incomplete beta function I_x(a, b) (its continued fraction on the
-    side where it converges fast)."""
-    if x <= 0.0:
-        return 0.0
-    if x >= 1.0:
-        return 1.0
-    front = math.exp(_log_beta_front(x, a, b))
-    if x < (a + 1.0) / (a + b + 2.0):
-        return front * _beta_fraction(x, a, b) / a
-    return 1.0 - front * _beta_fraction(1.0 - x, b, a) / b
-
-
-def beta_quantile(p: float, a: float, b: float) -> float:
-    """The ``p`` quantile of Beta(a, b) (a, b > 1): Newton's method on its distribution
-    function from the normal approximation, inside a bracket that bisection narrows."""
-    mean = a / (a + b)
-    sd = math.sqrt(a * b / ((a + b) ** 2 * (a + b + 1.0)))
-    lo, hi = 0.0, 1.0
-    x = min(max(mean + normal_quantile(p) * sd, 1e-12), 1.0 - 1e-12)
-    for _ in range(200):
-        f = beta_cdf(x, a, b) - p
-        if f < 0:
-            lo = x
-        else:
-            hi = x
-        density = math.exp(_log_beta_front(x, a, b)) / (x * (1.0 - x))
-        new = x - f / density if density > 0 else 0.5 * (lo + hi)
-        if not lo < new < hi:
-            new = 0.5 * (lo + hi)
-        if abs(new - x) <= 1e-14 * max(new, 1e-300) or hi - lo <= 1e-14:
-            return new
-        x = new
-    return x
-
-
-def _ratio_moments(n: int, centred: bool) -> tuple[float, float, float]:
-    """``(c, E η, Var η)`` of von Neumann's ratio ``η = Σ(Δr)² / Σr²`` (``Σ(r - r̄)²``
-    when ``centred``) of ``n`` independent normal residuals, and the constant ``c`` with
-    ``χ²/dof = c / η`` for the test of a floor estimated by successive differences.
-
-    The ratio of a quadratic form to the sum of squares is independent of that sum, so
-    its moments are ratios of the forms' moments: with ``A = DᵀD`` (D the differences),
-    ``tr A = 2(n - 1)`` and ``tr A² = 6n - 8`` over ``k = n`` dimensions, ``k = n - 1``
-    about the mean (A removes it): ``E η = tr A / k``, ``E η² = (tr² A + 2 tr A²) / (k (k
-    + 2))``."""
-    k = float(n - 1 if centred else n)
-    tr_a, tr_a2 = 2.0 * (n - 1), 6.0 * n - 8.0
-    m1 = tr_a / k
-    m2 = (tr_a**2 + 2.0 * tr_a2) / (k * (k + 2.0))
-    return 2.0 * (n - 1) / k, m1, max(m2 - m1 * m1, 1e-300)
-
-
-def ratio_band(n: int, centred: bool = False, level: float = LEVEL) -> tuple[float, float]:
-    """The central ``level`` interval of ``χ²/dof`` of a residual whose floor was estimated
-    by successive differences on the same ``n`` rows, when the residual is white noise.
-
-    The floor estimate is uncertain (about ``2n/3`` degrees of freedom) and correlated
-    with the spread it divides (both are sums of the same squared residuals), so the
-    statistic is neither χ²/ν nor an F ratio: it is ``c / η``, η von Neumann's ratio,
-    whose distribution is close to a beta on [0, 4] with η's exact mean and variance
-    (Durbin and Watson's approximation; :func:`_ratio_moments`).  Its right tail is
-    longer than a normal band's: measured on white noise, 2.4–2.7 % beyond each end of
-    the 95 % band for n = 150 to 1000 (a normal band: 3.3–4.7 % above it).
-    """
-    c, m1, var = _ratio_moments(n, centred)
-    mu, v = m1 / 4.0, var / 16.0
-    k = mu * (1.0 - mu) / v - 1.0
-    a, b = mu * k, (1.0 - mu) * k
-    tail = (1.0 - level) / 2.0
-    return c / (4.0 * beta_quantile(1.0 - tail, a, b)), c / (4.0 * beta_quantile(tail, a, b))
-
-
-def ratio_sd(n: int, centred: bool = False) -> float:
-    """The relative standard deviation of that ``χ²/dof`` (first order in η's spread)."""
-    c, m1, var = _ratio_moments(n, centred)
-    return c * math.sqrt(var) / (m1 * m1)
-
-
-#: Equal-probability nodes of the estimate's share in :func:`shared_ratio_band`.
-SHARE_NODES = 64
-
-
-def shared_ratio_band(n: int, centred: bool, dof: float, sd: float,
-                      level: float = LEVEL) -> tuple[float, float]:
-    """The central ``level`` interval of ``χ²/dof`` of a residual whose floor was
-    estimated by successive differences on its ``n`` rows, when the residual also carries
-    the estimate's share (:func:`_estimated_test`).
-
-    χ² (the spread over the estimated floor squared) is then the white noise's part,
-    ``k X`` (k = n, or n - 1 ``centred``; X = ``c / η`` of :func:`ratio_band`, η/4 a
-    beta), plus the share's ``Y``, of mean ``dof - k`` and variance ``(sd·dof)² -
-    (k·sd_X)²`` (``sd`` the statistic's relative standard deviation, ``sd_X``
-    :func:`ratio_sd`).  On held-out rows ``Y = Q + 2 eᵀJδθ``: ``Q = δθᵀGδθ``, a quadratic
-    form in the estimate's error (drawn from the fitted rows' noise) concentrated in a
-    few directions, and a cross term with the rows' own noise, of variance ``4 E Q =
-    4 (dof - k)``; on the fitted rows (a negative mean) no cross term.  Q is taken as a
-    scaled χ² of its mean and variance (Satterthwaite: ``a χ²_f``, ``a f = mean``,
-    ``2 a² f = var``; ``a < 0`` on the fitted rows): its long right tail and its mass
-    near zero are what a normal band misses.  Given Q, the cross term is normal of
-    variance 4Q and widens the noise's part: ``k + λ (k X - k)``, ``λ² = 1 + 4 Q /
-    (k sd_X)²``.  The distribution of the sum is the convolution ``P(χ² ≤ t) =
-    E_Q[P(k X ≤ k + (t - Q - k)/λ)]``, the mean over :data:`SHARE_NODES`
-    equal-probability nodes of Q; its quantiles by bisection.  Exact when either part
-    is alone."""
-    k = float(n - 1 if centred else n)
-    lo, hi = ratio_band(n, centred, level)
-    mean_y = dof - k
-    var_x = (k * ratio_sd(n, centred)) ** 2
-    var_y = (sd * dof) ** 2 - var_x
-    if var_y <= 1e-12 * k * k or abs(mean_y) <= 1e-9 * k:
-        return max(k * lo + mean_y, 0.0) / dof, (k * hi + mean_y) / dof
-    cross = min(4.0 * max(mean_y, 0.0), var_y) / max(mean_y, 1e-300)   # per unit of Q
-    var_q = var_y - cross * max(mean_y, 0.0)
-    c, m1, var = _ratio_moments(n, centred)
-    mu, v = m1 / 4.0, var / 16.0
-    kk = mu * (1.0 - mu) / v - 1.0
-    a, b = mu * kk, (1.0 - mu) * kk
-    if var_q <= 1e-12 * k * k:
-        nodes = [mean_y]
-    else:
-        f, scale = 2.0 * mean_y**2 / var_q, var_q / (2.0 * mean_y)
-        nodes = [scale * chi2_quantile((j + 0.5) / SHARE_NODES, f)
-                 for j in range(SHARE_NODES)]
-
-    def cdf(t: float) -> float:
-        total = 0.0
-        for q in nodes:
-            noise = k + (t - q - k) / math.sqrt(1.0 + cross * max(q, 0.0) / var_x)
-            if noise > 0:
-                total += 1.0 - beta_cdf(c * k / (4.0 * noise), a, b)
-        return total / len(nodes)
-
-    def quantile(p: float) -> float:
-        width = 10.0 * sd * dof
-        low, high = dof - width, dof + width
-        while cdf(low) > p:
-            low -= width
-        while cdf(high) < p:
-            high += width
-        for _ in range(60):
-            mid = 0.5 * (low + high)
-            if cdf(mid) < p:
-                low = mid
-            else:
-                high = mid
-            if high - low <= 1e-7 * dof:
-                break
-        return 0.5 * (low + high)
-
-    tail = (1.0 - level) / 2.0
-    return max(quantile(tail), 0.0) / dof, quantile(1.0 - tail) / dof
-
-
-@dataclass(frozen=True)
-class DatasetTest:
-    """The global test of the model on one dataset: its constraints' χ² against the
-    floor their readings' noise sets (:class:`FloorTest` without a floor of its own).
-
-    ``method`` is :data:`PROPAGATED` (the joint test, correlations between constraints
-    included), ``combined`` (each constraint's own test, summed: some floors were
-    estimated from the data) or :data:`UNKNOWN`.  ``band`` is the dataset's own 95 %
-    band; ``distribution`` says what it is the band of, so that it can be taken at
-    another level (:meth:`band_at`, as :func:`at_floor` does for the datasets together):
-    ``chi2`` (χ²_ν / ν, ν = ``dof``, or ``2/sd²`` where the statistic spreads more than
-    χ²_dof: :func:`held_out_test`), ``ratio`` (one constraint whose floor was estimated
-    by successive differences on ``dof`` rows, :func:`ratio_band`) or ``normal``
-    (several such constraints summed: ``1 ± z·sd``).
-    """
-
-    dataset: str
-    constraints: tuple[str, ...]
-    method: str
-    chi2: float | None = None
-    dof: float | None = None
-    band: tuple[float, float] | None = None
-    distribution: str = "chi2"
-    sd: float | None = None
-    rows: int | None = None
-
-    def band_at(self, level: float) -> tuple[float, float] | None:
-        """The central ``level`` interval of ``chi2 / dof`` at the floor (None when
-        unknown, or when a stored test does not say its distribution)."""
-        if self.band is None or not self.dof:
-            return None
-        if level == LEVEL:
-            return self.band
-        if self.distribution == "chi2":
-            return chi2_band(self.dof if self.sd is None else 2.0 / self.sd**2, level)
-        if self.distribution == "ratio" and self.rows is not None and self.sd is not None:
-            return shared_ratio_band(self.rows, False, self.dof, self.sd, level)
-        if self.distribution == "ratio":
-            return ratio_band(int(round(self.dof)), False, level)
-        if self.distribution == "normal" and self.sd is not None:
-            return normal_band(self.sd, level)
-        return None
-
-    @property
-    def chi2_dof(self) -> float | None:
-        """χ²/ν, or None when unknown."""
-        if self.chi2 is None or not self.dof:
-            return None
-        return self.chi2 / self.dof
-
-    @property
-    def ratio(self) -> float | None:
-        """√(χ²/ν): how many times the floor the constraints' spread is."""
-        value = self.chi2_dof
-        return None if value is None else math.sqrt(max(value, 0.0))
-
-    @property
-    def verdict(self) -> str | None:
-        """``"at"``, ``"above"`` or ``"below"`` the floor; None when unknown."""
-        return verdict_of(self.chi2_dof, self.band)
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain data (``floor_tests`` of ``result.json``)."""
-        return {"dataset": self.dataset, "constraints": list(self.constraints),
-                "method": self.method, "chi2": self.chi2, "dof": self.dof,
-                "chi2_dof": self.chi2_dof,
-                "band": None if self.band is None else list(self.band),
-                "verdict": self.verdict, "distribution": self.distribution, "sd": self.sd,
-                "rows": self.rows}
-
-    @classmethod
-    def from_dict(cls, doc: Mapping[str, Any]) -> DatasetTest:
-        """Inverse of :meth:`to_dict`."""
-        band = doc.get("band")
-        return cls(str(doc["dataset"]), tuple(doc["constraints"]), str(doc["method"]),
-                   doc.get("chi2"), doc.get("dof"),
-                   None if band is None else (float(band[0]), float(band[1])),
-                   # a document from before distributions were stored: a propagated
-                   # test's is χ²; a combined one's cannot be known
-                   str(doc.get("distribution", "chi2" if doc["method"] == PROPAGATED
-                               else "")), doc.get("sd"), doc.get("rows"))
-
-
-def family_level(count: int, level: float = LEVEL) -> float:
-    """The level of each of ``count`` tests whose joint level is ``level`` (Šidák:
-    ``level^(1/count)``)."""
-    return level ** (1.0 / max(count, 1))
-
-
-def family_bands(tests: tuple[DatasetTest, ...], level: float = LEVEL
-                 ) -> tuple[tuple[float, float] | None, ...]:
-    """Each dataset's band in the family-wise test of :func:`at_floor`: its own band at
-    the Šidák level of the datasets whose test is known (None where unknown)."""
-    known = [t for t in tests if t.verdict is not None]
-    each = family_level(len(known), level)
-    return tuple(t.band_at(each) if t.verdict is not None else None for t in tests)
-
-
-def family_verdicts(tests: tuple[DatasetTest, ...], level: float = LEVEL
-                    ) -> tuple[str | None, ...]:
-    """Each dataset's verdict against its family-wise band (:func:`family_bands`); a
-    stored test that cannot give that band keeps its own verdict."""
-    bands = family_bands(tests, level)
-    return tuple(t.verdict if b is None else verdict_of(t.chi2_dof, b)
-                 for t, b in zip(tests, bands, strict=True))
-
-
-def family_document(tests: tuple[DatasetTest, ...], level: float = LEVEL) -> dict[str, Any]:
-    """How :func:`at_floor` decided, as plain data: ``{"correction": "Sidak", "level":
-    0.95, "each": LEVEL_OF_EACH, "bands": {DATASET: [lo, hi] or None}}``."""
-    known = sum(t.verdict is not None for t in tests)
-    return {"correction": "Sidak", "level": level, "each": family_level(known, level),
-            "bands": {t.dataset: None if b is None else list(b)
-                      for t, b in zip(tests, family_bands(tests, level), strict=True)}}
-
-
-def at_floor(tests: tuple[DatasetTest, ...]) -> bool | None:
-    """Whether every dataset is at its floor, one decision at the level :data:`LEVEL` for
-    the datasets together: False when one is above or below its family-wise band, None
-    when one is unknown and none is off it.
-
-    Each dataset's global test has its own 95 % band; with several datasets an exact
-    model would fall outside one of them more often than one time in twenty (1 - 0.95^k
-    for k independent datasets).  The decision takes each dataset's band at the level
-    ``0.95^(1/k)`` (Šidák), k the datasets whose test is known: exact for independent
-    tests, which the datasets' χ² nearly are (their noise is drawn apart and they share
-    only the estimate, whose share each test's expectation already carries), and a
-    little narrower than Bonferroni's ``1 - 0.05/k``, which is valid whatever the
-    dependence but conservative.  The datasets are the family: each dataset's test
-    already combines its constraints into one statistic (the joint χ² of their
-    propagated covariance, or their own tests summed)."""
-    verdicts = family_verdicts(tests)
-    if any(v in ("above", "below") for v in verdicts):
-        return False
-    if not verdicts or any(v is None for v in verdicts):
-        return None
-    return True
-
-
-# --------------------------------------------------------------------------- the fit
-
-
-@dataclass(frozen=True)
-class Fit:
-    """How the estimate was fitted: on ``dataset``, the constraints ``constraints``, the
-    parameters ``free``, weighted by ``weighting`` (``equal``: by each constraint's σ;
-    ``estimated``: by ``whiten`` applied to g/σ; ``propagated``: by the propagated
-    covariance at the estimate)."""
-
-    dataset: str
-    constraints: tuple[str, ...]
-    free: np.ndarray
-    weighting: str
-    whiten: np.ndarray | None = None
-
-
-@dataclass
-class _Entries:
-    """The residuals and comparisons examined on one dataset, as in
-    :func:`symcal.analysis.fit.series_statistics`."""
-
-    names: list[str] = field(default_factory=list)
-    kinds: list[str] = field(default_factory=list)
-    exprs: list[ca.SX] = field(default_factory=list)     # in the noisy view
-    centred: list[bool] = field(default_factory=list)
-    declared: list[bool] = field(default_factory=list)
-
-
-def _entries(problem: Problem, ds: Dataset) -> _Entries:
-    """The entries of ``ds`` (built once per problem, dataset name and columns)."""
-    key = ("floor entries", ds.name, frozenset(ds.columns))
-    return owned(problem, key, lambda: _build_entries(problem, ds))
-
-
-def _build_entries(problem: Problem, ds: Dataset) -> _Entries:
-    noisy = problem.noisy
-    out = _Entries()
-    comparisons = {c.name: c for c in noisy.comparisons}
-    for c, plain in zip(noisy.constraints, problem.constraints, strict=True):
-        out.names.append(c.name)
-        out.kinds.append("constraint")
-        out.exprs.append(c.sx)
-        out.centred.append(False)
-        out.declared.append(not problem.undeclared(plain.sx))
-    for comp in problem.comparisons:
-        if comp.datasets is not None and ds.name not in comp.datasets:
-            continue
-        if any(c not in ds.columns for c in problem.columns_of(comp.reference)):
-            continue
-        twin = comparisons[comp.name]
-        out.names.append(comp.name)
-        out.kinds.append("comparison")
-        out.exprs.append(twin.estimate - twin.reference)
-        out.centred.append(comp.remove_mean)
-        out.declared.append(not problem.undeclared(comp.estimate - comp.reference))
-    return out
-
-
-def _propagation(problem: Problem, names: tuple[str, ...], exprs: list[ca.SX],
-                 free: np.ndarray) -> _Propagation:
-    """The :class:`_Propagation` of ``exprs`` (named ``names``: the same names of one
-    problem are the same expressions), built once per problem."""
-    key = ("floors", names, np.asarray(free, dtype=bool).tobytes())
-    return owned(problem, key, lambda: _Propagation(problem, exprs, free))
-
-
-class _Propagation:
-    """Per observation: the residuals, ``L = ∂r/∂ε·diag(σ)`` and ``J = ∂r/∂θ_free``; the
-    residuals alone by a function of their own.  Each pass evaluates the compiled twin
-    when it pays (:func:`symcal.base.jit.select`: the same bits)."""
-
-    def __init__(self, problem: Problem, exprs: list[ca.SX], free: np.ndarray) -> None:
-        noisy = problem.noisy
-        readings = [r for r in noisy.readings if r.sigma > 0]
-        eps = ca.vertcat(*(r.symbol for r in readings)) if readings else ca.SX(0, 1)
-        sigma = np.array([r.sigma for r in readings])
-        e = ca.vertcat(*exprs)
-        self.n_e, self.n_eps = len(exprs), len(readings)
-        self.n_p = int(np.sum(free))
-        theta_free = noisy.theta[np.flatnonzero(free).tolist()]
-        jac_eps = ca.mtimes(ca.jacobian(e, eps), ca.diag(ca.DM(sigma))) if readings \
-            else ca.SX(self.n_e, 0)
-        outs = [e, jac_eps.T, ca.jacobian(e, theta_free).T]
-        self.fn = mapped(noisy.theta, ca.vertcat(noisy.u, eps), outs, "noise")
-        self.plain: Mapped = mapped(noisy.theta, ca.vertcat(noisy.u, eps), [e],
-                                    "noise_residuals")
-        self.columns = noisy.columns
-
-    def at(self, fn: Mapped, u: np.ndarray, theta: np.ndarray, part: slice
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(r, L, J)`` of the observations ``part`` of ``u`` (the dataset's columns) by
-        ``fn`` (:attr:`fn` or its twin): ``r`` m × n_e, ``L`` m × n_e × n_ε, ``J``
-        m × n_e × n_p."""
-        block = u[:, part]
-        m = block.shape[1]
-        ext = np.vstack([block, np.zeros((self.n_eps, m))])
-        r, lt, jt = fn.chunk(theta, ext)
-        return r, lt.reshape(m, self.n_e, self.n_eps), jt.reshape(m, self.n_e, self.n_p)
-
-    def rows(self, ds: Dataset, theta: np.ndarray
-             ) -> Iterator[tuple[slice, np.ndarray, np.ndarray, np.ndarray]]:
-        """``(rows, r, L, J)`` chunk by chunk, in order (evaluated on the in-memory
-        passes' executor: threads for a large dataset, the same bits)."""
-        u = ds.matrix(self.columns)
-        fn = jit.select(self.fn, ds.n)
-        parts = list(chunks(ds.n))
-        for part, (r, lmat, jac) in zip(parts, default_executor(ds.n).map(
-                lambda part: self.at(fn, u, theta, part), parts), strict=True):
-            yield part, r, lmat, jac
-
-    def residuals(self, u: np.ndarray, theta: np.ndarray, part: slice) -> np.ndarray:
-        """The residuals of the observations ``part`` of ``u`` (the dataset's columns) at
-        ``theta`` (m × n_e)."""
-        block = u[:, part]
-        ext = np.vstack([block, np.zeros((self.n_eps, block.shape[1]))])
-        return jit.select(self.plain, block.shape[1]).chunk(theta, ext)[0]
-
-
-def _pinv_rows(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per row, the pseudo-inverse of a covariance (m × n × n) and its rank.
-
-    A row whose every eigenvalue is clearly above :data:`EXACT` of the largest
-    (``det > CLEAR·EXACT·trⁿ``: ``λ_min ≥ det / trⁿ⁻¹`` and ``λ_max ≤ tr``) has the inverse
-    for pseudo-inverse, in closed form up to 3 × 3 (the eigen-decomposition of many small
-    matrices is slow); the others (an exact reading, a nearly singular row) the
-    eigen-decomposition's, its eigenvalues below that share dropped."""
-    m, n = c.shape[0], c.shape[-1]
-    if n == 0:
-        return np.zeros_like(c), np.zeros(m, dtype=int)
-    inv, det = _inverse(c)
-    tr = np.trace(c, axis1=1, axis2=2)
-    with np.errstate(over="ignore", invalid="ignore"):
-        clear = (tr > 0) & (det > CLEAR * EXACT * tr**n) & np.all(np.isfinite(inv),
-                                                                   axis=(1, 2))
-    rank = np.full(m, n)
-    if not np.all(clear):
-        rest = ~clear
-        w, v = np.linalg.eigh(c[rest])
-        top = np.max(w, axis=1, keepdims=True)
-        keep = w > EXACT * np.maximum(top, 1e-300)
-        scaled = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
-        inv[rest] = np.einsum("mab,mb,mcb->mac", v, scaled, v)
-        rank[rest] = keep.sum(axis=1)
-    return inv, rank
-
-
-def _inverse(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per row, the inverse of a square matrix (m × n × n) and its determinant: by
-    cofactors up to 3 × 3, by LAPACK beyond (a singular row gives non-finite values)."""
-    n = c.shape[-1]
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        if n == 1:
-            det = c[:, 0, 0].copy()
-            return (1.0 / det)[:, None, None], det
-        if n == 2:
-            a, b, d, e = c[:, 0, 0], c[:, 0, 1], c[:, 1, 0], c[:, 1, 1]
-            det = a * e - b * d
-            adj = np.stack([np.stack([e, -b], axis=1), np.stack([-d, a], axis=1)], axis=1)
-            return adj / det[:, None, None], det
-        if n == 3:
-            a, b, f = c[:, 0, 0], c[:, 0, 1], c[:, 0, 2]
-            d, e, g = c[:, 1, 0], c[:, 1, 1], c[:, 1, 2]
-            h, k, i = c[:, 2, 0], c[:, 2, 1], c[:, 2, 2]
-            c00, c01, c02 = e * i - g * k, g * h - d * i, d * k - e * h
-            det = a * c00 + b * c01 + f * c02
-            adj = np.stack([np.stack([c00, f * k - b * i, b * g - f * e], axis=1),
-                            np.stack([c01, a * i - f * h, f * d - a * g], axis=1),
-                            np.stack([c02, b * h - a * k, a * e - b * d], axis=1)], axis=1)
-            return adj / det[:, None, None], det
-        sign, logdet = np.linalg.slogdet(c)
-        det = sign * np.exp(logdet)
-        out = np.full_like(c, np.nan)
-        ok = det != 0
-        out[ok] = np.linalg.inv(c[ok])
-        return out, det
-
-
-def inverse_sqrt_rows(c: np.ndarray) -> tuple[np.ndarray, int]:
-    """Per row, the symmetric ``C^-½`` of a covariance (m × n × n), and how many rows are
-    singular (a reading the residuals use is exact)."""
-    w, v = np.linalg.eigh(c)
-    top = np.max(w, axis=1, keepdims=True)
-    keep = w > EXACT * np.maximum(top, 1e-300)
-    inv = np.where(keep, 1.0 / np.sqrt(np.where(keep, w, 1.0)), 0.0)
-    singular = int(np.sum(~np.all(keep, axis=1)))
-    return np.einsum("mab,mb,mcb->mac", v, inv, v), singular
-
-
-#: Row covariances kept per problem and constraints (the last points asked, at most
-#: this many values in each): a propagated solve asks for them at the start and the
-#: estimate of each of its solves, its floor, the next stage's start and the outliers,
-#: at about half as many distinct points.
-KEEP_COVARIANCES = 2
-KEEP_VALUES = 1 << 23
-
-
-def row_covariances(problem: Problem, constraints: tuple[str, ...], ds: Dataset,
-                    theta: np.ndarray) -> np.ndarray:
-    """The propagated covariance of each observation's weighted constraints g/σ
-    (N × n_g × n_g, read-only), at ``theta``: the weights of ``weighting: propagated``.
-    The last :data:`KEEP_COVARIANCES` asked of a dataset in memory are kept (the same
-    bits, without another pass)."""
-    noisy = problem.noisy
-    quantities = [noisy.constraint(n) for n in constraints]
-    sigma = np.array([q.sigma for q in quantities])
-    prop = _propagation(problem, ("covariances", *constraints), [q.sx for q in quantities],
-                        np.zeros(len(problem.parameters), dtype=bool))
-    kept: list[tuple[Any, bytes, np.ndarray]] = owned(
-        problem, ("row covariances", tuple(constraints)), list)
-    key = np.ascontiguousarray(theta, dtype=float).tobytes()
-    for ref, at, found in list(kept):
-        if ref() is ds and at == key:
-            return found
-    out = np.empty((ds.n, len(constraints), len(constraints)))
-    for part, _, lmat, _ in prop.rows(ds, theta):
-        lmat = lmat / sigma[None, :, None]
-        out[part] = _gram(lmat)
-    out.setflags(write=False)
-    if out.size <= KEEP_VALUES:
-        kept[:] = [*kept[1 - KEEP_COVARIANCES:], (weakref.ref(ds), key, out)]
-    return out
-
-
-def _gram(lmat: np.ndarray) -> np.ndarray:
-    """Per row, ``L Lᵀ`` (m × n × k → m × n × n)."""
-    return np.einsum("mae,mbe->mab", lmat, lmat)
-
-
-def _weights(fit: Fit, c: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """The fit's weights W_i of the fitted constraints, internal units (m × n_f × n_f)."""
-    m, n = c.shape[0], c.shape[1]
-    if fit.weighting == "propagated":
-        return _pinv_rows(c)[0]
-    scale = np.diag(1.0 / sigma)
-    if fit.weighting == "estimated" and fit.whiten is not None:
-        t = fit.whiten @ scale
-        return np.broadcast_to(t.T @ t, (m, n, n))
-    return np.broadcast_to(scale @ scale, (m, n, n))
-
-
-def _assume(c: np.ndarray, variances: np.ndarray | None) -> np.ndarray:
-    """Per row, the covariance ``c`` (m × n × n) with each entry k whose variance
-    ``variances[k]`` is given (not NaN) taken as independent of the others, of that
-    variance: its floor estimated from the data, where no noise is declared."""
-    if variances is None or not np.any(given := ~np.isnan(variances)):
-        return c
-    c = c.copy()
-    for k in np.flatnonzero(given):
-        c[:, k, :] = 0.0
-        c[:, :, k] = 0.0
-        c[:, k, k] = variances[k]
-    return c
 
 
 def difference_variances(problem: Problem, ds: Dataset, theta: np.ndarray,
@@ -867,7 +116,7 @@ class DifferencesPlan:
     """How a piece of rows is reduced to its :class:`Differences` (picklable: a task of a
     log kept as shards runs it on its own rows)."""
 
-    prop: _Propagation
+    prop: RowPropagation
     theta: np.ndarray
 
     def reduce(self, ds: Dataset) -> Differences:
@@ -893,7 +142,7 @@ class DifferencesPlan:
 def differences_plan(problem: Problem, theta: np.ndarray, names: tuple[str, ...],
                      exprs: list[ca.SX]) -> DifferencesPlan:
     """The plan of the successive differences of the entries ``names`` at ``theta``."""
-    return DifferencesPlan(_propagation(problem, ("entries", *names), exprs,
+    return DifferencesPlan(row_propagation(problem, ("entries", *names), exprs,
                                         np.zeros(len(problem.parameters), dtype=bool)),
                            np.asarray(theta, dtype=float))
 
@@ -991,12 +240,12 @@ def floor_tests(problem: Problem, datasets: Mapping[str, Dataset], theta: np.nda
     """
     assumed = {}
     for ds in datasets.values():
-        entries = _entries(problem, ds)
+        entries = entries_of(problem, ds)
         assumed[ds.name] = difference_variances(problem, ds, theta, tuple(entries.names),
                                                 entries.exprs, entries.declared)
     share = None
     if fit.dataset in datasets and np.any(fit.free):
-        names = _entries(problem, datasets[fit.dataset]).names
+        names = entries_of(problem, datasets[fit.dataset]).names
         share = _estimate_share(
             problem, fit, datasets[fit.dataset], theta,
             {n: float(v) for n, v in zip(names, assumed[fit.dataset], strict=True)
@@ -1028,14 +277,14 @@ def held_out_test(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
     if joint.method != PROPAGATED or not joint.dof or not joint.constraints:
         return joint
     names = joint.constraints
-    prop = _propagation(problem, ("information", *names),
+    prop = row_propagation(problem, ("information", *names),
                         [problem.noisy.constraint(n).sx for n in names], fit.free)
     n_p = prop.n_p
     if n_p == 0 or share.cov.shape != (n_p, n_p):
         return joint
     info = np.zeros((n_p, n_p))
     for _, _, lmat, jac in prop.rows(ds, theta):
-        pinv, _ = _pinv_rows(lmat @ np.swapaxes(lmat, 1, 2))
+        pinv, _ = row_pinv(lmat @ np.swapaxes(lmat, 1, 2))
         info += jac.reshape(-1, n_p).T @ (pinv @ jac).reshape(-1, n_p)
     gc = info @ share.cov
     first, second = float(np.trace(gc)), float(np.trace(gc @ gc))
@@ -1070,7 +319,7 @@ class SharePlan:
     """What the estimate's share is summed with over the fitted rows (a task of a log
     kept as shards sums its own rows, :func:`share_finish` ends it)."""
 
-    prop: _Propagation
+    prop: RowPropagation
     fit: Fit
     sigma: np.ndarray
     scales: np.ndarray                    # the free parameters' scales
@@ -1098,10 +347,10 @@ class SharePlan:
 
     def terms(self, lmat: np.ndarray, jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(A, B)`` of one chunk of rows from their ``L`` and ``J``
-        (:meth:`_Propagation.at`): products, not einsum loops."""
+        (:meth:`RowPropagation.at`): products, not einsum loops."""
         n_p = self.prop.n_p
-        c = _assume(_gram(lmat), self.variances)
-        wj = _weights(self.fit, c, self.sigma) @ jac
+        c = assumed_covariance(row_grams(lmat), self.variances)
+        wj = fit_weights(self.fit, c, self.sigma) @ jac
         flat = wj.reshape(-1, n_p)
         return jac.reshape(-1, n_p).T @ flat, flat.T @ (c @ wj).reshape(-1, n_p)
 
@@ -1117,8 +366,8 @@ def share_plan(problem: Problem, fit: Fit, assumed: Mapping[str, float] | None =
     if not known:
         return None
     exprs = [problem.noisy.constraint(n).sx for n in fit.constraints]
-    prop = _propagation(problem, ("share", *fit.constraints), exprs, fit.free) if cached \
-        else _Propagation(problem, exprs, fit.free)
+    prop = row_propagation(problem, ("share", *fit.constraints), exprs, fit.free) if cached \
+        else RowPropagation(problem, exprs, fit.free)
     scales = np.array([p.scale for p in problem.parameters])[np.asarray(fit.free, bool)]
     return SharePlan(prop, fit, np.array([q.sigma for q in quantities]), scales, variances)
 
@@ -1211,7 +460,7 @@ class RowsPlan:
     names: tuple[str, ...]
     declared: tuple[bool, ...]
     centred: tuple[bool, ...]
-    prop: _Propagation
+    prop: RowPropagation
     fitted: tuple[int, ...]
     cons: tuple[int, ...]
     joint_ok: bool
@@ -1252,14 +501,14 @@ class RowsPlan:
 
     def terms(self, r: np.ndarray, lmat: np.ndarray, jac: np.ndarray,
               r0: np.ndarray | None) -> _Chunk:
-        """One chunk's terms from its residuals, ``L`` and ``J`` (:meth:`_Propagation.at`)
+        """One chunk's terms from its residuals, ``L`` and ``J`` (:meth:`RowPropagation.at`)
         and its residuals at the start: independent of every other chunk.
 
         ``E_kk`` and the joint test's expectation need only the products of the rows' own
         Jacobians with ``Z = J Cov − 2 X A⁺`` (the fitted rows' two cross terms are equal
         under the trace with a symmetric ``C⁺``), and ``X A⁺ Jᵀ = α (J_f A⁺) Jᵀ`` with
         ``α = C_·f W``: ``X`` itself is formed only for an entry whose mean is removed."""
-        c = _assume(_gram(lmat), self.assumed)
+        c = assumed_covariance(row_grams(lmat), self.assumed)
         d = np.diagonal(c, axis1=1, axis2=2).copy()             # C_kk
         m, n_e = r.shape
         e = d.copy()                                            # E_kk
@@ -1300,7 +549,7 @@ class RowsPlan:
             jac_t = np.swapaxes(jac, 1, 2)
             q = (jac.reshape(-1, n_p) @ share.cov).reshape(m, n_e, n_p) @ jac_t
             if fitted:
-                w = _weights(self.fit, c[:, fitted][:, :, fitted], self.sigma_f)
+                w = fit_weights(self.fit, c[:, fitted][:, :, fitted], self.sigma_f)
                 alpha = c[:, :, fitted] @ w                       # m × n_e × n_f
                 ja = (jac[:, fitted, :].reshape(-1, n_p) @ share.a_pinv).reshape(
                     m, len(fitted), n_p)
@@ -1309,7 +558,7 @@ class RowsPlan:
         if self.joint_ok:
             cons = list(self.cons)
             sub = np.ix_(range(m), cons, cons)
-            pinv, _ = _pinv_rows(c[sub])
+            pinv, _ = row_pinv(c[sub])
             rc = r[:, cons]
             chi2 = float(np.einsum("ma,mab,mb->", rc, pinv, rc))
             expect = c[sub] if q is None else c[sub] + q[sub]
@@ -1356,15 +605,15 @@ def rows_plan(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
     elsewhere; :func:`difference_variances`), its variance in the tests.  ``cached``:
     the evaluation built once per problem (in memory) rather than for this plan alone
     (a task of a log kept as shards carries its own)."""
-    entries = _entries(problem, ds)
+    entries = entries_of(problem, ds)
     if ds.name == fit.dataset:
         # the fitted rows keep the ratio's test: what the fit takes from their spread
         # depends on how their constraints' noise correlates, which nobody declared (on
         # the courier with several fitted constraints, taking them independent put 13 of
         # 100 clean calibration runs above their floor)
         assumed = None
-    prop = _propagation(problem, ("entries", *entries.names), entries.exprs, fit.free) \
-        if cached else _Propagation(problem, entries.exprs, fit.free)
+    prop = row_propagation(problem, ("entries", *entries.names), entries.exprs, fit.free) \
+        if cached else RowPropagation(problem, entries.exprs, fit.free)
     fitted = [entries.names.index(n) for n in fit.constraints] \
         if ds.name == fit.dataset else []
     cons = [k for k, kind in enumerate(entries.kinds) if kind == "constraint"]
@@ -1523,7 +772,7 @@ def _expected(s: _Sums, centred: bool, share: _Estimate | None) -> float:
 def _estimated_test(s: _Sums, centred: bool, share: _Estimate, fitted: bool, floor: float,
                     chi2: float) -> FloorTest:
     """The test of an entry whose floor was estimated by successive differences and
-    taken as its variance in the estimate's share (:func:`_assume`), so that the share is
+    taken as its variance in the estimate's share (:func:`assumed_covariance`), so that the share is
     counted: the estimate's error ``J_i δθ`` moves with the design, often in steps (one
     per orientation, pose or run) that successive differences cannot see, and adds
     ``Σ w J_i Cov J_iᵀ`` to the spread on held-out rows; on the fitted rows the fit takes

@@ -3,7 +3,7 @@
 ``weighting: propagated`` whitens each observation's constraints by ``C_i^-½``, ``C_i``
 the covariance the readings' declared noise gives them at a point (first order, the
 noise symbols of :attr:`~symcal.problem.symbolic.Problem.noisy`;
-:func:`symcal.analysis.floors.row_covariances`).
+:func:`symcal.analysis.row_noise.row_covariances`).
 A solve in memory holds these ``N × n_g × n_g`` matrices; a log kept as shards computes
 them in every pass from the rows it reads (:class:`PropagatedWeights`, a
 :class:`~symcal.solvers.weighed.RowWeigher`), and reduces what the weighting decides on
@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from symcal.analysis.floors import _gram, _Propagation, inverse_sqrt_rows
+from symcal.analysis.row_noise import RowPropagation, inverse_sqrt_rows, row_grams
 from symcal.base import jit
 from symcal.base.numeric import Mapped, chunks
 from symcal.problem.symbolic import Problem
@@ -43,7 +43,7 @@ class Covariances:
         ext = np.vstack([u, np.zeros((self.n_eps, m))])
         lt = jit.select(self.fn, m).chunk(self.theta, ext)[1]   # compiled when it pays
         lmat = lt.reshape(m, self.n_g, self.n_eps) / self.sigma[None, :, None]
-        return _gram(lmat)
+        return row_grams(lmat)
 
     def at(self, theta: np.ndarray) -> Covariances:
         """The same covariances at another point."""
@@ -54,12 +54,12 @@ class Covariances:
 def covariances(problem: Problem, constraints: tuple[str, ...], theta: np.ndarray
                 ) -> Covariances:
     """The propagated covariances of ``constraints`` at ``theta``, row by row (the rows of
-    :func:`symcal.analysis.floors.row_covariances`)."""
+    :func:`symcal.analysis.row_noise.row_covariances`)."""
     noisy = problem.noisy
     if noisy.columns != problem.columns:   # pragma: no cover - one build, one order
         raise ValueError("the noisy view reads the columns in another order")
     quantities = [noisy.constraint(n) for n in constraints]
-    prop = _Propagation(problem, [q.sx for q in quantities],
+    prop = RowPropagation(problem, [q.sx for q in quantities],
                         np.zeros(len(problem.parameters), dtype=bool))
     return Covariances(prop.fn, np.array(theta, dtype=float), len(constraints), prop.n_eps,
                        np.array([q.sigma for q in quantities]))

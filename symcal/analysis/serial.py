@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from symcal.analysis.floors import normal_quantile
+from symcal.analysis.bands import normal_quantile
 
 #: Family-wise level of the detection (over a stage's constraints).
 ALPHA = 0.01

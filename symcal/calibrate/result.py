@@ -21,12 +21,12 @@ from typing import Any
 import numpy as np
 
 from symcal.analysis.fit import SeriesStats, Spread
-from symcal.analysis.floors import PROPAGATED, DatasetTest, at_floor, family_document
 from symcal.analysis.gauges import GaugeAnalysis
 from symcal.analysis.identifiability import Conditioning, Identifiability, Uncertainty
 from symcal.analysis.implicit import ImplicitCheck
 from symcal.analysis.outliers import Outliers
 from symcal.analysis.serial import SerialCorrelation
+from symcal.analysis.verdicts import PROPAGATED, DatasetTest, at_floor, family_document
 from symcal.base.errors import SymcalError, excerpt
 from symcal.base.files import atomic_write_text, check_set, json_text
 from symcal.base.numeric import mapped
@@ -144,7 +144,7 @@ def regressions(statistics: tuple[SeriesStats, ...],
 
     Where a residual's noise floor is known (propagated from declared noise), by test: it
     is above its floor and its χ²/dof grew from the initial parameters by more than noise
-    moves a χ²/dof at the floor (:attr:`~symcal.analysis.floors.FloorTest.worse`).
+    moves a χ²/dof at the floor (:attr:`~symcal.analysis.verdicts.FloorTest.worse`).
     Elsewhere a spread counts as worse when it grew by more than ``tolerance``
     (relative).  The spread shown is the standard deviation for a comparison whose mean
     carries no information (``remove_mean``), the RMS otherwise.
@@ -482,7 +482,7 @@ class Result:
     def at_floor(self) -> bool | None:
         """Whether every dataset is at its noise floor (:attr:`floor_tests`), one decision
         at 95 % for the datasets together (each dataset's band at the Šidák level,
-        :func:`~symcal.analysis.floors.at_floor`): False when one is above or below it, None
+        :func:`~symcal.analysis.verdicts.at_floor`): False when one is above or below it, None
         when one's floor is unknown and none is off it."""
         return at_floor(self.floor_tests)
 

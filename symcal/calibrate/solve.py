@@ -10,16 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from symcal.analysis.fit import series_statistics
-from symcal.analysis.floors import (
-    Fit,
-    floor_tests,
-    inverse_sqrt_rows,
-    row_covariances,
-    time_ordered,
-)
+from symcal.analysis.floors import floor_tests, time_ordered
 from symcal.analysis.identifiability import Uncertainty
 from symcal.analysis.implicit import implicit_checks
 from symcal.analysis.outliers import Outliers, find_outliers
+from symcal.analysis.row_noise import Fit, inverse_sqrt_rows, row_covariances
 from symcal.analysis.serial import SerialCorrelation, bandwidth, detect, hac_meat
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, SolveError, SymcalError

@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING, Any
 import casadi as ca
 import numpy as np
 
-from symcal.analysis.floors import family_bands, family_verdicts
 from symcal.analysis.outliers import THRESHOLD, Outliers, remedy, remedy_yaml
+from symcal.analysis.verdicts import family_bands, family_verdicts
 from symcal.base.files import json_text as plain_json
 from symcal.base.units import DISPLAY_UNITS, symbol
 from symcal.base.units import size as unit_size

@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 
 from symcal.analysis.discovery import Candidate, Design, refit
-from symcal.analysis.floors import EXACT
+from symcal.analysis.row_noise import EXACT
 from symcal.base.linalg import range_basis, whitening
 from symcal.base.units import DISPLAY_UNITS
 from symcal.problem.symbolic import Problem
