@@ -280,6 +280,46 @@ def test_floor_of_g_p_is_twice_the_reading_noise_at_the_start() -> None:
     assert [t.dataset for t in tests] == ["calibration", "flyby"]
 
 
+
+def test_series_statistics_read_the_residuals_the_floors_evaluated() -> None:
+    """The floors' pass evaluates every residual and comparison at the estimate and the
+    start (the noisy view's expressions with the readings' errors at zero): the series
+    statistics read those, the same bits as their own evaluation (numpy's residuals of
+    the plain expressions agree), and evaluate again where the entries differ."""
+    from symcal.analysis.fit import series_statistics
+    from symcal.analysis.floors import Residuals, floor_outcome
+
+    problem = symcal.load_problem(PROBLEMS / "dual_sensor_calibration.yaml")
+    data = _courier(problem, "courier_dual")
+    theta0 = np.array([p.value for p in problem.parameters])
+    theta = theta0 + 1e-3 * np.array([p.scale for p in problem.parameters])
+    outcome = floor_outcome(problem, data, theta, _fit(problem), theta0)
+    assert set(outcome.residuals) == {"calibration", "flyby"}
+    assert floor_outcome(problem, data, theta, _fit(problem), theta0, keep=False
+                         ).residuals == {}
+    own, _ = series_statistics(problem, data, theta0, theta)
+    read, _ = series_statistics(problem, data, theta0, theta, outcome.residuals)
+    assert read == own
+    cal = outcome.residuals["calibration"]
+    assert cal.before is not None
+    fn = mapped(problem.theta, problem.u, [c.sx for c in problem.constraints])
+    u = data["calibration"].matrix(problem.columns)
+    for k, at in ((0, theta), (1, theta0)):
+        mine = np.column_stack(fn(at, u))
+        given = (cal.after, cal.before)[k][:, :mine.shape[1]]
+        np.testing.assert_array_equal(given, mine)
+    # read, not evaluated: residuals that differ give other statistics
+    doubled = {**outcome.residuals,
+               "calibration": Residuals(cal.names, 2 * cal.after, cal.before)}
+    changed, _ = series_statistics(problem, data, theta0, theta, doubled)
+    assert changed != own
+    first = next(s for s in changed if s.dataset == "calibration")
+    assert first.after.std == pytest.approx(
+        2 * next(s for s in own if s.dataset == "calibration").after.std, rel=1e-12)
+    # other entries than the series' own: evaluated as without them
+    other = {"calibration": Residuals(cal.names[:-1], cal.after[:, :-1], cal.before[:, :-1])}
+    assert series_statistics(problem, data, theta0, theta, other)[0] == own
+
 def test_chi2_band_against_scipy() -> None:
     from scipy.stats import chi2
 

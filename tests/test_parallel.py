@@ -59,6 +59,18 @@ def test_every_pass_on_threads_equals_the_serial_pass(dual) -> None:
                                   threaded.residual_covariance(data, theta, 10))
 
 
+def test_the_residual_covariance_from_kept_residuals_is_the_gram_pass(dual) -> None:
+    """In memory the residual covariance reads the residuals the stage keeps (its
+    outliers and serial correlation read them too): the same bits as the gram pass it
+    replaced, on one thread and on two."""
+    _, data, _, _, theta = dual
+    for objective in _pair(dual):
+        gram, count = objective._pass("gram", "residual", data, theta)
+        rows = count * objective.g.shape[0]
+        np.testing.assert_array_equal(objective.residual_covariance(data, theta, 10),
+                                      gram / count * rows / max(rows - 10, 1))
+
+
 def test_passes_agree_with_numpy_from_the_residuals(dual) -> None:
     _, data, _, constraints, theta = dual
     _, threaded = _pair(dual)

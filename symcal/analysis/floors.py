@@ -217,6 +217,36 @@ def floor_tests(problem: Problem, datasets: Mapping[str, Dataset], theta: np.nda
                 fit: Fit, theta0: np.ndarray | None = None
                 ) -> tuple[dict[tuple[str, str], FloorTest], tuple[DatasetTest, ...]]:
     """The floor and test of every residual and comparison on every dataset, and the
+    global test of each dataset: :func:`floor_outcome` without the residuals."""
+    outcome = floor_outcome(problem, datasets, theta, fit, theta0, keep=False)
+    return outcome.tests, outcome.joint
+
+
+@dataclass(frozen=True)
+class Residuals:
+    """The residuals and comparisons of one dataset the floors evaluated (``names``, in
+    the order of the series statistics): ``N × n_e`` at the estimate (``after``) and at
+    the initial parameters (``before``, None without them)."""
+
+    names: tuple[str, ...]
+    after: np.ndarray
+    before: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class FloorOutcome:
+    """What :func:`floor_outcome` gives: the tests, the datasets' global tests and the
+    residuals each dataset's rows had (kept where asked)."""
+
+    tests: dict[tuple[str, str], FloorTest]
+    joint: tuple[DatasetTest, ...]
+    residuals: dict[str, Residuals]
+
+
+def floor_outcome(problem: Problem, datasets: Mapping[str, Dataset], theta: np.ndarray,
+                  fit: Fit, theta0: np.ndarray | None = None, keep: bool = True
+                  ) -> FloorOutcome:
+    """The floor and test of every residual and comparison on every dataset, and the
     global test of each dataset (the module's theory).
 
     Parameters
@@ -233,10 +263,15 @@ def floor_tests(problem: Problem, datasets: Mapping[str, Dataset], theta: np.nda
     theta0
         The initial parameters: each test then also has ``chi2_before`` (same weights).
 
+    keep
+        Keep the residuals the rows had (``N × n_e`` at the estimate and at the start,
+        per dataset: what :func:`symcal.analysis.fit.series_statistics` reads).
+
     Returns
     -------
-    (tests, global)
-        ``(dataset, name) → FloorTest`` and one :class:`DatasetTest` per dataset.
+    FloorOutcome
+        ``(dataset, name) → FloorTest``, one :class:`DatasetTest` per dataset, and the
+        residuals where kept.
     """
     assumed = {}
     for ds in datasets.values():
@@ -252,12 +287,15 @@ def floor_tests(problem: Problem, datasets: Mapping[str, Dataset], theta: np.nda
              if not np.isnan(v)})
     out: dict[tuple[str, str], FloorTest] = {}
     tests = []
+    residuals: dict[str, Residuals] = {}
     for ds in datasets.values():
-        found, joint = _dataset_tests(problem, ds, theta, fit, share, theta0,
-                                      assumed[ds.name])
+        found, joint, kept = _dataset_outcome(problem, ds, theta, fit, share, theta0,
+                                              assumed[ds.name], keep)
         out.update({(ds.name, k): v for k, v in found.items()})
         tests.append(joint)
-    return out, tuple(tests)
+        if kept is not None:
+            residuals[ds.name] = kept
+    return FloorOutcome(out, tuple(tests), residuals)
 
 
 def held_out_test(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
@@ -478,6 +516,17 @@ class RowsPlan:
     def reduce(self, ds: Dataset) -> RowSums:
         """The sums of the rows of ``ds``: each chunk's terms on the in-memory passes'
         executor (threads for a large dataset), folded here in order."""
+        return self._reduce(ds, False)[0]
+
+    def reduce_keeping(self, ds: Dataset) -> tuple[RowSums, Residuals]:
+        """:meth:`reduce`, and the residuals it evaluated (at the estimate and at the
+        start: ``N × n_e`` each; the series statistics read them rather than evaluating
+        the same expressions again, the same bits)."""
+        sums, kept = self._reduce(ds, True)
+        assert kept is not None
+        return sums, kept
+
+    def _reduce(self, ds: Dataset, keep: bool) -> tuple[RowSums, Residuals | None]:
         n = len(self.names)
         out = RowSums([_Sums() for _ in range(n)], [_Sums() for _ in range(n)], [None] * n,
                       [None] * n)
@@ -491,13 +540,21 @@ class RowsPlan:
             return self.terms(r, lmat, jac, r0)
 
         parts = list(chunks(ds.n))
+        kept = None
+        if keep:
+            kept = Residuals(self.names, np.empty((ds.n, n)),
+                             None if theta0 is None else np.empty((ds.n, n)))
         for part, chunk in zip(parts, default_executor(ds.n).map(piece, parts), strict=True):
             if part.start == 0 and len(chunk.r):     # the piece's first row is here
                 out.first = [float(v) for v in chunk.r[0]]
                 if chunk.r0 is not None:
                     out.first_before = [float(v) for v in chunk.r0[0]]
+            if kept is not None:
+                kept.after[part] = chunk.r
+                if kept.before is not None and chunk.r0 is not None:
+                    kept.before[part] = chunk.r0
             _fold_chunk(out, chunk)
-        return out
+        return out, kept
 
     def terms(self, r: np.ndarray, lmat: np.ndarray, jac: np.ndarray,
               r0: np.ndarray | None) -> _Chunk:
@@ -632,12 +689,24 @@ def _dataset_tests(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
                    share: _Estimate | None, theta0: np.ndarray | None = None,
                    assumed: np.ndarray | None = None
                    ) -> tuple[dict[str, FloorTest], DatasetTest]:
+    found, joint, _ = _dataset_outcome(problem, ds, theta, fit, share, theta0, assumed,
+                                       False)
+    return found, joint
+
+
+def _dataset_outcome(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
+                     share: _Estimate | None, theta0: np.ndarray | None,
+                     assumed: np.ndarray | None, keep: bool
+                     ) -> tuple[dict[str, FloorTest], DatasetTest, Residuals | None]:
     plan = rows_plan(problem, ds, theta, fit, share, theta0, assumed, cached=True)
-    sums = plan.reduce(ds)
+    if keep:
+        sums, kept = plan.reduce_keeping(ds)
+    else:
+        sums, kept = plan.reduce(ds), None
     found, joint = plan.finish(sums, time_ordered(problem, ds))
     if plan.share is not None and ds.name != fit.dataset and plan.joint_ok and sums.dof > 0:
         joint = held_out_test(problem, ds, theta, fit, plan.share, joint)
-    return found, joint
+    return found, joint, kept
 
 
 def _fold_chunk(out: RowSums, chunk: _Chunk) -> None:

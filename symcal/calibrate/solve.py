@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from symcal.analysis.fit import series_statistics
-from symcal.analysis.floors import floor_tests, time_ordered
+from symcal.analysis.floors import floor_outcome, time_ordered
 from symcal.analysis.identifiability import Uncertainty
 from symcal.analysis.implicit import implicit_checks
 from symcal.analysis.outliers import Outliers, find_outliers
@@ -319,9 +319,10 @@ def _result(problem: Problem, datasets: dict[str, Dataset],
                         p.lower, p.upper, p.doc, correlations(last.uncertainty, p.name))
         for i, p in enumerate(problem.parameters)
     )
-    stats, skipped = series_statistics(problem, datasets, theta0, theta)
-    found, tests = floor_tests(problem, datasets, theta, _fit(problem, datasets, theta, last),
-                               theta0)
+    floors = floor_outcome(problem, datasets, theta, _fit(problem, datasets, theta, last),
+                           theta0)
+    found, tests = floors.tests, floors.joint
+    stats, skipped = series_statistics(problem, datasets, theta0, theta, floors.residuals)
     stats = tuple(replace(s, noise=found.get((s.dataset, s.name))) for s in stats)
     checks = implicit_checks(problem, datasets, theta)
     notes = list(skipped) + [

@@ -199,9 +199,24 @@ class Objective:
 
     def residual_covariance(self, dataset: Source, theta: np.ndarray, rank: int) -> np.ndarray:
         """Covariance between the weighted constraints of one observation (``n_g × n_g``),
-        estimated from the residuals at ``theta`` with ``rank`` degrees of freedom used."""
-        instrument.record_pass("residual", "residual_covariance", dataset.n)
-        gram, count = self._pass("gram", "residual", dataset, theta)
+        estimated from the residuals at ``theta`` with ``rank`` degrees of freedom used.
+
+        On a dataset in memory without per-row weights, from :meth:`residuals` (kept:
+        the stage's outliers and serial correlation read the same residuals), reduced
+        chunk by chunk as the pass would, the same bits."""
+        kept = self._kept_g(dataset, theta)
+        if kept is None and isinstance(dataset, Dataset) and self.row_weights is None:
+            kept = self.residuals(dataset, theta)
+        if kept is not None:
+            gram: Any = None
+            for part in chunks(dataset.n):
+                block = kept[part]
+                value = block.T @ block
+                gram = value if gram is None else gram + value
+            count = dataset.n
+        else:
+            instrument.record_pass("residual", "residual_covariance", dataset.n)
+            gram, count = self._pass("gram", "residual", dataset, theta)
         rows = count * self.g.shape[0]
         return gram / count * rows / max(rows - rank, 1)
 
