@@ -17,8 +17,35 @@ DIFFERENCES = "successive differences"
 UNKNOWN = "unknown"
 
 
+class _Statistic:
+    """χ²/ν, its square root and the verdict of a test with ``chi2``, ``dof`` and
+    ``band`` (:class:`FloorTest`, :class:`DatasetTest`)."""
+
+    chi2: float | None
+    dof: float | None
+    band: tuple[float, float] | None
+
+    @property
+    def chi2_dof(self) -> float | None:
+        """χ²/ν, or None when unknown."""
+        if self.chi2 is None or not self.dof:
+            return None
+        return self.chi2 / self.dof
+
+    @property
+    def ratio(self) -> float | None:
+        """√(χ²/ν): how many times the floor the spread is."""
+        value = self.chi2_dof
+        return None if value is None else math.sqrt(max(value, 0.0))
+
+    @property
+    def verdict(self) -> str | None:
+        """``"at"``, ``"above"`` or ``"below"`` the floor; None when unknown."""
+        return verdict_of(self.chi2_dof, self.band)
+
+
 @dataclass(frozen=True)
-class FloorTest:
+class FloorTest(_Statistic):
     """The noise floor of one residual or comparison on one dataset, and its test.
 
     Attributes
@@ -61,24 +88,6 @@ class FloorTest:
         return (self.verdict == "above"
                 and value - self.chi2_before / self.dof > self.band[1] - 1.0)
 
-    @property
-    def chi2_dof(self) -> float | None:
-        """χ²/ν, or None when unknown."""
-        if self.chi2 is None or not self.dof:
-            return None
-        return self.chi2 / self.dof
-
-    @property
-    def ratio(self) -> float | None:
-        """√(χ²/ν): how many times the floor the residual's spread is."""
-        value = self.chi2_dof
-        return None if value is None else math.sqrt(max(value, 0.0))
-
-    @property
-    def verdict(self) -> str | None:
-        """``"at"``, ``"above"`` or ``"below"`` the floor; None when unknown."""
-        return verdict_of(self.chi2_dof, self.band)
-
     def to_dict(self, scale: float = 1.0) -> dict[str, Any]:
         """Plain data, the floor in a unit of size ``scale``."""
         return {"floor": None if self.floor is None else self.floor / scale,
@@ -111,7 +120,7 @@ def verdict_of(value: float | None, band: tuple[float, float] | None) -> str | N
 
 
 @dataclass(frozen=True)
-class DatasetTest:
+class DatasetTest(_Statistic):
     """The global test of the model on one dataset: its constraints' χ² against the
     floor their readings' noise sets (:class:`FloorTest` without a floor of its own).
 
@@ -152,24 +161,6 @@ class DatasetTest:
         if self.distribution == "normal" and self.sd is not None:
             return normal_band(self.sd, level)
         return None
-
-    @property
-    def chi2_dof(self) -> float | None:
-        """χ²/ν, or None when unknown."""
-        if self.chi2 is None or not self.dof:
-            return None
-        return self.chi2 / self.dof
-
-    @property
-    def ratio(self) -> float | None:
-        """√(χ²/ν): how many times the floor the constraints' spread is."""
-        value = self.chi2_dof
-        return None if value is None else math.sqrt(max(value, 0.0))
-
-    @property
-    def verdict(self) -> str | None:
-        """``"at"``, ``"above"`` or ``"below"`` the floor; None when unknown."""
-        return verdict_of(self.chi2_dof, self.band)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data (``floor_tests`` of ``result.json``)."""
