@@ -143,7 +143,7 @@ def differences_plan(problem: Problem, theta: np.ndarray, names: tuple[str, ...]
                      exprs: list[ca.SX]) -> DifferencesPlan:
     """The plan of the successive differences of the entries ``names`` at ``theta``."""
     return DifferencesPlan(row_propagation(problem, ("entries", *names), exprs,
-                                        np.zeros(len(problem.parameters), dtype=bool)),
+                                           np.zeros(len(problem.parameters), dtype=bool)),
                            np.asarray(theta, dtype=float))
 
 
@@ -316,7 +316,7 @@ def held_out_test(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
         return joint
     names = joint.constraints
     prop = row_propagation(problem, ("information", *names),
-                        [problem.noisy.constraint(n).sx for n in names], fit.free)
+                           [problem.noisy.constraint(n).sx for n in names], fit.free)
     n_p = prop.n_p
     if n_p == 0 or share.cov.shape != (n_p, n_p):
         return joint

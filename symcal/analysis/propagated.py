@@ -60,7 +60,7 @@ def covariances(problem: Problem, constraints: tuple[str, ...], theta: np.ndarra
         raise ValueError("the noisy view reads the columns in another order")
     quantities = [noisy.constraint(n) for n in constraints]
     prop = RowPropagation(problem, [q.sx for q in quantities],
-                        np.zeros(len(problem.parameters), dtype=bool))
+                          np.zeros(len(problem.parameters), dtype=bool))
     return Covariances(prop.fn, np.array(theta, dtype=float), len(constraints), prop.n_eps,
                        np.array([q.sigma for q in quantities]))
 

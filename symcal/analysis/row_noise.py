@@ -85,7 +85,7 @@ def _build_entries(problem: Problem, ds: Dataset) -> Entries:
 
 
 def row_propagation(problem: Problem, names: tuple[str, ...], exprs: list[ca.SX],
-                 free: np.ndarray) -> RowPropagation:
+                    free: np.ndarray) -> RowPropagation:
     """The :class:`RowPropagation` of ``exprs`` (named ``names``: the same names of one
     problem are the same expressions), built once per problem."""
     key = ("floors", names, np.asarray(free, dtype=bool).tobytes())
@@ -231,8 +231,9 @@ def row_covariances(problem: Problem, constraints: tuple[str, ...], ds: Dataset,
     noisy = problem.noisy
     quantities = [noisy.constraint(n) for n in constraints]
     sigma = np.array([q.sigma for q in quantities])
-    prop = row_propagation(problem, ("covariances", *constraints), [q.sx for q in quantities],
-                        np.zeros(len(problem.parameters), dtype=bool))
+    prop = row_propagation(problem, ("covariances", *constraints),
+                           [q.sx for q in quantities],
+                           np.zeros(len(problem.parameters), dtype=bool))
     kept: list[tuple[Any, bytes, np.ndarray]] = owned(
         problem, ("row covariances", tuple(constraints)), list)
     key = np.ascontiguousarray(theta, dtype=float).tobytes()
