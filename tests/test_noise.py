@@ -15,7 +15,7 @@ from conftest import ROOT
 import symcal
 import symcal.simulation
 from symcal.analysis.bands import chi2_band
-from symcal.analysis.floors import floor_tests
+from symcal.analysis.floors import floor_outcome
 from symcal.analysis.row_noise import Fit, row_covariances
 from symcal.base.errors import SpecError
 from symcal.base.numeric import mapped
@@ -272,7 +272,8 @@ def test_floor_of_g_p_is_twice_the_reading_noise_at_the_start() -> None:
     problem = symcal.load_problem(PROBLEMS / "platen_self_calibration.yaml")
     data = _courier(problem, "courier_platen")
     theta = np.array([p.value for p in problem.parameters])
-    found, tests = floor_tests(problem, data, theta, _fit(problem))
+    outcome = floor_outcome(problem, data, theta, _fit(problem), keep=False)
+    found, tests = outcome.tests, outcome.joint
     s = 0.503 * UM
     assert found[("calibration", "g_p")].floor == pytest.approx(2 * s, rel=1e-9)
     assert found[("flyby", "position_y")].floor == pytest.approx(
@@ -287,7 +288,7 @@ def test_series_statistics_read_the_residuals_the_floors_evaluated() -> None:
     statistics read those, the same bits as their own evaluation (numpy's residuals of
     the plain expressions agree), and evaluate again where the entries differ."""
     from symcal.analysis.fit import series_statistics
-    from symcal.analysis.floors import Residuals, floor_outcome
+    from symcal.analysis.floors import Residuals
 
     problem = symcal.load_problem(PROBLEMS / "dual_sensor_calibration.yaml")
     data = _courier(problem, "courier_dual")

@@ -1,6 +1,6 @@
 """Noise floors and the global test on a log kept as shards, by passes.
 
-:func:`symcal.analysis.floors.floor_tests` with the fitted dataset kept as shards: the
+:func:`symcal.analysis.floors.floor_outcome` with the fitted dataset kept as shards: the
 propagated floors, the tests and the estimate's share are sums over rows
 (:class:`~symcal.analysis.floors.SharePlan`, :class:`~symcal.analysis.floors.RowsPlan`), so
 each shard's task sums its own rows and the lead joins the sums in the order of the
@@ -76,7 +76,7 @@ def floor_tests_passes(problem: Problem, log: Source, sample: Dataset,
     """The floors and tests of the fitted dataset ``log`` (by passes; ``sample``: a few of
     its rows, for its name and columns; ``ordered``: whether its rows are in time order)
     and of the datasets ``held`` (in memory), as
-    :func:`~symcal.analysis.floors.floor_tests` gives them on all the data in memory."""
+    :func:`~symcal.analysis.floors.floor_outcome` gives them on all the data in memory."""
     share = None
     if fit.dataset == log.name and np.any(fit.free):
         plan = share_plan(problem, fit, _log_variances(problem, log, sample, theta, ordered))

@@ -213,15 +213,6 @@ class _Sums:
         setattr(self, name, value if old is None else old + value)
 
 
-def floor_tests(problem: Problem, datasets: Mapping[str, Dataset], theta: np.ndarray,
-                fit: Fit, theta0: np.ndarray | None = None
-                ) -> tuple[dict[tuple[str, str], FloorTest], tuple[DatasetTest, ...]]:
-    """The floor and test of every residual and comparison on every dataset, and the
-    global test of each dataset: :func:`floor_outcome` without the residuals."""
-    outcome = floor_outcome(problem, datasets, theta, fit, theta0, keep=False)
-    return outcome.tests, outcome.joint
-
-
 @dataclass(frozen=True)
 class Residuals:
     """The residuals and comparisons of one dataset the floors evaluated (``names``, in
@@ -516,17 +507,12 @@ class RowsPlan:
     def reduce(self, ds: Dataset) -> RowSums:
         """The sums of the rows of ``ds``: each chunk's terms on the in-memory passes'
         executor (threads for a large dataset), folded here in order."""
-        return self._reduce(ds, False)[0]
+        return self.reduce_with(ds, False)[0]
 
-    def reduce_keeping(self, ds: Dataset) -> tuple[RowSums, Residuals]:
-        """:meth:`reduce`, and the residuals it evaluated (at the estimate and at the
-        start: ``N × n_e`` each; the series statistics read them rather than evaluating
-        the same expressions again, the same bits)."""
-        sums, kept = self._reduce(ds, True)
-        assert kept is not None
-        return sums, kept
-
-    def _reduce(self, ds: Dataset, keep: bool) -> tuple[RowSums, Residuals | None]:
+    def reduce_with(self, ds: Dataset, keep: bool) -> tuple[RowSums, Residuals | None]:
+        """:meth:`reduce`, and where ``keep`` asks, the residuals it evaluated (at the
+        estimate and at the start, ``N × n_e`` each: the series statistics read them
+        rather than evaluating the same expressions again, the same bits)."""
         n = len(self.names)
         out = RowSums([_Sums() for _ in range(n)], [_Sums() for _ in range(n)], [None] * n,
                       [None] * n)
@@ -699,10 +685,7 @@ def _dataset_outcome(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
                      assumed: np.ndarray | None, keep: bool
                      ) -> tuple[dict[str, FloorTest], DatasetTest, Residuals | None]:
     plan = rows_plan(problem, ds, theta, fit, share, theta0, assumed, cached=True)
-    if keep:
-        sums, kept = plan.reduce_keeping(ds)
-    else:
-        sums, kept = plan.reduce(ds), None
+    sums, kept = plan.reduce_with(ds, keep)
     found, joint = plan.finish(sums, time_ordered(problem, ds))
     if plan.share is not None and ds.name != fit.dataset and plan.joint_ok and sums.dof > 0:
         joint = held_out_test(problem, ds, theta, fit, plan.share, joint)
