@@ -6,6 +6,7 @@ section, units checked (exact error text); floors against an independent computa
 from __future__ import annotations
 
 import textwrap
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -320,6 +321,69 @@ def test_series_statistics_read_the_residuals_the_floors_evaluated() -> None:
     # other entries than the series' own: evaluated as without them
     other = {"calibration": Residuals(cal.names[:-1], cal.after[:, :-1], cal.before[:, :-1])}
     assert series_statistics(problem, data, theta0, theta, other)[0] == own
+
+def _timeless(doc):
+    """A result document without its wall times."""
+    if isinstance(doc, dict):
+        return {k: _timeless(v) for k, v in doc.items() if k != "seconds"}
+    if isinstance(doc, list):
+        return [_timeless(v) for v in doc]
+    return doc
+
+
+@pytest.mark.parametrize("name, scenario, weighting", [
+    ("dual_sensor_calibration", "courier_dual", None),        # propagated
+    ("platen_self_calibration", "courier_platen", "equal"),
+])
+def test_a_solve_without_floors_gets_them_later_bit_for_bit(name, scenario,
+                                                            weighting) -> None:
+    """``improve``'s trials solve without the floors and add them to the revision kept:
+    that is the solve's document bit for bit.  Without them the result's information
+    criteria are already the solve's (propagated weights: the fitted dataset's χ², from
+    one pass of its own), its only test that χ² without degrees of freedom or band."""
+    from symcal.calibrate.solve import solve_without_floors, with_floors
+
+    problem = symcal.load_problem(PROBLEMS / f"{name}.yaml")
+    if weighting is not None:
+        problem = problem.with_weighting(weighting)
+    data = _courier(problem, scenario)
+    start = {"s1.k1": 0.002}
+    full = symcal.solve(problem, data, initial=start)
+    lite = solve_without_floors(problem, data, start)
+    assert (lite.rss, lite.bic, lite.aic) == (full.rss, full.bic, full.aic)
+    np.testing.assert_array_equal(lite.theta, full.theta)
+    assert all(s.noise is None for s in lite.statistics)
+    if problem.weighting == "propagated":
+        (test,) = lite.floor_tests
+        assert (test.dataset, test.method, test.dof, test.band) == \
+            ("calibration", "propagated", None, None)
+        assert test.chi2 == next(t.chi2 for t in full.floor_tests
+                                 if t.dataset == "calibration")
+    else:
+        assert lite.floor_tests == ()
+    assert full.floor_tests and full.at_floor is not None
+    assert _timeless(with_floors(lite).to_dict()) == _timeless(full.to_dict())
+
+
+def test_the_fits_chi2_alone_declines_where_the_share_could_decide() -> None:
+    """:func:`fit_chi2` is the joint test's χ² bit for bit; it declines (None) where the
+    rows' ranks do not exceed the free parameters, whose test's degrees of freedom only
+    the estimate's share tells."""
+    from symcal.analysis.floors import fit_chi2
+
+    problem = symcal.load_problem(PROBLEMS / "platen_self_calibration.yaml")
+    data = _courier(problem, "courier_platen")
+    theta = np.array([p.value for p in problem.parameters]) + 1e-3
+    fit = replace(_fit(problem), weighting="propagated",
+                  free=np.ones(len(problem.parameters), dtype=bool))
+    joint = floor_outcome(problem, data, theta, fit).joint[0]
+    alone = fit_chi2(problem, data["calibration"], theta, fit)
+    assert alone is not None and alone.chi2 == joint.chi2 and joint.dof
+    cal = data["calibration"]
+    few = make_dataset("calibration", "first rows",
+                       {k: v[:len(problem.parameters) - 1] for k, v in cal.columns.items()}, [])
+    assert fit_chi2(problem, few, theta, fit) is None
+
 
 def test_chi2_band_against_scipy() -> None:
     from scipy.stats import chi2

@@ -289,6 +289,27 @@ def floor_outcome(problem: Problem, datasets: Mapping[str, Dataset], theta: np.n
     return FloorOutcome(out, tuple(tests), residuals)
 
 
+def fit_chi2(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit
+             ) -> DatasetTest | None:
+    """The fitted dataset ``ds``'s global test as far as one pass tells it: its χ² at the
+    estimate, the same bits as :func:`floor_outcome`'s joint test, without its degrees
+    of freedom and band (those need the estimate's share: the test says nothing of the
+    floor).  What a loop that compares many candidate models reads of the floors (the
+    fit's χ², :attr:`~symcal.calibrate.result.Result.rss`), at the cost of one pass.
+    None where the tests may not give that χ²: an entry of undeclared noise (the test is
+    then combined from the entries'), or rows whose ranks ν do not exceed the free
+    parameters p (the test needs positive degrees of freedom, which are at least ν − p
+    whatever the fit's weights: ``tr(C⁺ Cov r)`` with ``r`` the noise left by a
+    projection of rank at most p)."""
+    plan = rows_plan(problem, ds, theta, fit, None, cached=True)
+    if not plan.joint_ok:
+        return None
+    chi2, nu = plan.joint_chi2(ds)
+    if not nu > plan.prop.n_p + 0.5:
+        return None
+    return DatasetTest(ds.name, tuple(plan.names[k] for k in plan.cons), PROPAGATED, chi2)
+
+
 def held_out_test(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
                   share: _Estimate, joint: DatasetTest) -> DatasetTest:
     """A held-out dataset's global test with the band its statistic has.
@@ -599,13 +620,7 @@ class RowsPlan:
                 q -= 2.0 * (alpha @ (ja @ jac_t))
         chi2 = dof = 0.0
         if self.joint_ok:
-            cons = list(self.cons)
-            sub = np.ix_(range(m), cons, cons)
-            pinv, _ = row_pinv(c[sub])
-            rc = r[:, cons]
-            chi2 = float(np.einsum("ma,mab,mb->", rc, pinv, rc))
-            expect = c[sub] if q is None else c[sub] + q[sub]
-            dof = float(np.einsum("mab,mab->", pinv, expect))
+            chi2, dof = self._joint(r, c, q)
         xs = {}
         if alpha is not None:
             for k in range(n_e):
@@ -615,6 +630,42 @@ class RowsPlan:
                         xk += alpha[:, k, i, None] * jac[:, fitted[i], :]
                     xs[k] = xk
         return (None if q is None else np.diagonal(q, axis1=1, axis2=2)), chi2, dof, xs
+
+    def _joint(self, r: np.ndarray, c: np.ndarray, q: np.ndarray | None
+               ) -> tuple[float, float]:
+        """A block's terms of the joint test: χ² and its expectation (without the
+        estimate's share ``q``: the rows' ranks ν)."""
+        cons = list(self.cons)
+        sub = np.ix_(range(r.shape[0]), cons, cons)
+        pinv, _ = row_pinv(c[sub])
+        rc = r[:, cons]
+        chi2 = float(np.einsum("ma,mab,mb->", rc, pinv, rc))
+        expect = c[sub] if q is None else c[sub] + q[sub]
+        return chi2, float(np.einsum("mab,mab->", pinv, expect))
+
+    def joint_chi2(self, ds: Dataset) -> tuple[float, float]:
+        """The joint test's χ² over the rows of ``ds`` (the same bits as :meth:`reduce`
+        sums) and the rows' ranks ν (its degrees of freedom before the estimate's
+        share): one pass, nothing else of the tests."""
+        prop, u = self.prop, ds.matrix(self.prop.columns)
+        fn = jit.select(prop.fn, ds.n)
+
+        def piece(part: slice) -> tuple[float, float]:
+            r, lmat, _ = prop.at(fn, u, self.theta, part)
+            c = assumed_covariance(row_grams(lmat), self.assumed)
+            chi2 = nu = 0.0
+            for start in range(0, r.shape[0], BLOCK):      # as terms() blocks them
+                rows = slice(start, start + BLOCK)
+                chi2_b, nu_b = self._joint(r[rows], c[rows], None)
+                chi2 += chi2_b
+                nu += nu_b
+            return chi2, nu
+
+        chi2 = nu = 0.0
+        for chi2_c, nu_c in default_executor(ds.n).map(piece, list(chunks(ds.n))):
+            chi2 += chi2_c
+            nu += nu_c
+        return chi2, nu
 
     def finish(self, sums: RowSums, ordered: bool) -> tuple[dict[str, FloorTest], DatasetTest]:
         """Each entry's floor and test and the dataset's global test from the sums of all

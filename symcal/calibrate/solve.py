@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from symcal.analysis.fit import series_statistics
-from symcal.analysis.floors import floor_outcome, time_ordered
+from symcal.analysis.floors import FloorOutcome, fit_chi2, floor_outcome, time_ordered
 from symcal.analysis.identifiability import Uncertainty
 from symcal.analysis.implicit import implicit_checks
 from symcal.analysis.outliers import Outliers, find_outliers
@@ -264,6 +264,28 @@ def solve(
         raise SolveError(f"unknown method '{options.method}'"
                          f"{did_you_mean(options.method, METHODS)}; "
                          f"methods: {', '.join(METHODS)}")
+    return _solved(problem, _in_memory(problem, data, drop_invalid), data or {}, options,
+                   initial or {}, progress, bars, floors=True)
+
+
+@blas_limited
+def solve_without_floors(problem: Problem, data: Mapping[str, Dataset],
+                         initial: Mapping[str, float]) -> Result:
+    """:func:`solve` with the problem's own options, its noise floors left out until
+    :func:`with_floors` adds them: the statistics carry no floor and ``floor_tests`` at
+    most the fitted dataset's χ² without its band (what :attr:`Result.rss` reads where
+    the weights are propagated; ``at_floor`` is None).  For a loop that solves many
+    candidate models and keeps few (``improve``): its decisions read the estimate, its
+    statistics, information criteria and standard errors, and the floors' passes over
+    every dataset are paid for the kept one only."""
+    return _solved(problem, _in_memory(problem, data, False), data, problem.options,
+                   initial, None, None, floors=False)
+
+
+def _in_memory(problem: Problem, data: Mapping[str, Dataset | str | Path] | None,
+               drop_invalid: bool) -> dict[str, Dataset]:
+    """The problem's datasets, ``data`` replacing its own; refused where one is a folder
+    of shards."""
     datasets = load_datasets(problem, data, drop_invalid)
     for name, ds in datasets.items():
         if not isinstance(ds, Dataset):
@@ -271,7 +293,29 @@ def solve(
                             "kept as shards with symcal.solve_partitioned (symcal solve "
                             "--data NAME=FOLDER does so by itself), and give held-out "
                             "datasets as files")
-    theta0 = _initial(problem, initial or {})
+    return datasets
+
+
+@blas_limited
+def with_floors(result: Result) -> Result:
+    """``result`` of :func:`solve_without_floors` with its noise floors: bit for bit what
+    :func:`solve` gives on the same problem, data and start (the statistics are the same
+    expressions evaluated once; only their floors are added)."""
+    problem, datasets, theta = result.problem, dict(result.data), result.theta
+    floors = floor_outcome(problem, datasets, theta,
+                           _fit(problem, datasets, theta, result.stages[-1]), result.theta0)
+    stats = tuple(replace(s, noise=floors.tests.get((s.dataset, s.name)))
+                  for s in result.statistics)
+    return replace(result, statistics=stats, floor_tests=floors.joint)
+
+
+def _solved(problem: Problem, datasets: dict[str, Dataset],
+            given: Mapping[str, Dataset | str | Path], options: SolveOptions,
+            initial: Mapping[str, float], progress: Progress, bars: Bars | None,
+            floors: bool) -> Result:
+    """Every stage in turn from ``initial``, then the analysis (``floors``: with the
+    noise floors)."""
+    theta0 = _initial(problem, initial)
     theta = theta0
     stages: list[StageResult] = []
     with reporting(progress, bars, "solve", None, "it") as report:
@@ -281,7 +325,7 @@ def solve(
             stages.append(result)
             if not result.success:
                 break
-    return _result(problem, datasets, data or {}, theta0, theta, tuple(stages))
+    return _result(problem, datasets, given, theta0, theta, tuple(stages), floors)
 
 
 def _initial(problem: Problem, initial: Mapping[str, float]) -> np.ndarray:
@@ -309,7 +353,8 @@ def _info(ds: Dataset, given: Dataset | str | Path | None, spec_path: Path | Non
 
 def _result(problem: Problem, datasets: dict[str, Dataset],
             given: Mapping[str, Dataset | str | Path], theta0: np.ndarray,
-            theta: np.ndarray, stages: tuple[StageResult, ...]) -> Result:
+            theta: np.ndarray, stages: tuple[StageResult, ...], with_floors: bool = True
+            ) -> Result:
     last = stages[-1]
     params = parameter_table(
         ParameterResult(p.name, float(theta[i]), float(theta0[i]), p.unit, p.fixed,
@@ -319,8 +364,9 @@ def _result(problem: Problem, datasets: dict[str, Dataset],
                         p.lower, p.upper, p.doc, correlations(last.uncertainty, p.name))
         for i, p in enumerate(problem.parameters)
     )
-    floors = floor_outcome(problem, datasets, theta, _fit(problem, datasets, theta, last),
-                           theta0)
+    fit = _fit(problem, datasets, theta, last)
+    floors = floor_outcome(problem, datasets, theta, fit, theta0) if with_floors \
+        else _fit_test(problem, datasets, theta, fit, theta0)
     found, tests = floors.tests, floors.joint
     stats, skipped = series_statistics(problem, datasets, theta0, theta, floors.residuals)
     stats = tuple(replace(s, noise=found.get((s.dataset, s.name))) for s in stats)
@@ -335,6 +381,19 @@ def _result(problem: Problem, datasets: dict[str, Dataset],
     return Result(problem, theta0, theta, stages, params, last.identifiability,
                   last.uncertainty, stats, infos, tuple(notes), checks, tests,
                   _hashes(problem), datasets)
+
+
+def _fit_test(problem: Problem, datasets: dict[str, Dataset], theta: np.ndarray, fit: Fit,
+              theta0: np.ndarray) -> FloorOutcome:
+    """The floors as far as a solve without them needs: none, or where the weights are
+    propagated, the fitted dataset's χ² (:attr:`Result.rss`; all the floors where one
+    pass cannot tell it, :func:`~symcal.analysis.floors.fit_chi2`)."""
+    if problem.weighting != "propagated" or fit.dataset not in datasets:
+        return FloorOutcome({}, (), {})
+    test = fit_chi2(problem, datasets[fit.dataset], theta, fit)
+    if test is None:
+        return floor_outcome(problem, datasets, theta, fit, theta0)
+    return FloorOutcome({}, (test,), {})
 
 
 def _hashes(problem: Problem) -> dict[str, str] | None:

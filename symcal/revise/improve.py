@@ -22,7 +22,7 @@ from symcal.base.errors import SymcalError
 from symcal.base.files import write_output
 from symcal.base.progress import Bars, Report, reporting
 from symcal.calibrate.result import Result, file_hashes
-from symcal.calibrate.solve import solve
+from symcal.calibrate.solve import solve, solve_without_floors, with_floors
 from symcal.data.dataset import Dataset
 from symcal.data.loading import load_datasets
 from symcal.language.fields import plain_name
@@ -253,7 +253,7 @@ def _best_of_group(
     said = (_ambiguity(label, new, other, other_new, physical, final)
             for _, other, _, other_new in paying[1:])
     ambiguous = tuple(text for text in said if text)
-    return _Kept(label, final, _rebound(new, final), ambiguous)
+    return _Kept(label, final, with_floors(_rebound(new, final)), ambiguous)
 
 
 def _rebound(result: Result, path: Path) -> Result:
@@ -315,12 +315,14 @@ def _ambiguity(label: str, new: Result, other: str, other_new: Result,
 def _trial(revised: Problem, datasets: Mapping[str, Dataset], result: Result) -> Result:
     """The revision solved on the same data, started where the last kept model ended (its
     free parameters at their estimates, a new term's coefficients at zero): the stages
-    then take a few steps each instead of starting again from the file's values."""
+    then take a few steps each instead of starting again from the file's values.  Its
+    noise floors are left out (:func:`_pays` does not read them): the revision kept gets
+    them (:func:`~symcal.calibrate.solve.with_floors`)."""
     start = {name: p.value for name, p in result.params.items()
              if not p.fixed and name in revised.index
              and not revised.parameters[revised.index[name]].fixed}
-    return solve(revised, {n: d for n, d in datasets.items() if n in revised.datasets},
-                 initial=start)
+    return solve_without_floors(
+        revised, {n: d for n, d in datasets.items() if n in revised.datasets}, start)
 
 
 def _models(directory: Path) -> set[Path]:
@@ -416,7 +418,7 @@ def _try_siblings(
         _remove(written)
         return single
     final = _renamed(path, name)
-    return _Kept(label, final, _rebound(new, final))
+    return _Kept(label, final, with_floors(_rebound(new, final)))
 
 
 def _revision(diag: Diagnosis, cand_label: str, directory: Path, name: str) -> Path:
