@@ -141,8 +141,9 @@ def run_stage_on(
     data = held.data
     free = np.array([p.name in stage.free for p in problem.parameters])
     plain = Objective(problem, stage.constraints, free)
-    held.check_finite(plain, theta)
-    r_start, _, tail0, rows0 = plain.accumulate_r(data, theta)
+    r_start, c_start, tail0, rows0 = plain.accumulate_r(data, theta)
+    if not (np.isfinite(tail0) and np.all(np.isfinite(c_start))):
+        held.check_finite(plain, theta)     # a constraint inf or NaN at the start: where
     ident0, unc0 = analyse(r_start, rows0, tail0, plain.names, plain.scales,
                            theta[plain.index])
     _check_information(stage, data, rows0, ident0.rank,

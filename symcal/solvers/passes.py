@@ -203,6 +203,8 @@ class Pass:
         block = np.empty((m * ng, n + 1), order="F")     # column-major for LAPACK
         block[:, :n] = jac.reshape(m * ng, n)
         block[:, n] = g.reshape(m * ng)
+        if not np.isfinite(block[:, n]).all():
+            block[:, n] = np.nan    # a residual inf or NaN: R's last column says so
         return _qr_r(block), m * ng
 
 
