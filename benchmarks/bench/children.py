@@ -1,8 +1,9 @@
-"""Every timed job runs in a fresh interpreter: starting one, and the child's side.
+"""Every timed job runs in a fresh interpreter: starting one and reading its result.
 
-The parent runs ``python benchmarks/run.py --child JSON``; the child looks up the job's
-``kind`` in :data:`bench.jobs.CHILDREN`, runs it and prints its result as one JSON line
-after :data:`bench.config.MARK`.
+The parent runs ``python benchmarks/run.py --child JSON``; the child
+(:func:`bench.cli.child_main`) looks up the job's ``kind`` in
+:data:`bench.jobs.CHILDREN`, runs it and prints its result as one JSON line after
+:data:`bench.config.MARK`.  The jobs import this module; it imports none of them.
 """
 
 from __future__ import annotations
@@ -61,14 +62,3 @@ def run_child(job: dict[str, Any], settings: Settings, timeout: float,
     tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
     return {"error": f"exit {proc.returncode}: {' | '.join(tail)}",
             "wall": time.perf_counter() - start}
-
-
-def child_main(spec: str) -> int:
-    """The child's side: run the job described by the JSON ``spec``, print its result."""
-    from .jobs import CHILDREN
-
-    job = json.loads(spec)
-    result = CHILDREN[job["kind"]](job)
-    sys.stdout.flush()
-    print(MARK + json.dumps(result), flush=True)
-    return 0

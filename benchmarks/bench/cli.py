@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import signal
 import sys
@@ -13,15 +14,25 @@ from pathlib import Path
 from typing import Any
 
 from .analysis import exponents, targets
-from .children import child_main
-from .config import DEFAULT_SIZES, HERE, LABELS, PROBLEMS, QUICK_SIZES, Run, Settings
+from .config import DEFAULT_SIZES, HERE, LABELS, MARK, PROBLEMS, QUICK_SIZES, Run, Settings
 from .fmt import fmt_n, say, show
-from .jobs import JOBS
+from .jobs import CHILDREN, JOBS
 from .jobs.base import JobSummary
 from .machine import code_state, load_average, machine
 from .measure import Clock
 from .problems import check_residuals, make_data
 from .report import atomic_write, method_table, render, splice, write_json
+
+
+def child_main(spec: str) -> int:
+    """The child's side of :mod:`bench.children`: run the job described by the JSON
+    ``spec``, print its result."""
+    job = json.loads(spec)
+    result = CHILDREN[job["kind"]](job)
+    sys.stdout.flush()
+    print(MARK + json.dumps(result), flush=True)
+    return 0
+
 
 DESCRIPTION = """symcal's benchmark harness: symcal against what a user would write instead.
 
