@@ -96,6 +96,27 @@ def test_each_objective_method_is_one_pass_of_its_kind(platen) -> None:
     assert again.passes == 0
 
 
+def test_the_cost_per_constraint_at_an_r_factors_point_needs_no_pass(platen) -> None:
+    """A stage's cost per constraint at its start reads the sums of the R factor's pass
+    there (the same evaluation): no pass of its own, the same bits as one; a transformed
+    reduction, or one of another dataset, does not serve."""
+    problem, data = platen
+    objective = _objective(problem)
+    theta = _theta0(problem) + 3.7e-3   # a point no other test evaluated
+    twin = make_dataset("calibration", "the same rows", dict(data.columns), [])
+    with counting() as own:
+        expected = objective.cost_terms(twin, theta)
+    assert own.by_method == {"cost_terms": 1}
+    objective.accumulate_r(data, theta)
+    with counting() as counts:
+        assert objective.cost_terms(data, theta) == expected
+    assert counts.passes == 0
+    objective.accumulate_r(data, theta, np.eye(len(objective.constraints)))
+    with counting() as transformed:
+        assert objective.cost_terms(data, theta) == expected
+    assert transformed.by_method == {"cost_terms": 1}
+
+
 def test_nested_blocks_both_count(platen) -> None:
     problem, data = platen
     objective = _objective(problem)

@@ -181,13 +181,18 @@ class Objective:
                    None if transform is None else np.asarray(transform, float).tobytes())
             last = self._last_r[0] if self._last_r else None
             if last is not None and last[0]() is dataset and last[1] == key:
-                r_aug, rows = last[2]
+                r_aug, rows, _ = last[2]
                 return self._split_r(r_aug.copy(), rows, n)
         instrument.record_pass("r", "accumulate_r", dataset.n)
-        out = self._pass("r", "linearised", dataset, theta, transform)
-        r_aug, rows = out if out is not None else (np.zeros((0, n + 1)), 0)
+        # untransformed in memory: each constraint's Σ g² of the same evaluation too, kept
+        # for cost_terms (a stage's cost per constraint at its start)
+        kind: Kind = "rt" if key is not None and transform is None else "r"
+        out = self._pass(kind, "linearised", dataset, theta, transform)
+        if out is None:
+            out = (np.zeros((0, n + 1)), 0, np.zeros(len(self.constraints)))
+        r_aug, rows, terms = out[0], out[1], out[2] if kind == "rt" else None
         if key is not None:
-            self._last_r[:] = [(weakref.ref(dataset), key, (r_aug.copy(), rows))]
+            self._last_r[:] = [(weakref.ref(dataset), key, (r_aug.copy(), rows, terms))]
         return self._split_r(r_aug, rows, n)
 
     @staticmethod
@@ -254,6 +259,15 @@ class Objective:
                 return g
         return None
 
+    def _kept_terms(self, dataset: Source, theta: np.ndarray) -> np.ndarray | None:
+        """Each constraint's Σ g² from the kept reduction at this point (an untransformed
+        :meth:`accumulate_r` of this dataset), or None."""
+        last = self._last_r[0] if self._last_r else None
+        if last is None or last[0]() is not dataset or self.row_weights is not None:
+            return None
+        key = (np.ascontiguousarray(theta, dtype=float).tobytes(), None)
+        return last[2][2] if last[1] == key else None
+
     def residuals(self, dataset: Dataset, theta: np.ndarray) -> np.ndarray:
         """Weighted residuals at ``theta``, ``N × n_g`` (in-memory data only; read-only).
 
@@ -277,12 +291,15 @@ class Objective:
         residuals when :meth:`residuals` was asked at this point: reduced chunk by chunk
         in the same order as the pass, the same bits)."""
         kept = self._kept_g(dataset, theta)
+        reduced = self._kept_terms(dataset, theta)
+        terms: Any = None
         if kept is not None:
-            terms: Any = None
             for part in chunks(dataset.n):
                 block = kept[part]
                 value = np.sum(block * block, axis=0)
                 terms = value if terms is None else terms + value
+        elif reduced is not None:
+            terms = reduced
         else:
             instrument.record_pass("residual", "cost_terms", dataset.n)
             terms = self._pass("terms", "residual", dataset, theta)

@@ -13,6 +13,7 @@ pieces.  The kinds:
 * ``normal``: ``(Σ g², Jᵀg, JᵀJ)``;
 * ``r``: the R factor of ``[J | g]`` (a TSQR: one blocked QR per chunk, combined in
   order);
+* ``rt``: ``r`` and ``terms`` of the same evaluation (the same bits as each);
 * ``gram``: ``(gᵀg, observations)``, g as an ``m × n_g`` matrix;
 * ``residuals``: g itself, ``m × n_g`` (in-memory data only: its size grows with N).
 """
@@ -28,7 +29,7 @@ import numpy as np
 from symcal.base.numeric import Mapped, chunks
 from symcal.solvers.executor import Executor, blas_limit, blas_loaded
 
-Kind = Literal["cost", "terms", "normal", "r", "gram", "residuals"]
+Kind = Literal["cost", "terms", "normal", "r", "rt", "gram", "residuals"]
 
 
 class Piece(Protocol):
@@ -205,6 +206,8 @@ class Pass:
         block[:, n] = g.reshape(m * ng)
         if not np.isfinite(block[:, n]).all():
             block[:, n] = np.nan    # a residual inf or NaN: R's last column says so
+        if self.kind == "rt":       # and each constraint's Σ g², as "terms" sums them
+            return _qr_r(block), m * ng, np.sum(g * g, axis=0)
         return _qr_r(block), m * ng
 
 
@@ -221,6 +224,8 @@ def reduce_two(kind: Kind, a: Any, b: Any) -> Any:
     if kind == "normal":
         return a[0] + b[0], a[1] + b[1], a[2] + b[2]
     n1 = a[0].shape[1]
+    if kind == "rt":
+        return _qr_r(np.vstack([a[0], b[0]]))[:n1], a[1] + b[1], a[2] + b[2]
     return _qr_r(np.vstack([a[0], b[0]]))[:n1], a[1] + b[1]
 
 
