@@ -59,9 +59,9 @@ def test_quick_run_prints_every_job() -> None:
 def test_a_partial_run_replaces_only_its_sections() -> None:
     """--jobs: the sections the run rendered replace theirs, the others stay, the targets
     are merged and the header says which sections are new."""
+    _bench_cli()       # the benchmarks' folder on the path, whichever test ran first
     from bench.report import splice
 
-    _bench_cli()
     old = ("# symcal benchmarks\n\nProduced by `make bench` on 2026-01-01; it took 10 min.\n\n"
            "## Machine\n\n- old machine\n\n## Kept\n\nold kept\n\n## Redone: 1e6\n\nold\n\n"
            "## Targets\n\n| target | measured | verdict |\n|---|---|---|\n| a | 1 | met |\n"
