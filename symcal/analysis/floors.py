@@ -650,22 +650,15 @@ class RowsPlan:
         """The joint test's χ² over the rows of ``ds`` (the same bits as :meth:`reduce`
         sums) and the rows' ranks ν (its degrees of freedom before the estimate's
         share): one pass, nothing else of the tests."""
-        prop, u = self.prop, ds.matrix(self.prop.columns)
-        fn = jit.select(prop.fn, ds.n)
-
-        def piece(part: slice) -> tuple[float, float]:
-            r, lmat, _ = prop.at(fn, u, self.theta, part)
+        chi2 = nu = 0.0
+        for _, r, lmat, _ in self.prop.rows(ds, self.theta):
             c = assumed_covariance(row_grams(lmat), self.assumed)
-            chi2 = nu = 0.0
+            chi2_c = nu_c = 0.0
             for start in range(0, r.shape[0], BLOCK):      # as terms() blocks them
                 rows = slice(start, start + BLOCK)
                 chi2_b, nu_b = self._joint(r[rows], c[rows], None)
-                chi2 += chi2_b
-                nu += nu_b
-            return chi2, nu
-
-        chi2 = nu = 0.0
-        for chi2_c, nu_c in default_executor(ds.n).map(piece, list(chunks(ds.n))):
+                chi2_c += chi2_b
+                nu_c += nu_b
             chi2 += chi2_c
             nu += nu_c
         return chi2, nu

@@ -353,7 +353,7 @@ def _info(ds: Dataset, given: Dataset | str | Path | None, spec_path: Path | Non
 
 def _result(problem: Problem, datasets: dict[str, Dataset],
             given: Mapping[str, Dataset | str | Path], theta0: np.ndarray,
-            theta: np.ndarray, stages: tuple[StageResult, ...], with_floors: bool = True
+            theta: np.ndarray, stages: tuple[StageResult, ...], all_floors: bool = True
             ) -> Result:
     last = stages[-1]
     params = parameter_table(
@@ -365,7 +365,7 @@ def _result(problem: Problem, datasets: dict[str, Dataset],
         for i, p in enumerate(problem.parameters)
     )
     fit = _fit(problem, datasets, theta, last)
-    floors = floor_outcome(problem, datasets, theta, fit, theta0) if with_floors \
+    floors = floor_outcome(problem, datasets, theta, fit, theta0) if all_floors \
         else _fit_test(problem, datasets, theta, fit, theta0)
     found, tests = floors.tests, floors.joint
     stats, skipped = series_statistics(problem, datasets, theta0, theta, floors.residuals)
