@@ -10,6 +10,7 @@ import pytest
 from conftest import ROOT
 
 import symcal
+from symcal.calibrate.solve import run_stage
 from symcal.data.dataset import make_dataset
 from symcal.simulation import load_scenario, simulate_run
 from symcal.solvers import instrument
@@ -115,6 +116,30 @@ def test_the_cost_per_constraint_at_an_r_factors_point_needs_no_pass(platen) -> 
     with counting() as transformed:
         assert objective.cost_terms(data, theta) == expected
     assert transformed.by_method == {"cost_terms": 1}
+
+
+@pytest.mark.slow
+def test_an_iterative_stage_takes_its_start_cost_from_its_first_pass() -> None:
+    """The dual problem's lm stage: its cost per constraint at the start is read from the
+    start's R-factor pass before the solver's passes replace it (no residual pass of its
+    own), and equals Σ (g/σ)² of the residuals evaluated apart."""
+    scenario = load_scenario(SCENARIOS / "courier_dual.yaml")
+    data = make_dataset("calibration", "simulated",
+                        simulate_run(scenario, "calibration", 5, N), [])
+    problem = symcal.load_problem(DUAL).with_weighting("equal")
+    stage = problem.stages[-1]
+    theta = _theta0(problem)
+    for earlier in problem.stages[:-1]:     # the start the lm stage has in a solve
+        theta, _ = run_stage(problem, earlier, data, theta)
+    with counting() as counts:
+        _, result = run_stage(problem, stage, data, theta)
+    assert result.method == "lm"
+    assert "cost_terms" not in counts.by_method
+    free = np.array([p.name in stage.free for p in problem.parameters])
+    g = Objective(problem, stage.constraints, free).residuals(data, theta)
+    for k, cost in enumerate(result.costs):
+        expected = float(np.sum(g[:, k] ** 2))
+        assert cost.cost_before == pytest.approx(expected, rel=1e-12)
 
 
 def test_nested_blocks_both_count(platen) -> None:

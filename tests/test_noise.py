@@ -479,3 +479,18 @@ def test_at_floor_is_one_decision_for_the_datasets_together() -> None:
     assert at_floor(unknown) is None                # none off, one unknown
     three = tests + (DatasetTest("more", ("g",), "propagated", 400.0, 400.0, own),)
     assert family_bands(three)[1] == pytest.approx(chi2_band(400.0, 0.95 ** (1 / 3)))
+
+
+def test_a_block_of_entries_is_the_same_picked_as_a_run_or_one_by_one() -> None:
+    """The joint test's block of constraints: a run of consecutive entries is taken as a
+    view, other picks gathered; either gives the values of ``a[:, idx][:, :, idx]``."""
+    from symcal.analysis.floors import _block_of, _span
+
+    a = np.arange(2 * 5 * 5, dtype=float).reshape(2, 5, 5)
+    for idx in ((0, 1, 2), (1, 2), (3,), (0, 2), (4, 1)):
+        picked = list(idx)
+        got = _block_of(a, _span(idx))
+        assert np.array_equal(got, a[:, picked][:, :, picked])
+    assert isinstance(_span((1, 2, 3)), slice)
+    assert _span((0, 2)) == [0, 2]
+    assert _span((4, 1)) == [4, 1]

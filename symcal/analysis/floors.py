@@ -593,7 +593,7 @@ class RowsPlan:
                     xs[k] = np.empty((m, xk.shape[1]))
                 xs[k][rows] = xk
         vectors: dict[int, tuple[np.ndarray, np.ndarray | None, bool]] = {
-            k: (jac[:, k, :].copy(), xs.get(k), self.estimated(k))   # not all of J
+            k: (jac[:, k, :], xs.get(k), self.estimated(k))   # views: products read them
             for k in range(n_e) if self.share is not None
             and (self.centred[k] or self.estimated(k))}   # the others' sums need no J
         chunk = _Chunk(r, d, e, vectors, r0, chi2, dof)
@@ -638,12 +638,14 @@ class RowsPlan:
                ) -> tuple[float, float]:
         """A block's terms of the joint test: χ² and its expectation (without the
         estimate's share ``q``: the rows' ranks ν)."""
-        cons = list(self.cons)
-        sub = np.ix_(range(r.shape[0]), cons, cons)
-        pinv, _ = row_pinv(c[sub])
-        rc = r[:, cons]
+        cons = _span(self.cons)
+        c_cons = np.ascontiguousarray(_block_of(c, cons))
+        pinv, _ = row_pinv(c_cons)
+        # in the layout a gather of columns gives (einsum sums in the order of the layout:
+        # the same bits whichever way the constraints are picked)
+        rc = np.asfortranarray(r[:, cons])
         chi2 = float(np.einsum("ma,mab,mb->", rc, pinv, rc))
-        expect = c[sub] if q is None else c[sub] + q[sub]
+        expect = c_cons if q is None else c_cons + _block_of(q, cons)
         return chi2, float(np.einsum("mab,mab->", pinv, expect))
 
     def joint_chi2(self, ds: Dataset) -> tuple[float, float]:
@@ -683,6 +685,21 @@ class RowsPlan:
             joint = _combined(self.dataset, [names[k] for k in cons],
                               [found[names[k]] for k in cons])
         return found, joint
+
+
+def _span(index: tuple[int, ...]) -> slice | list[int]:
+    """``index`` as a slice where it is a run of consecutive entries (a view, not a
+    gather: the same values), else as a list."""
+    if index and list(index) == list(range(index[0], index[-1] + 1)):
+        return slice(index[0], index[-1] + 1)
+    return list(index)
+
+
+def _block_of(a: np.ndarray, index: slice | list[int]) -> np.ndarray:
+    """Per row, the block ``a[:, index, index]`` of ``m × n × n`` matrices."""
+    if isinstance(index, slice):
+        return a[:, index, index]
+    return a[:, index][:, :, index]
 
 
 def rows_plan(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,

@@ -241,15 +241,15 @@ def hac_meat(scores: Iterator[np.ndarray], lags: int, n_free: int) -> np.ndarray
         chunk = np.asarray(chunk, dtype=float).reshape(-1, n_free)
         if not chunk.shape[0]:
             continue
-        rows = np.vstack([tail, chunk])
+        rows = np.concatenate([tail, chunk]) if tail.shape[0] else chunk
         run = np.cumsum(rows, axis=0)
         start = tail.shape[0]
-        # windows ending at each new row: rows e - L .. e (fewer at the very start)
-        ends = np.arange(start, rows.shape[0])
-        windows = run[ends]
-        earlier = ends - width
-        has = earlier >= 0
-        windows[has] -= run[earlier[has]]
+        # windows ending at each new row e: rows e - L .. e (fewer at the very start), in
+        # place in the running sums (slices, not gathers: the same values)
+        windows = run[start:]
+        first = max(start, width)          # the first row with a full window
+        if first < run.shape[0]:
+            windows[first - start:] -= run[first - width:run.shape[0] - width]
         meat += windows.T @ windows
         tail = rows[-lags:] if lags else rows[:0]
     # windows overhanging the end: the sums of the last L, L - 1, ..., 1 rows; with fewer

@@ -19,7 +19,7 @@ dataset itself in memory).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any, Protocol, TypeVar
 
@@ -144,6 +144,9 @@ def run_stage_on(
     r_start, c_start, tail0, rows0 = plain.accumulate_r(data, theta)
     if not (np.isfinite(tail0) and np.all(np.isfinite(c_start))):
         held.check_finite(plain, theta)     # a constraint inf or NaN at the start: where
+    # the cost per constraint at the start, from that pass (the solver's passes that
+    # follow would take its place: asked at the end, it would cost a pass of its own)
+    start_terms = plain.cost_terms(data, theta)
     ident0, unc0 = analyse(r_start, rows0, tail0, plain.names, plain.scales,
                            theta[plain.index])
     _check_information(stage, data, rows0, ident0.rank,
@@ -217,7 +220,8 @@ def run_stage_on(
     outliers = held.outliers(plain, out.theta, robust, losses, solve_again, propagated)
     result = StageResult(
         stage.name, stage.doc, out.method, out.success, out.status, out.message,
-        out.iterations, out.seconds, names, _constraint_costs(plain, data, theta, out.theta),
+        out.iterations, out.seconds, names, _constraint_costs(plain, data, start_terms,
+                                                              out.theta),
         tuple(n for n, m in zip(names, moved, strict=True) if not m), tuple(at_bound),
         conditioning(r_start, out.rows, names, scales),
         conditioning(out.r_factor, out.rows, names, scales, gauges=exact_null), ident, unc,
@@ -355,9 +359,11 @@ def _reweighted(
     return whitened, merged, note
 
 
-def _constraint_costs(objective: Objective, data: Source, before: np.ndarray,
+def _constraint_costs(objective: Objective, data: Source, start: Mapping[str, float],
                       after: np.ndarray) -> tuple[ConstraintCost, ...]:
-    start, end = objective.cost_terms(data, before), objective.cost_terms(data, after)
+    """Each constraint's cost at the start (``start``: :meth:`Objective.cost_terms` there)
+    and at ``after``."""
+    end = objective.cost_terms(data, after)
     out = []
     for name in objective.constraints:
         q = objective.problem.constraint(name)
