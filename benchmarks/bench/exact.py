@@ -234,7 +234,7 @@ def ceres(compiled: Compiled | CasadiCompiled, theta0: np.ndarray) -> PeerResult
     m = int(compiled.fun(np.asarray(theta0, dtype=float)).size)
     n = int(theta0.size)
 
-    class Cost(pyceres.CostFunction):  # type: ignore[misc]
+    class Cost(pyceres.CostFunction):  # type: ignore[misc,unused-ignore]
         def __init__(self) -> None:
             super().__init__()
             self.set_num_residuals(m)
@@ -282,8 +282,8 @@ def optimistix(compiled: Compiled, theta0: np.ndarray,
         residual = compiled.residual_fn
 
         def run(y0: Any, cols: Any) -> Any:
-            solver = optx.LevenbergMarquardt(rtol=TOL, atol=TOL)
-            sol = optx.least_squares(lambda y, args: residual(y, args), solver, y0,
+            solver: Any = optx.LevenbergMarquardt(rtol=TOL, atol=TOL)
+            sol: Any = optx.least_squares(lambda y, args: residual(y, args), solver, y0,
                                      args=cols, max_steps=MAX_STEPS, throw=False)
             return sol.value, sol.stats["num_steps"], sol.result._value
 

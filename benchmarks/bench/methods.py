@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -47,7 +48,7 @@ class Outcome:
 Method = Callable[[np.ndarray], Outcome]
 
 
-def forget_r(problem: object) -> None:
+def forget_r(problem: Any) -> None:
     """Drop the R factor and the residuals each objective of ``problem`` keeps from its
     last passes, so that a repeated timed solve from the same start reduces its own (the
     linear stage would otherwise be one lookup from the second call on).  The gauge

@@ -84,9 +84,9 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     seconds = time.perf_counter() - t0
     reference = json.loads(Path(job["estimates"]).read_text())
     worst = 0.0
-    for unit, res in fleet.results.items():
+    for name, res in fleet.results.items():
         got = {n: p.value for n, p in res.params.items()}
-        worst = max(worst, max(abs(got[k] - v) for k, v in reference[unit].items()))
+        worst = max(worst, max(abs(got[k] - v) for k, v in reference[name].items()))
     return {"seconds": seconds, "import": imported, "units": len(fleet.units),
             "failed": len(fleet.failed), "max_diff": worst, "peak_mib": peak_rss_mib()}
 
