@@ -593,7 +593,7 @@ class RowsPlan:
                     xs[k] = np.empty((m, xk.shape[1]))
                 xs[k][rows] = xk
         vectors: dict[int, tuple[np.ndarray, np.ndarray | None, bool]] = {
-            k: (jac[:, k, :], xs.get(k), self.estimated(k))   # views: products read them
+            k: (jac[:, k, :].copy(), xs.get(k), self.estimated(k))   # not all of J
             for k in range(n_e) if self.share is not None
             and (self.centred[k] or self.estimated(k))}   # the others' sums need no J
         chunk = _Chunk(r, d, e, vectors, r0, chi2, dof)
