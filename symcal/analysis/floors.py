@@ -641,8 +641,8 @@ class RowsPlan:
         cons = _span(self.cons)
         c_cons = np.ascontiguousarray(_block_of(c, cons))
         pinv, _ = row_pinv(c_cons)
-        # in the layout a gather of columns gives (einsum sums in the order of the layout:
-        # the same bits whichever way the constraints are picked)
+        # column-major, the layout a gather of columns (r[:, list]) gives: einsum sums in
+        # the order of its operands' layout, so χ² has the same bits however cons is taken
         rc = np.asfortranarray(r[:, cons])
         chi2 = float(np.einsum("ma,mab,mb->", rc, pinv, rc))
         expect = c_cons if q is None else c_cons + _block_of(q, cons)
