@@ -22,6 +22,7 @@ from symcal.cli import main
 from symcal.data.dataset import make_dataset
 from symcal.experiment.optimize import design, parse_target
 from symcal.experiment.predict import noise_floors
+from symcal.report.text import diagnosis_verdict, outcome_text
 from symcal.simulation import load_scenario, simulate_run, truth
 
 EXAMPLE = ROOT / "examples" / "accelerometer_triad"
@@ -65,6 +66,26 @@ def test_gauges_are_named_and_the_collapse_fails() -> None:
     # the solve slides to zero scale factors and gravity: a failed solve
     assert not result.success and result.stages[0].status == "Collapsed"
     assert main(["solve", str(FREE), "--quiet"]) == 1
+
+
+def test_neither_diagnose_nor_improve_suggests_a_term_while_the_solve_fails(
+        tmp_path, capsys) -> None:
+    # the collapse's residuals are rounding: candidates "significant" there are not physics
+    result = symcal.solve(FREE)
+    assert result.failure is not None and result.failure.startswith(
+        "stage 'calibration' (lm): failed: the solve collapsed onto the trivial point")
+    verdict = diagnosis_verdict(symcal.diagnose(result))
+    add = next(line for line in verdict if line.startswith("what to add"))
+    assert add.startswith("what to add: nothing yet: the solve failed (above)")
+    out = tmp_path / "improve"
+    improvement = symcal.improve(FREE, out)
+    assert len(improvement.rounds) == 1 and improvement.rejected == ()
+    assert not improvement.quiet and not (out / "models").exists()
+    assert outcome_text(improvement) == (
+        "the starting problem's solve failed, so no revision was tried: "
+        f"{result.failure}; fix it first (symcal solve shows the failure)")
+    assert main(["improve", str(FREE), "--out", str(tmp_path / "cli")]) == 1
+    assert f"no revision was tried: {result.failure}" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("seed", [1, 2])

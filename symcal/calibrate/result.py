@@ -410,6 +410,19 @@ class Result:
         return all(st.success for st in self.stages) and all(c.contracts for c in self.implicit)
 
     @property
+    def failure(self) -> str | None:
+        """Why the solve failed, in one sentence (the first stage that failed, or the
+        first implicit definition that does not converge); None when it succeeded."""
+        for st in self.stages:
+            if not st.success:
+                return f"stage '{st.name}' ({st.method}): {st.message}"
+        for c in self.implicit:
+            if not c.contracts:
+                return (f"implicit definition '{c.name}' does not converge on "
+                        f"'{c.dataset}' (max |dF/dx| {c.contraction:.3g}, not a contraction)")
+        return None
+
+    @property
     def method(self) -> str:
         """The methods of the stages, e.g. ``"linear"`` or ``"linear+linear+ipopt"``."""
         return "+".join(st.method for st in self.stages)

@@ -122,6 +122,9 @@ def outcome_text(improvement: Any) -> str:
     aliased = (" (what is left is aliased with the parameters already there)"
                if improvement.aliased else "")
     result = improvement.rounds[-1].result
+    if not result.success:
+        return (f"the starting problem's solve failed, so no revision was tried: "
+                f"{result.failure}; fix it first (symcal solve shows the failure)")
     if improvement.quiet and improvement.at_floor:
         return "the diagnosis is quiet: every dataset is at its noise floor" + aliased
     if improvement.quiet:
@@ -261,14 +264,8 @@ def references_above(result: Result) -> list[SeriesStats]:
 
 
 def _failure_text(result: Result) -> str | None:
-    for st in result.stages:
-        if not st.success:
-            return f"FAILED: stage '{st.name}' ({st.method}): {st.message}"
-    for c in result.implicit:
-        if not c.contracts:
-            return (f"FAILED: implicit definition '{c.name}' does not converge on "
-                    f"'{c.dataset}' (max |dF/dx| {c.contraction:.3g}, not a contraction)")
-    return None
+    failure = result.failure
+    return None if failure is None else f"FAILED: {failure}"
 
 
 def _null_space_text(result: Result) -> str:
@@ -758,7 +755,13 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     lines.append(f"where it fails: {where[0]}")
     lines += where[1:]
     significant = diag.significant
-    if outliers is not None and outliers_dominate(diag):
+    if not result.success:
+        lines.append("what to add: nothing yet: the solve failed (above), and a candidate "
+                     "tested where the solve stopped, not at a solution, says nothing about "
+                     "the physics; fix the failure first" + (
+                         f" (the {len(significant)} candidate(s) below are for reference "
+                         "only)" if significant else ""))
+    elif outliers is not None and outliers_dominate(diag):
         lines.append("what to add: a robust loss on the constraints with outliers (YAML "
                      "below); missing effects are looked for once outliers no longer "
                      "dominate")

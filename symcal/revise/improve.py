@@ -97,7 +97,9 @@ class Improvement:
     reports candidates only a reference reveals.  When no candidate is left above the
     floor, structure remains that no candidate explains: not quiet.  Where the floor is
     unknown (no noise declared, none estimable), quiet only means that no candidate is
-    significant."""
+    significant.  When the starting problem's solve fails, no revision is tried (a
+    candidate tested where a failed solve stopped says nothing of the physics): one
+    round, not quiet."""
 
     rounds: tuple[Round, ...]
     quiet: bool
@@ -491,10 +493,13 @@ def _improve(problem: str | Path, out: str | Path,
     physical = {n for n, p in result.params.items() if not p.fixed}
     stem = plain_name(Path(problem).stem)   # revisions are named after the file
     rejected: list[tuple[str, str]] = []
-    say(f"round 0: {current.name}: {len(diag.significant)} significant candidate(s)")
+    if result.success:
+        say(f"round 0: {current.name}: {len(diag.significant)} significant candidate(s)")
+    else:    # candidates tested where a failed solve stopped say nothing of the physics
+        say(f"round 0: {current.name}: the solve failed: no revision is tried")
     last_try = len(rejected)
     for k in range(1, max_rounds + 1):
-        if not diag.significant:
+        if not diag.significant or not result.success:
             break
         last_try = len(rejected)
         kept = None
@@ -536,7 +541,7 @@ def _improve(problem: str | Path, out: str | Path,
         "doc": f"the last revision symcal improve kept ({len(rounds) - 1} round(s))"}))
     aliased = _aliased(diag, rejected[last_try:])
     left = [c for c in diag.significant if c.label not in dict(aliased)]
-    quiet = not left and result.at_floor is not False
+    quiet = result.success and not left and result.at_floor is not False
     return Improvement(tuple(rounds), quiet, final, tuple(rejected), diag, aliased)
 
 
