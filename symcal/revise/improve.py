@@ -133,6 +133,13 @@ def held_out_change(new: Result, old: Result, kind: str | None = None) -> float:
     """Mean log ratio of the residual spreads on the held-out datasets (every dataset but
     the fitted one; only residuals of ``kind`` when given), new over old: negative when
     the new model predicts them better; 0 when there is none."""
+    ratios = _held_out_ratios(new, old, kind)
+    return float(np.mean(ratios)) if ratios else 0.0
+
+
+def _held_out_ratios(new: Result, old: Result, kind: str | None) -> list[float]:
+    """Each held-out residual's log ratio of spreads, new over old (none: nothing held
+    out, or no residual of ``kind`` there)."""
     ratios = []
     fit = new.problem.fit_dataset
     for s in new.statistics:
@@ -144,14 +151,21 @@ def held_out_change(new: Result, old: Result, kind: str | None = None) -> float:
             continue
         if before > 0 and s.after.std > 0:
             ratios.append(np.log(s.after.std / before))
-    return float(np.mean(ratios)) if ratios else 0.0
+    return ratios
+
+
+#: The note of a round kept where no dataset's constraints are held out.
+UNCHECKED = ("kept on the BIC and the Wald test alone: no dataset's constraint residuals "
+             "are held out to check that it predicts data it was not fitted on (every "
+             "dataset but the fitted one is held out: add a second run)")
 
 
 def _pays(new: Result, old: Result, alpha: float,
           physical: set[str] | None = None) -> str | None:
     """None when ``new`` is better than ``old``, else why not: the solve succeeds, the BIC
     falls, the new term's coefficients are not zero within their noise (a Wald test at
-    ``alpha``), the held-out constraint residuals fall (on average), no existing
+    ``alpha``), the held-out constraint residuals fall (on average; where none are held
+    out, this test cannot be made and the others decide), no existing
     parameter becomes much less determined (:data:`INFLATION`) while the old model was
     already at its noise floor, and no reference comparison (the fit never uses one, on
     the fitted dataset too) gets worse by more than :data:`WORSE`."""
@@ -164,7 +178,8 @@ def _pays(new: Result, old: Result, alpha: float,
     if test is not None and test[1] >= alpha:
         return (f"its coefficients fit to zero within their noise (Wald χ² = {test[0]:.3g}, "
                 f"p = {test[1]:.2g})")
-    change = held_out_change(new, old, "constraint")
+    ratios = _held_out_ratios(new, old, "constraint")
+    change = float(np.mean(ratios)) if ratios else -np.inf    # nothing held out to check
     if change >= 0:
         return ("the held-out constraint residuals do not fall (mean change "
                 f"{np.expm1(change):+.1%})")
@@ -525,6 +540,8 @@ def _improve(problem: str | Path, out: str | Path,
             break
         seen = watch(kept.result, result, physical, kept.path)
         zero = _now_zero(kept.result, rounds, alpha)
+        if not _held_out_ratios(kept.result, result, "constraint"):
+            zero += (UNCHECKED,)
         result = kept.result
         last_try = len(rejected)
         diag = diagnose(result, alpha, report=False)
