@@ -248,6 +248,33 @@ def test_predictions_are_what_solving_again_gives(case, start, tmp_path) -> None
         assert predicted == pytest.approx(actual, rel=0.2), (lead.label, key)
 
 
+@pytest.mark.slow
+def test_a_candidate_left_unsolved_would_have_been_refused(tmp_path, monkeypatch) -> None:
+    """The loop does not solve a candidate whose held-out constraint residuals the
+    diagnosis predicts to grow; solved anyway, each of them is refused for it."""
+    from symcal.revise import improve as loop
+
+    skipped = []
+    predicted_worse = loop._predicted_worse
+
+    def spy(diag, label):
+        why = predicted_worse(diag, label)
+        if why is not None:
+            skipped.append((diag, label, why))
+        return why
+
+    monkeypatch.setattr(loop, "_predicted_worse", spy)
+    outcome = improve(EXPLICIT, tmp_path / "out")
+    assert skipped and all((label, why) in outcome.rejected for _, label, why in skipped)
+    for i, (diag, label, why) in enumerate(skipped):
+        assert why.startswith("not solved: the diagnosis predicts that the held-out "
+                              "constraint residuals do not fall (mean change +")
+        path = loop._revision(diag, label, tmp_path / "again", f"again{i}")
+        new = loop._trial(symcal.load_problem(path), diag.result.data, diag.result)
+        assert loop.held_out_change(new, diag.result, "constraint") >= 0, label
+        assert loop._pays(new, diag.result, 0.01) is not None, label
+
+
 def _apply_printed(text: str, home: Path) -> Path:
     """Write the files a printed suggestion names, as a user would; return the overlay."""
     files: dict[Path, list[str]] = {}

@@ -34,6 +34,10 @@ from symcal.revise.diagnose import Diagnosis, diagnose
 from symcal.revise.effects import write_revision
 from symcal.revise.watch import Watch, design_hint, new_parameters, wald, watch
 
+#: A candidate is not solved when the diagnosis predicts its held-out constraint
+#: residuals grow by more than this (a mean log ratio of spreads, +0.1 %): the solve
+#: would find the same to within the prediction's accuracy and refuse it.
+SURELY_WORSE = 0.001
 #: How many of the leading candidates are tried in a round before giving up.
 TRIES = 3
 #: A reference comparison may get worse by at most this fraction.
@@ -246,6 +250,11 @@ def _best_of_group(
     for i, label in enumerate(labels):
         if paying and not _close(predicted[label], predicted[paying[0][1]]):
             continue       # the diagnosis predicts it does much worse than one that pays
+        why = _predicted_worse(diag, label)
+        if why is not None:
+            rejected.append((label, why))
+            say(f"{label}: {why}")
+            continue
         before = _models(directory)
         path = _revision(diag, label, directory, f"{name}_try{i}")
         written[label] = {path} | (_models(directory) - before)
@@ -287,23 +296,38 @@ def predicted_change(diag: Diagnosis, label: str) -> float:
     """The diagnosis's prediction for a candidate: the mean log ratio of the held-out
     constraint residuals' spreads after and before solving again with it (the fitted
     dataset's where none is held out; 0 without a prediction)."""
+    found = _predicted_ratios(diag, label, True) or _predicted_ratios(diag, label, False)
+    return float(np.mean(found)) if found else 0.0
+
+
+def _predicted_ratios(diag: Diagnosis, label: str, held_out: bool) -> list[float]:
+    """The log ratios of the spreads the diagnosis predicts for a candidate, after over
+    before, of the constraint residuals held out (or fitted)."""
     cand = next((c for c in diag.candidates if c.label == label), None)
     if cand is None or not cand.reduction:
-        return 0.0
+        return []
     fit = diag.result.problem.fit_dataset
     kinds = {(s.dataset, s.name): s.kind for s in diag.result.statistics}
+    out = []
+    for key, (now, new) in cand.reduction.items():
+        dataset, _, name = key.partition("/")
+        if (dataset != fit) == held_out and kinds.get((dataset, name)) == "constraint" \
+                and now > 0 and new > 0:
+            out.append(float(np.log(new / now)))
+    return out
 
-    def ratios(held_out: bool) -> list[float]:
-        out = []
-        for key, (now, new) in cand.reduction.items():
-            dataset, _, name = key.partition("/")
-            if (dataset != fit) == held_out and kinds.get((dataset, name)) == "constraint" \
-                    and now > 0 and new > 0:
-                out.append(float(np.log(new / now)))
-        return out
 
-    found = ratios(True) or ratios(False)
-    return float(np.mean(found)) if found else 0.0
+def _predicted_worse(diag: Diagnosis, label: str) -> str | None:
+    """Why a candidate is not worth a solve: the diagnosis predicts (by a Gauss-Newton
+    refit, :func:`~symcal.revise.whitened.predict`) that the held-out constraint
+    residuals do not fall, by more than :data:`SURELY_WORSE`; else None (also where
+    nothing is held out: that test is not made)."""
+    ratios = _predicted_ratios(diag, label, True)
+    change = float(np.mean(ratios)) if ratios else -np.inf
+    if change <= SURELY_WORSE:
+        return None
+    return ("not solved: the diagnosis predicts that the held-out constraint residuals "
+            f"do not fall (mean change {np.expm1(change):+.1%})")
 
 
 def _close(score: float, best: float) -> bool:
