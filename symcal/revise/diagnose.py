@@ -22,7 +22,7 @@ which effect is missing:
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -67,7 +67,7 @@ from symcal.revise.library import (
     own_names as own_names_of,
 )
 from symcal.revise.variants import Variant, implicit_variant
-from symcal.revise.whitened import design, predict, whiten
+from symcal.revise.whitened import design, predict, predicted_spreads, whiten
 
 #: How many leading candidates get a prediction and a suggestion.
 TOP = 10
@@ -128,7 +128,9 @@ class Diagnosis:
     problem beside this one with more constraints on the same sensors (or "").
     ``spaces`` says, per instance, which space of candidates was searched;
     ``gauge_fixes`` names the fixed parameters that fix a gauge (never tested as "off",
-    and no candidate that re-opens one is proposed: :attr:`reopened`).
+    and no candidate that re-opens one is proposed: :attr:`reopened`).  ``together``
+    predicts, as a candidate's ``reduction``, what solving again with several candidates
+    at once would give (their labels; None where none were tested).
     """
 
     result: Result
@@ -144,6 +146,8 @@ class Diagnosis:
     pointer: str = ""
     spaces: tuple[str, ...] = ()
     gauge_fixes: dict[str, str] = field(default_factory=dict)
+    together: Callable[[Sequence[str]], dict[str, tuple[float, float]]] | None = field(
+        default=None, repr=False)
 
     @property
     def reopened(self) -> tuple[Candidate, ...]:
@@ -405,6 +409,16 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
     for cand in [*leads, *(c for c in ranked if c.label in members)]:
         predict(cand, own, own_regressor(by_label[cand.label].raw), blocks, free,
                 by_label[cand.label].raw)
+
+
+    def together(labels: Sequence[str]) -> dict[str, tuple[float, float]]:
+        parts = [by_label[label].raw for label in labels]
+
+        def raw(i: int) -> np.ndarray:
+            return np.concatenate([part(i) for part in parts], axis=-1)
+
+        return predicted_spreads(own, own_regressor(raw), blocks, free, raw)[2]
+
     uncal: list[Candidate] = []
     needs: dict[str, str] = {}
     if report:
@@ -428,7 +442,8 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
                      yaml, alpha,
                      len(candidates), tuple(uncal), needs, variant, own_inputs,
                      _better_problem(problem) if above else "",
-                     tuple(sp.describe() for sp in found.values()), dict(fixes))
+                     tuple(sp.describe() for sp in found.values()), dict(fixes),
+                     together)
 
 
 #: A log kept as shards is diagnosed on at most this many of its rows, spread evenly.

@@ -11,7 +11,7 @@ as ``final.yaml``.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -250,7 +250,7 @@ def _best_of_group(
     for i, label in enumerate(labels):
         if paying and not _close(predicted[label], predicted[paying[0][1]]):
             continue       # the diagnosis predicts it does much worse than one that pays
-        why = _predicted_worse(diag, label)
+        why = _predicted_worse(diag, [label])
         if why is not None:
             rejected.append((label, why))
             say(f"{label}: {why}")
@@ -304,12 +304,17 @@ def _predicted_ratios(diag: Diagnosis, label: str, held_out: bool) -> list[float
     """The log ratios of the spreads the diagnosis predicts for a candidate, after over
     before, of the constraint residuals held out (or fitted)."""
     cand = next((c for c in diag.candidates if c.label == label), None)
-    if cand is None or not cand.reduction:
-        return []
+    return [] if cand is None else _ratios(diag, cand.reduction, held_out)
+
+
+def _ratios(diag: Diagnosis, reduction: Mapping[str, tuple[float, float]],
+            held_out: bool) -> list[float]:
+    """The log ratios of predicted spreads (``"DATASET/NAME"`` → (now, new)), new over
+    now, of the constraint residuals held out (or fitted)."""
     fit = diag.result.problem.fit_dataset
     kinds = {(s.dataset, s.name): s.kind for s in diag.result.statistics}
     out = []
-    for key, (now, new) in cand.reduction.items():
+    for key, (now, new) in reduction.items():
         dataset, _, name = key.partition("/")
         if (dataset != fit) == held_out and kinds.get((dataset, name)) == "constraint" \
                 and now > 0 and new > 0:
@@ -317,12 +322,15 @@ def _predicted_ratios(diag: Diagnosis, label: str, held_out: bool) -> list[float
     return out
 
 
-def _predicted_worse(diag: Diagnosis, label: str) -> str | None:
-    """Why a candidate is not worth a solve: the diagnosis predicts (by a Gauss-Newton
-    refit, :func:`~symcal.revise.whitened.predict`) that the held-out constraint
-    residuals do not fall, by more than :data:`SURELY_WORSE`; else None (also where
-    nothing is held out: that test is not made)."""
-    ratios = _predicted_ratios(diag, label, True)
+def _predicted_worse(diag: Diagnosis, labels: Sequence[str]) -> str | None:
+    """Why a candidate (or several added at once) is not worth a solve: the diagnosis
+    predicts (by a Gauss-Newton refit, :func:`~symcal.revise.whitened.predict`) that the
+    held-out constraint residuals do not fall, by more than :data:`SURELY_WORSE`; else
+    None (also where nothing is held out: that test is not made)."""
+    if len(labels) == 1:
+        ratios = _predicted_ratios(diag, labels[0], True)
+    else:
+        ratios = [] if diag.together is None else _ratios(diag, diag.together(labels), True)
     change = float(np.mean(ratios)) if ratios else -np.inf
     if change <= SURELY_WORSE:
         return None
@@ -444,6 +452,11 @@ def _try_siblings(
     if not also:
         return single
     label = "; ".join(c.label for c in (lead, *also))
+    unsolved = _predicted_worse(diag, [c.label for c in (lead, *also)])
+    if unsolved is not None:
+        rejected.append((label, unsolved))
+        say(f"{label}: {unsolved}")
+        return single
     before = _models(directory)
     path = write_revision(diag.result.problem, lead, directory, f"{name}_all", also)
     written = {path} | (_models(directory) - before)

@@ -124,11 +124,22 @@ def predict(cand: Candidate, own: Design, x_own: np.ndarray, blocks: list[Block]
     calibration's constraints, applied to every residual; fills ``reduction`` (std now →
     predicted, display units) and the coefficients of the term to add (regressors are the
     change a term of coefficient 1 makes) with standard errors."""
-    coef_n, coef_x, cov, _ = refit(own, x_own)
+    coef_x, cov, out = predicted_spreads(own, x_own, blocks, free, raw)
     # the fit explains the residual as X·δ; the term to add to the model is -δ
     cand.coefficient = tuple(-float(v) for v in coef_x)
     cand.coefficient_se = tuple(float(np.sqrt(max(cov[k, k], 0.0)))
                                 for k in range(len(coef_x)))
+    cand.reduction = out
+
+
+def predicted_spreads(own: Design, x_own: np.ndarray, blocks: list[Block],
+                      free: np.ndarray, raw: Raw
+                      ) -> tuple[np.ndarray, np.ndarray, dict[str, tuple[float, float]]]:
+    """The Gauss-Newton refit of :func:`predict` for the regressors ``x_own`` (whitened,
+    the calibration's constraints) and ``raw`` (every block's): their coefficients, the
+    coefficients' covariance, and ``"DATASET/NAME"`` → (std now, predicted std) in
+    display units."""
+    coef_n, coef_x, cov, _ = refit(own, x_own)
     n_params = int(free.sum())
     out: dict[str, tuple[float, float]] = {}
     for i, b in enumerate(blocks):
@@ -141,4 +152,4 @@ def predict(cand: Candidate, own: Design, x_own: np.ndarray, blocks: list[Block]
             scale = DISPLAY_UNITS[b.units[k]]
             out[f"{b.dataset.name}/{name}"] = (float(np.std(now)) / scale,
                                                float(np.std(new)) / scale)
-    cand.reduction = out
+    return coef_x, cov, out
