@@ -281,6 +281,17 @@ def test_a_candidate_left_unsolved_would_have_been_refused(tmp_path, monkeypatch
         assert loop._pays(new, diag.result, 0.01) is not None, labels
 
 
+def test_a_revision_weighted_otherwise_is_not_compared() -> None:
+    from symcal.revise.improve import _pays
+
+    problem = symcal.load_problem(ROOT / "examples" / "hidden_effect" / "problem.yaml")
+    old = symcal.solve(problem)
+    new = symcal.solve(problem.with_weighting("equal"))
+    assert old.problem.weighting == "propagated" and new.success
+    assert _pays(new, old, 0.01) == ("the weighting changes from 'propagated' to 'equal' "
+                                     "and the BIC does not compare")
+
+
 @pytest.mark.slow
 def test_a_prediction_for_siblings_together_is_what_solving_again_gives(tmp_path) -> None:
     """The diagnosis's joint prediction for a lead and its siblings added at once (what

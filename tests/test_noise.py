@@ -99,6 +99,27 @@ def test_noise_overrides(tmp_path, monkeypatch, problem, expected) -> None:
     assert _sigmas(_load(tmp_path, monkeypatch, problem=problem)) == pytest.approx(expected)
 
 
+def test_a_time_column_is_exact_unless_its_noise_is_declared(tmp_path, monkeypatch) -> None:
+    # a drift term reads the time: it must not leave the constraint's readings undeclared
+    # (the weighting fell back to equal weights when symcal improve added one)
+    drift = PROBLEM.replace("  g: s1.p_hat - s2.p_hat",
+                            "  g: s1.p_hat - s2.p_hat + d*t\nparameters:\n"
+                            "  d: {value: 0, unit: mm/s}")
+    problem = _load(tmp_path, monkeypatch, problem=drift)
+    readings = {r.name: (r.sigma, r.origin) for r in problem.readings}
+    assert readings["t"] == (0.0, "column 't' (role: time: exact unless its noise is "
+                                  "declared)")
+    assert problem.undeclared(problem.constraint("g").sx) == []
+    assert problem.weighting == "propagated"
+    declared = _load(tmp_path, monkeypatch, problem=drift.replace(
+        "t: {unit: s, role: time}", "t: {unit: s, role: time, noise: 2 ms}"))
+    assert _sigmas(declared)["t"] == pytest.approx(2e-3)
+    untimed = _load(tmp_path, monkeypatch, problem=drift.replace(
+        "t: {unit: s, role: time}", "t: {unit: s, role: state}"))
+    assert untimed.undeclared(untimed.constraint("g").sx) == ["t"]
+    assert untimed.weighting == "equal"
+
+
 def test_an_input_bound_to_an_expression_carries_its_own_noise(tmp_path, monkeypatch) -> None:
     problem = _load(tmp_path, monkeypatch, problem=PROBLEM.replace(
         "inputs: {p: p2}}", "inputs: {p: (p2 + p1)/2}}"))

@@ -14,6 +14,9 @@ independent of its columns'.  Most specific first, a reading's noise is declared
 3. the instance's ``noise: {input: ...}``;
 4. the model input's ``noise``.
 
+A column of ``role: time`` declared nowhere is exact (a clock's error is negligible
+beside the sensors'): a drift term in time does not leave its readings undeclared.
+
 Two different values at the same level for one column (two instances of different models
 bound to it, say) are refused, naming both.
 """
@@ -132,4 +135,9 @@ def plan_noise(system: SystemSpec) -> NoisePlan:
                                                  "problem")
             check_noise_unit(first.spec, first.unit, f"column '{column}'")
             columns[column] = first
+    for name, col in system.columns.items():     # a clock is exact unless declared noisy
+        if col.role == "time" and name not in columns:
+            columns[name] = Declared(NoiseSpec(0.0, "", "0", col.where), col.unit, col.unit,
+                                     f"column '{name}' (role: time: exact unless its noise "
+                                     "is declared)")
     return NoisePlan(columns, inputs)

@@ -166,7 +166,8 @@ UNCHECKED = ("kept on the BIC and the Wald test alone: no dataset's constraint r
 
 def _pays(new: Result, old: Result, alpha: float,
           physical: set[str] | None = None) -> str | None:
-    """None when ``new`` is better than ``old``, else why not: the solve succeeds, the BIC
+    """None when ``new`` is better than ``old``, else why not: the solve succeeds with the
+    same weighting (a term reading a column of undeclared noise changes it), the BIC
     falls, the new term's coefficients are not zero within their noise (a Wald test at
     ``alpha``), the held-out constraint residuals fall (on average; where none are held
     out, this test cannot be made and the others decide), no existing
@@ -175,6 +176,14 @@ def _pays(new: Result, old: Result, alpha: float,
     the fitted dataset too) gets worse by more than :data:`WORSE`."""
     if not new.success:
         return "the solve failed"
+    if new.problem.weighting != old.problem.weighting:
+        problem = new.problem
+        unread = sorted({c for q in problem.constraints for c in problem.undeclared(q.sx)})
+        why = (f"it reads {', '.join(unread)} whose noise is not declared, so " if unread
+               else "")
+        return (f"{why}the weighting changes from '{old.problem.weighting}' to "
+                f"'{problem.weighting}' and the BIC does not compare"
+                + (" (declare the noise)" if unread else ""))
     if new.bic >= old.bic:
         return f"BIC does not fall ({old.bic:.1f} → {new.bic:.1f})"
     names = new_parameters(new, old)
