@@ -444,7 +444,8 @@ def _stage_lines(result: Result) -> list[str]:
         lines.append(f"  {k}. {st.name}: {st.method}{state}" + (f" ({st.doc})" if st.doc else ""))
         lines.append(f"     {st.message}; status {st.status}; {len(st.free)} free "
                      f"parameters; {st.iterations} iterations; {st.seconds:.3g} s")
-        lines.append(f"     cost Σ(g/σ)²: {st.cost_before:.6g} → {st.cost_after:.6g}")
+        lines.append(f"     cost Σ(g/σ)², σ each constraint's sigma (the weighting aside): "
+                     f"{st.cost_before:.6g} → {st.cost_after:.6g}")
         for c in st.costs:
             lines.append(f"       {c.name}: RMS {c.rms_before:.4g} → {c.rms_after:.4g} "
                          f"{symbol(c.unit)}")
