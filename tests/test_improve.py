@@ -281,6 +281,25 @@ def test_a_candidate_left_unsolved_would_have_been_refused(tmp_path, monkeypatch
         assert loop._pays(new, diag.result, 0.01) is not None, labels
 
 
+def test_a_moved_parameter_nearly_aliased_with_the_term_is_not_called_biased() -> None:
+    # a thermometer's quadratic stand-in moved its offset 623 se, correlated -1.0000 with
+    # it: "the old estimates were biased by the missing effect" claimed too much
+    from symcal.revise.watch import Moved, Watch
+
+    moved = (Moved("tc.o", 0.1287, 0.0027, 1.80, 0.18, "K"),)
+    tied = Watch(moved, (("tc.quad_T_tc", "tc.o", -1.0),), (), "", True).words("q")
+    assert not any("biased by" in line for line in tied)
+    assert tied[-2].endswith(
+        ": the model is now at its noise floor, but tc.o is nearly aliased with the new "
+        "term (below): the new values depend on how the term is written (its variable, "
+        "its centre) as much as on the data, and the term may stand in for another effect")
+    grown = Watch(moved, (), (("tc.o", 0.0027, 0.18),), "", True).words("q")
+    assert "but tc.o is nearly aliased" in grown[0]
+    alone = Watch(moved, (), (), "", True).words("q")
+    assert alone[-1].endswith(": the old estimates were biased by the missing effect (the "
+                              "model is now at its noise floor)")
+
+
 def test_a_revision_weighted_otherwise_is_not_compared() -> None:
     from symcal.revise.improve import _pays
 

@@ -109,10 +109,20 @@ class Watch:
                 f"{m.name} {m.old:.6g} ± {m.old_se:.2g} → {m.new:.6g} ± {m.new_se:.2g} "
                 f"{m.unit} ({m.shift:.3g} se)".replace("  ", " ") for m in ranked[:3])
             more = f"; and {len(ranked) - 3} more" if len(ranked) > 3 else ""
-            why = ("the old estimates were biased by the missing effect (the model is now at "
-                   "its noise floor)" if self.settled else
-                   "either the old estimates were biased by the missing effect, or the new "
-                   "term stands in for another one")
+            tied = sorted({m.name for m in ranked} & (
+                {e for _, e, _ in self.correlated} | {n for n, _, _ in self.grown}))
+            if self.settled and not tied:
+                why = ("the old estimates were biased by the missing effect (the model is "
+                       "now at its noise floor)")
+            elif self.settled:
+                why = (f"the model is now at its noise floor, but {', '.join(tied)} "
+                       f"{'is' if len(tied) == 1 else 'are'} nearly aliased with the new "
+                       "term (below): the new values depend on how the term is written (its "
+                       "variable, its centre) as much as on the data, and the term may "
+                       "stand in for another effect")
+            else:
+                why = ("either the old estimates were biased by the missing effect, or the "
+                       "new term stands in for another one")
             out.append(f"with {added}, {len(ranked)} parameter(s) moved by more than "
                        f"{MOVED:g} of their standard errors: {shown}{more}: {why}")
         for new, existing, corr in self.correlated:
