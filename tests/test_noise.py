@@ -120,6 +120,37 @@ def test_a_time_column_is_exact_unless_its_noise_is_declared(tmp_path, monkeypat
     assert untimed.weighting == "equal"
 
 
+@pytest.mark.parametrize(("unit", "period", "internal"), [
+    ("deg", "360", 2 * np.pi),          # a plain number is in the input's unit (read as
+    ("deg", "360 deg", 2 * np.pi),      # 360 rad before), or written with its own
+    ("deg", "6.283185307179586 rad", 2 * np.pi),
+    ("um", "5", 5e-3),
+    ("mm", "rho", 1.016),               # an expression with a unit, as before
+    ("rad", "2*pi", 2 * np.pi),
+])
+def test_a_period_is_in_the_inputs_unit_or_its_own(tmp_path, monkeypatch, unit, period,
+                                                   internal) -> None:
+    model = (f"model: seg\nconstants:\n  rho: {{value: 1.016, unit: mm}}\ninputs:\n"
+             f"  p: {{unit: {unit}, period: {period}, noise: 0.5 {unit}}}\nparameters:\n"
+             f"  k0: {{value: 0, unit: {unit}}}\noutputs:\n"
+             f"  p_hat: {{expr: p + k0, unit: {unit}}}\n")
+    problem = (f"problem: demo\ninstances:\n  s1: {{model: seg.yaml, inputs: {{p: p1}}}}\n"
+               f"  s2: {{model: seg.yaml, inputs: {{p: p2}}}}\nconstraints:\n"
+               f"  g: s1.p_hat - s2.p_hat\ndatasets:\n  calibration: {{path: data.csv}}\n"
+               f"columns:\n  p1: {{unit: {unit}}}\n  p2: {{unit: {unit}}}\n")
+    problem = _load(tmp_path, monkeypatch, model=model, problem=problem)
+    found = next(q for q in problem.signals if q.name == "s1.p").period
+    assert found == pytest.approx(internal, rel=1e-12)
+
+
+def test_a_period_in_another_dimension_is_refused(tmp_path, monkeypatch) -> None:
+    model = MODEL.replace("period: rho", "period: 1 rad")
+    with pytest.raises(symcal.SpecError) as err:
+        _load(tmp_path, monkeypatch, model=model)
+    assert str(err.value).endswith("inputs.p.period: the period '1 rad' is in rad, an "
+                                   "angle, but the input is in mm, a length")
+
+
 def test_an_input_bound_to_an_expression_carries_its_own_noise(tmp_path, monkeypatch) -> None:
     problem = _load(tmp_path, monkeypatch, problem=PROBLEM.replace(
         "inputs: {p: p2}}", "inputs: {p: (p2 + p1)/2}}"))

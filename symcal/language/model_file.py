@@ -34,7 +34,7 @@ from symcal.language.fields import (
     expect_str,
     expect_symbol,
 )
-from symcal.language.noise import NoiseSpec, parse_noise
+from symcal.language.noise import NoiseSpec, in_unit_of, parse_noise
 from symcal.language.overlay import resolve_base
 from symcal.language.yamlio import load_yaml
 
@@ -134,10 +134,9 @@ def _parse_input(name: str, value: Any, where: Where) -> InputSpec:
     entry = check_keys(value, where, optional=["unit", "doc", "period", "noise"])
     unit = display_unit(entry.get("unit"), child_where(entry, where, "unit"))
     doc = expect_str(entry["doc"], child_where(entry, where, "doc")) if "doc" in entry else ""
-    period = (
-        parse_expr(entry["period"], child_where(entry, where, "period"))
-        if "period" in entry else None
-    )
+    at = child_where(entry, where, "period")
+    period = (parse_expr(in_unit_of(entry["period"], unit, at, "the period"), at)
+              if "period" in entry else None)
     noise = (parse_noise(entry["noise"], child_where(entry, where, "noise"), unit)
              if "noise" in entry else None)
     return InputSpec(name, unit, doc, period, where, noise)

@@ -21,7 +21,7 @@ from symcal.language.common import display_unit
 from symcal.language.dimensions import describe, same_dimension
 
 #: ``NUMBER UNIT`` (the unit may be absent).
-_TEXT = re.compile(r"^\s*([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)\s*(.*?)\s*$")
+NUMBER_UNIT = re.compile(r"^\s*([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)\s*(.*?)\s*$")
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,7 @@ def parse_noise(value: Any, where: Where, reading_unit: str | None = None) -> No
         raise SpecError(where, f"a noise is a standard deviation with its unit (e.g. "
                                f"'noise: 0.5 um'), found '{excerpt(value)}'")
     if isinstance(value, str):
-        match = _TEXT.match(value)
+        match = NUMBER_UNIT.match(value)
         if match is None:
             raise SpecError(where, f"'{excerpt(value)}' is not a noise: write a standard "
                                    "deviation with its unit, e.g. 'noise: 0.5 um'")
@@ -96,3 +96,22 @@ def check_noise_unit(spec: NoiseSpec, reading_unit: str, what: str) -> None:
     if not same_dimension(mine, theirs):
         raise SpecError(spec.where, f"the noise '{spec.text}' is in {describe(mine)}, but "
                                     f"{what} is in {describe(theirs)}")
+
+
+def in_unit_of(value: Any, reading_unit: str, where: Where, what: str) -> Any:
+    """``value`` written as a number with its unit (``360 deg``, as a noise is) as the
+    same quantity in ``reading_unit``, a plain number's text; anything else unchanged.
+
+    Raises
+    ------
+    SpecError
+        For a unit that measures something else than ``reading_unit``, naming ``what``.
+    """
+    match = NUMBER_UNIT.match(value) if isinstance(value, str) else None
+    if match is None or not match.group(2)[:1].isalpha():
+        return value        # a plain number, or an expression ('2*pi', 'rho/2')
+    number, unit = float(match.group(1)), display_unit(match.group(2), where)
+    if reading_unit and not same_dimension(parse_unit(unit), parse_unit(reading_unit)):
+        raise SpecError(where, f"{what} '{value}' is in {describe(parse_unit(unit))}, but "
+                               f"the input is in {describe(parse_unit(reading_unit))}")
+    return repr(number * size(unit) / size(reading_unit))

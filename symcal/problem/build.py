@@ -37,7 +37,7 @@ import casadi as ca
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SpecError, Where
 from symcal.base.files import input_refusal
-from symcal.base.units import Unit, size
+from symcal.base.units import Unit, size, size_of, text_of
 from symcal.language.common import (
     ConstantSpec,
     ParameterSpec,
@@ -346,7 +346,11 @@ class _Compiler:
                 if not value.is_constant():
                     raise SpecError(inp.period.where, "a period must be a constant expression")
                 found = scope.unit(inp.period)
-                if not same_dimension(unit, found):
+                if found is None or not text_of(found):
+                    # a plain number is in the input's own unit, as a noise is (360 for an
+                    # input in deg is a turn, not 360 rad)
+                    value = value * (1.0 if unit is None else size_of(unit))
+                elif not same_dimension(unit, found):
                     raise SpecError(inp.period.where, f"the period of input '{name}' is in "
                                                       f"{describe(found)}, but the input is in "
                                                       f"{describe(unit)}")
