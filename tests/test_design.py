@@ -518,3 +518,30 @@ def test_cli_design_for_a_term_prints_and_writes_its_mde(fifth, capsys):
             f"{out.mde_before / 1e-3:.3g} µm; level 0.01 over {got['tested']} candidates")\
         in line
     assert line.endswith("power 80 %) (met)")
+
+
+def test_a_printed_design_command_pastes_into_a_shell(tmp_path, monkeypatch) -> None:
+    # a new user's folder "nu enc#2": the printed command broke at the space and the '#'
+    import shlex
+
+    from symcal.experiment.command import design_command, design_sentence
+
+    folder = tmp_path / "nu enc#2"
+    folder.mkdir()
+    monkeypatch.chdir(tmp_path)
+    command = design_command(folder / "prob v2.yaml", folder / "scenario.yaml", "--optimize")
+    assert command == ("symcal design 'nu enc#2/prob v2.yaml' --scenario "
+                       "'nu enc#2/scenario.yaml' --optimize")
+    assert shlex.split(command)[2:5] == ["nu enc#2/prob v2.yaml", "--scenario",
+                                         "nu enc#2/scenario.yaml"]
+    assert design_command("p.yaml", None, "-x") == "symcal design p.yaml --scenario " \
+                                                   "SCENARIO.yaml -x"
+    # offered as it is only where the scenario declares what may change
+    assert design_sentence("p.yaml", SCENARIO, "-x") == (
+        f"symcal design p.yaml --scenario {shlex.quote(str(SCENARIO))} -x")
+    platen = ROOT / "problems" / "scenarios" / "courier_platen.yaml"
+    assert load_scenario(platen).design is None
+    assert design_sentence("p.yaml", platen, "-x") == (
+        f"declare which run may change and its limits in {shlex.quote(str(platen))} (a "
+        f"'design:' section), then: symcal design p.yaml --scenario "
+        f"{shlex.quote(str(platen))} -x")

@@ -36,6 +36,7 @@ import json
 import math
 import os
 import re
+import shlex
 import shutil
 import signal
 import stat
@@ -121,6 +122,12 @@ def display_path(path: str | Path) -> str:
             return os.path.relpath(os.path.abspath(path))
         except ValueError:
             return str(path)
+
+
+def command_path(path: str | Path) -> str:
+    """Path as a printed command takes it, pasted into a shell: :func:`display_path`,
+    quoted where it holds a space, a ``#`` or any other character a shell reads."""
+    return shlex.quote(display_path(path))
 
 
 #: What a loop of symbolic links is called in messages.

@@ -20,6 +20,7 @@ from symcal.base.files import json_text as plain_json
 from symcal.base.units import DISPLAY_UNITS, symbol
 from symcal.base.units import size as unit_size
 from symcal.calibrate.result import REGRESSION_TOLERANCE, Regression, Result
+from symcal.experiment.command import design_sentence
 
 if TYPE_CHECKING:
     from symcal.analysis.fit import SeriesStats
@@ -796,19 +797,6 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     return lines
 
 
-def _shown(path: object) -> str:
-    """A path as a command line would take it: relative to the current folder when it
-    lies below it, else as it is."""
-    import os
-
-    text = str(path)
-    try:
-        rel = os.path.relpath(text)
-    except ValueError:
-        return text
-    return text if rel.startswith("..") else rel
-
-
 def design_pointer(result: Result) -> list[str]:
     """A verdict line pointing to ``symcal design`` when the last stage leaves a nearly
     flat direction (a parameter poorly determined by this motion), naming the scenario
@@ -820,12 +808,11 @@ def design_pointer(result: Result) -> list[str]:
         return []
     spec = result.problem.datasets.get(result.problem.fit_dataset)
     scenario = getattr(spec, "scenario", None) if spec is not None else None
-    where = f"--scenario {_shown(scenario)}" if scenario else "--scenario SCENARIO.yaml"
     return [f"poorly determined by this motion: {near[0][0].text} (singular value "
-            f"{near[0][1]:.1g} of the largest); 'symcal design "
-            f"{_shown(result.problem.path)} {where} "
-            "--optimize --target NAME=SE' predicts another motion's standard errors before "
-            "recording it"]
+            f"{near[0][1]:.1g} of the largest); "
+            + design_sentence(result.problem.path, scenario or None,
+                              "--optimize --target NAME=SE")
+            + " predicts another motion's standard errors before recording it"]
 
 
 def diagnosis_report(diag: Diagnosis) -> str:

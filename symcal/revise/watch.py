@@ -23,6 +23,7 @@ import numpy as np
 import scipy.stats
 
 from symcal.calibrate.result import Result
+from symcal.experiment.command import design_sentence
 
 #: A parameter moved by more than this many of its old standard errors is reported.
 MOVED = 3.0
@@ -203,7 +204,7 @@ def design_hint(result: Result, problem_file: Path, target: tuple[str, float]) -
     parameter to the given standard error (in its unit)."""
     name, se = target
     unit = result.params[name].unit
-    scenario = next((str(spec.scenario) for spec in result.problem.datasets.values()
-                     if spec.scenario is not None), "SCENARIO.yaml")
-    return (f"an experiment that separates them: symcal design {problem_file} --scenario "
-            f"{scenario} --optimize --target {name}={se:.2g}{unit.replace(' ', '')}")
+    scenario = next((spec.scenario for spec in result.problem.datasets.values()
+                     if spec.scenario is not None), None)
+    return "an experiment that separates them: " + design_sentence(
+        problem_file, scenario, f"--optimize --target {name}={se:.2g}{unit.replace(' ', '')}")
