@@ -501,6 +501,28 @@ def test_improve_never_replaces_a_file_it_did_not_write(tmp_path, capsys) -> Non
     capsys.readouterr()
 
 
+def test_a_new_run_removes_the_previous_runs_files_only(tmp_path) -> None:
+    """Run again into the same --out, improve leaves no file of the previous run that
+    the new one does not write (an interrupted or shorter run left an old round extending
+    a new one), and never a file symcal did not write or that was changed since."""
+    hidden = ROOT / "examples" / "hidden_effect" / "problem.yaml"
+    out = tmp_path / "out"
+    first = improve(hidden, out)
+    assert [r.problem_file.name for r in first.rounds[1:]] == ["problem_round1.yaml"]
+    models = sorted(p.name for p in (out / "models").glob("*.yaml"))
+    assert models == ["platen_segment_p_hat_h3_p.yaml"]
+    (out / "notes.yaml").write_text("mine: true\n")
+    (out / "problem_round7.yaml").write_text("problem: mine\n")   # not symcal's
+    lines: list[str] = []
+    second = improve(hidden, out, max_rounds=0, progress=lines.append)
+    assert len(second.rounds) == 1
+    assert lines[0] == f"removed the previous run's 3 file(s) from {out}"
+    left = sorted(p.relative_to(out).as_posix() for p in out.rglob("*")
+                  if p.is_file() and not p.name.startswith("."))
+    assert left == ["final.yaml", "notes.yaml", "problem_round7.yaml"]
+    assert (out / "notes.yaml").read_text() == "mine: true\n"
+
+
 NO_LATERAL = """problem: dual_no_lateral
 extends: {root}/problems/dual_sensor_calibration_implicit.yaml
 doc: the implicit dual problem without the lateral terms of eq. (9)

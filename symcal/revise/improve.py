@@ -32,6 +32,7 @@ from symcal.problem.symbolic import Problem
 from symcal.revise.diagnose import GROUP as DIAGNOSED
 from symcal.revise.diagnose import Diagnosis, diagnose
 from symcal.revise.effects import write_revision
+from symcal.revise.previous import clear_previous
 from symcal.revise.watch import Watch, design_hint, new_parameters, wald, watch
 
 #: A candidate is not solved when the diagnosis predicts its held-out constraint
@@ -548,11 +549,14 @@ def _improve(problem: str | Path, out: str | Path,
     directory.mkdir(parents=True, exist_ok=True)
     current: Problem = load_problem(problem)
     datasets = load_datasets(current, data, drop_invalid)
+    stem = plain_name(Path(problem).stem)   # revisions are named after the file
+    cleared = clear_previous(directory, stem)
+    if cleared:
+        say(f"removed the previous run's {len(cleared)} file(s) from {directory}")
     result = solve(current, datasets)
     diag = diagnose(result, alpha, report=False)
     rounds = [Round(0, None, Path(problem), result, len(diag.significant))]
     physical = {n for n, p in result.params.items() if not p.fixed}
-    stem = plain_name(Path(problem).stem)   # revisions are named after the file
     rejected: list[tuple[str, str]] = []
     if result.success:
         say(f"round 0: {current.name}: {len(diag.significant)} significant candidate(s)")
