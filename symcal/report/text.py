@@ -244,8 +244,9 @@ def _worst_against_floor(result: Result, floors: Mapping[tuple[str, str], float]
 
 
 def _worst_text(result: Result, floors: Mapping[tuple[str, str], float]) -> str | None:
-    """``worst against its noise floor: flyby g_p std 2.1 µm, 2.05 × the floor 1.02 µm
-    (χ²/dof 4.2, band 0.87–1.14)``, or None when no floor is known."""
+    """``worst against its noise floor: flyby g_p std 2.1 µm; by its test 2.05 × the
+    floor 1.02 µm (χ²/dof 4.2, band 0.87–1.14)``, or None when no floor is known.  The
+    ratio is √(χ²/dof): the mean counts, and each row's own floor where it varies."""
     worst = _worst_against_floor(result, floors)
     if worst is None:
         return None
@@ -253,7 +254,7 @@ def _worst_text(result: Result, floors: Mapping[tuple[str, str], float]) -> str 
     floor = floors[(s.dataset, s.name)] / DISPLAY_UNITS[s.unit]
     assert s.noise is not None
     return (f"worst against its noise floor: {s.dataset} {_what(s)} std "
-            f"{_spread_text(after, s.unit)}, {ratio:.2f} × the floor "
+            f"{_spread_text(after, s.unit)}; by its test {ratio:.2f} × the floor "
             f"{_spread_text(floor, s.unit)} ({_chi2_text(s.noise)})")
 
 
