@@ -488,24 +488,70 @@ def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]
     ``quad*v**2``, where what its centre c moves between it and the rest (a constant, and a
     quadratic's linear part) the free parameters absorb: the same hypothesis, tested alike,
     but one that leaves them their meaning (centred, ``quad*(v - c)**2`` would make a
-    sensor's scale factor its slope at c, and its bias its reading there)."""
+    sensor's scale factor its slope at c, and its bias its reading there).  A quadratic
+    goes about the model's own centre instead where its gain in the variable is written
+    about another point (:func:`_model_centre`: ``k*(T - Tc)`` makes k the slope at Tc,
+    which a ``quad*T**2`` would move)."""
     basis = entry.candidate.basis
     lower = entry.lower
-    if lower is None or basis.centre == 0.0 or not absorbed(own, regressor(lower)):
+    if lower is None or basis.centre == 0.0:
+        return entry
+    x_lower = regressor(lower)
+    if not absorbed(own, x_lower):
         return entry
     c = basis.centre
+    v0 = _model_centre(own, x_lower, c) if basis.kind == "quadratic" else 0.0
+    d = c - v0
     if basis.kind == "linear":          # v = (v - c) + c
         def raw(i: int) -> np.ndarray:
-            return entry.raw(i) + c * lower(i)
-    else:                               # v² = (v - c)² + 2c (v - c) + c²
+            return entry.raw(i) + d * lower(i)
+    else:                               # (v - v0)² = (v - c)² + 2d (v - c) + d², d = c - v0
         def raw(i: int) -> np.ndarray:
             centred, ones = entry.raw(i), lower(i)[:, :, :1]
-            return np.concatenate([centred[:, :, :1] + c * ones,
-                                   centred[:, :, 1:] + 2 * c * centred[:, :, :1]
-                                   + c * c * ones], axis=2)
-    terms = tuple(t.replace("({v} - {centre})", "{v}") for t in basis.terms)
-    return Entry(Candidate(entry.candidate.output, replace(basis, centre=0.0, terms=terms)),
+            return np.concatenate([centred[:, :, :1] + d * ones,
+                                   centred[:, :, 1:] + 2 * d * centred[:, :, :1]
+                                   + d * d * ones], axis=2)
+    terms = basis.terms if v0 != 0.0 else tuple(
+        t.replace("({v} - {centre})", "{v}") for t in basis.terms)
+    return Entry(Candidate(entry.candidate.output, replace(basis, centre=v0, terms=terms)),
                  raw, entry.extra)
+
+
+#: A free parameter's column is the model's own affine dependence on a variable when the
+#: part of it that is not is below this share of it.
+AFFINE = 1e-6
+#: The model's own centre of a variable within this share of the variable's spread of
+#: zero is zero (a triad's bias: its scale factor multiplies ``a - b``).
+NEAR_ZERO = 0.1
+
+
+def _model_centre(own: Design, x_lower: np.ndarray, centre: float) -> float:
+    """Where the model's own linear dependence on a variable is written about: the root
+    v0 of a free parameter's column that is an affine function of the variable (a gain
+    ``k*(v - v0)``: its column is ``[1, v - c]·(c - v0, 1)``), rounded as a centre is;
+    0 where there is none, where the parameters disagree, or where v0 is within
+    :data:`NEAR_ZERO` of the variable's spread of zero.  ``x_lower`` is the whitened
+    ``[1, v - c]`` of the term's output (each observation's rows the same multiple of
+    the variable's distance to ``centre``)."""
+    ones, slope = x_lower[:, 0], x_lower[:, 1]
+    rows = np.abs(ones) > 1e-12 * float(np.max(np.abs(ones), initial=0.0))
+    if not rows.any():
+        return 0.0
+    spread = float(np.std(slope[rows] / ones[rows]))
+    coef, *_ = np.linalg.lstsq(x_lower, own.nuisance, rcond=None)
+    left = own.nuisance - x_lower @ coef
+    roots = []
+    for k in range(own.nuisance.shape[1]):
+        size = float(np.linalg.norm(own.nuisance[:, k]))
+        a0, a1 = coef[:, k]
+        if size == 0.0 or float(np.linalg.norm(left[:, k])) > AFFINE * size or \
+                abs(a1) * float(np.linalg.norm(slope)) <= AFFINE * size:
+            continue                    # not affine in the variable, or a constant
+        roots.append(centre - a0 / a1)
+    if not roots or max(roots) - min(roots) > AFFINE * max(spread, 1e-300) or \
+            abs(roots[0]) <= NEAR_ZERO * spread:
+        return 0.0
+    return float(f"{roots[0]:.6g}")
 
 
 def _variant_differences(variant: Variant, blocks: list[Block], data: Mapping[str, Dataset],

@@ -1,0 +1,86 @@
+"""A quadratic candidate is written about the model's own centre (issue 26's new-user
+round): a thermocouple's offset and gain written about Tc = 323.15 K (``o + k*(T -
+Tc)``) keep their meaning when a quadratic is added about Tc; about 0 K (as it was), the
+quadratic's linear and constant parts at 300 K moved them by hundreds of standard errors,
+correlated -1.0000 with the new term."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import symcal
+from symcal.data.dataset import make_dataset
+
+MODELS = {
+    "ref.yaml": """\
+model: ref
+inputs:
+  T_raw: {unit: K, noise: 0.002 K}
+outputs:
+  T: {expr: T_raw, unit: K}
+""",
+    "tc.yaml": """\
+model: tc
+constants:
+  Tc: {value: 323.15, unit: K}
+inputs:
+  T_raw: {unit: K, noise: 0.002 K}
+parameters:
+  o: {value: 0, unit: K, scale: 0.1}
+  k: {value: 0, scale: 0.001}
+outputs:
+  T: {expr: T_raw + o + k*(T_raw - Tc), unit: K}
+""",
+    "problem.yaml": """\
+problem: bath
+columns:
+  t: {unit: s, role: time}
+  T_ref: {unit: K}
+  T_tc: {unit: K}
+instances:
+  ref: {model: ref.yaml, inputs: {T_raw: T_ref}, candidates: {none: true}}
+  tc: {model: tc.yaml, inputs: {T_raw: T_tc}}
+constraints:
+  g: {expr: tc.T - ref.T, unit: mK}
+datasets:
+  calibration: {path: calibration.csv}
+  validation: {path: validation.csv}
+""",
+}
+TRUTH = {"tc.o": 0.15, "tc.k": 0.002}
+QUAD = 2e-5        # 1/K, about Tc: 0.05 K at the ends of 273-373 K
+
+
+def _run(name: str, seed: int, n: int) -> symcal.Dataset:
+    rng = np.random.default_rng(seed)
+    t = np.arange(n, dtype=float)
+    temp = rng.uniform(273.15, 373.15, n)
+    o, k, tc = TRUTH["tc.o"], TRUTH["tc.k"], 323.15
+    # the reading that makes o + k (T_raw - Tc) + QUAD (T_raw - Tc)^2 + T_raw = T
+    raw = temp.copy()
+    for _ in range(6):
+        raw = temp - o - k * (raw - tc) - QUAD * (raw - tc) ** 2
+    return make_dataset(name, "test", {"t": t, "T_ref": temp + rng.normal(0, 0.002, n),
+                                       "T_tc": raw + rng.normal(0, 0.002, n)}, [])
+
+
+@pytest.mark.slow
+def test_a_quadratic_is_written_about_the_models_centre(tmp_path) -> None:
+    for name, text in MODELS.items():
+        (tmp_path / name).write_text(text)
+    data = {"calibration": _run("calibration", 1, 600), "validation": _run("validation", 2,
+                                                                          300)}
+    out = tmp_path / "out"
+    result = symcal.improve(tmp_path / "problem.yaml", out, data)
+    assert result.quiet and [r.added for r in result.rounds[1:]] == [
+        "tc.T += a quadratic dependence on T_tc"]
+    model = next((out / "models").glob("*.yaml")).read_text()
+    assert "c_quad_T_tc: {value: 323.15, unit: K}" in model
+    assert "quad_T_tc*(T_raw - c_quad_T_tc)**2" in model
+    final = result.rounds[-1].result
+    for name, true in TRUTH.items():
+        p = final.params[name]
+        assert p.se is not None and abs(p.value - true) < 3 * p.se, (name, p.value, p.se)
+    quad = final.params["tc.quad_T_tc"]
+    assert quad.se is not None and abs(quad.value - QUAD) < 3 * quad.se
