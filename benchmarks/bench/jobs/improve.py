@@ -24,7 +24,10 @@ PROBLEMS = ("problems/platen_self_calibration.yaml",
             "problems/platen_self_calibration_implicit.yaml",
             "problems/dual_sensor_calibration.yaml",
             "problems/dual_sensor_calibration_implicit.yaml",
-            "examples/hidden_effect/problem.yaml")
+            "examples/hidden_effect/problem.yaml",
+            "examples/accelerometer_triad/problem_fixed.yaml",
+            "examples/diff_drive/problem_fixed.yaml",
+            "examples/planar_arm/problem_fixed.yaml")
 QUICK = ("problems/platen_self_calibration.yaml",)
 
 
