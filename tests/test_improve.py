@@ -80,8 +80,13 @@ def test_above_the_floor_with_no_candidate_left_is_not_quiet(tmp_path, capsys) -
         assert set(entry) >= {"floor", "chi2_dof"}
         if entry["kind"] == "constraint":
             assert entry["chi2_dof"] > 3 and 1.0 < entry["floor"] < 1.1   # µm
+    left = doc["left"]        # what diagnose says is left, as the text's lines say it
+    assert isinstance(left, list) and all(isinstance(line, str) for line in left)
     assert main(argv) == 1
     out = capsys.readouterr().out
+    said = [line.removeprefix("  what is left above the floor: ") for line in
+            out.splitlines() if line.startswith("  what is left above the floor: ")]
+    assert said == left[:3]
     assert out.splitlines()[0] == (
         "symcal improve: 0 round(s) kept; the diagnosis is not quiet: structure remains that "
         "no candidate explains (above the noise floor, and no candidate of the library is "
@@ -584,3 +589,17 @@ def test_lateral_dependence_in_the_dual_problem_is_found_and_fixed(start, seed,
         for name, value in ((f"s{i + 1}.h1_sin_{other}_u", lateral[f"s{i + 1}.k9"]),
                             (f"s{i + 1}.h1_cos_{other}_u", lateral[f"s{i + 1}.k10"])):
             assert abs(params[name].value - value) < 3 * params[name].se, name
+
+
+def test_improve_says_what_is_left_where_it_ends_above_the_floor(tmp_path) -> None:
+    # stopped before its round: above the floor, the harmonic of s2 left in g_p
+    hidden = ROOT / "examples" / "hidden_effect" / "problem.yaml"
+    from symcal.cli.improve import _left
+    from symcal.report.text import left_lines
+
+    outcome = improve(hidden, tmp_path / "again", max_rounds=0)
+    last = outcome.rounds[-1].result
+    assert not outcome.quiet and last.at_floor is False
+    left = _left(outcome, 0.01)
+    assert left and left == left_lines(diagnose(last, 0.01))
+    assert left[0].startswith("calibration g_p: ") and " along " in left[0]

@@ -62,12 +62,14 @@ def run(args: argparse.Namespace) -> int:
             atomic_write_text(stage / "ladder.txt", ladder_report(rungs))
             atomic_write_text(stage / "ladder.json", plain_json([r.to_dict() for r in rungs]))
             save_ladder_plot(rungs, stage)
+    left = _left(result, args.alpha)
     if args.json:
-        sys.stdout.write(plain_json(result.to_dict()))
+        sys.stdout.write(plain_json({**result.to_dict(), "left": left}))
     else:
         lines = [f"symcal improve: {len(result.rounds) - 1} round(s) kept; "
                  + outcome_text(result), ""]
         lines += [f"  {line}" for line in floor_lines(result.rounds[-1].result)]
+        lines += [f"  what is left above the floor: {line}" for line in left[:3]]
         for r in result.rounds:
             what = r.added or "(the starting problem)"
             lines.append(f"  round {r.index}: {what}  [{r.problem_file}]")
@@ -81,3 +83,16 @@ def run(args: argparse.Namespace) -> int:
                   f"wrote the revisions, ladder.txt, ladder.json and ladder.png to {out}"]
         sys.stdout.write("\n".join(lines) + "\n")
     return 0 if result.quiet and all(r.result.success for r in result.rounds) else 1
+
+
+def _left(result: Any, alpha: float) -> list[str]:
+    """Where the loop ends above the noise floor, what is left there (the last model's
+    residuals along the variables their excess lies along, as ``symcal diagnose`` says
+    it); else nothing."""
+    from symcal.report.text import left_lines
+    from symcal.revise.diagnose import diagnose
+
+    last = result.rounds[-1].result
+    if result.quiet or not last.success or last.at_floor is not False:
+        return []
+    return left_lines(diagnose(last, alpha))
