@@ -826,8 +826,8 @@ def diagnosis_report(diag: Diagnosis) -> str:
     lines = [f"symcal diagnose: {result.name} ({result.problem_path}){state}", "", "Verdict"]
     lines += [f"  {ln}" for ln in diagnosis_verdict(diag)]
     lines += ["", "Where the model fails (after calibration; std of each residual and its "
-              "noise floor where known, the variables along which it varies most, and its "
-              "dominant period)"]
+              "noise floor where known, and, where it is not at its floor, the variables "
+              "along which it varies most and its dominant period)"]
     for v in diag.residuals:
         std = float(np.std(v.after)) / v.scale
         stats = next((s for s in result.statistics
@@ -835,6 +835,9 @@ def diagnosis_report(diag: Diagnosis) -> str:
         floor = _floor_note(std, floors.get((v.dataset, v.name)), v.unit,
                             None if stats is None else stats.noise)
         lines.append(f"  {v.dataset} {_what(v)}: std {_spread_text(std, v.unit)}{floor}")
+        noise = None if stats is None else stats.noise
+        if noise is not None and noise.verdict in ("at", "below"):
+            continue    # at its floor: binned by a noisy reading, η² is that noise's own
         for b in _findings(v.binned, skip.get(v.name, frozenset({v.name})))[:2]:
             lines.append(f"      varies with {b.variable}: η² = {b.eta2:.2f}")
         if v.periodogram is not None and float(np.max(v.periodogram.power)) > 0.1:
