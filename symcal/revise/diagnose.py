@@ -410,7 +410,6 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
         predict(cand, own, own_regressor(by_label[cand.label].raw), blocks, free,
                 by_label[cand.label].raw)
 
-
     def together(labels: Sequence[str]) -> dict[str, tuple[float, float]]:
         parts = [by_label[label].raw for label in labels]
 
