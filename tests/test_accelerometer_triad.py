@@ -23,7 +23,7 @@ from symcal.cli import main
 from symcal.data.dataset import make_dataset
 from symcal.experiment.optimize import design, parse_target
 from symcal.experiment.predict import noise_floors
-from symcal.report.text import diagnosis_verdict, outcome_text
+from symcal.report.text import diagnosis_verdict, outcome_text, verdict_lines
 from symcal.revise.improve import UNCHECKED
 from symcal.simulation import load_scenario, simulate_run, truth
 
@@ -76,6 +76,9 @@ def test_neither_diagnose_nor_improve_suggests_a_term_while_the_solve_fails(
     result = symcal.solve(FREE)
     assert result.failure is not None and result.failure.startswith(
         "stage 'calibration' (lm): failed: the solve collapsed onto the trivial point")
+    assert verdict_lines(result)[1] == ("the tests below are of the estimate where the "
+                                        "solve stopped, not of a solution: they say "
+                                        "nothing of the model")
     verdict = diagnosis_verdict(symcal.diagnose(result))
     add = next(line for line in verdict if line.startswith("what to add"))
     assert add.startswith("what to add: nothing yet: the solve failed (above)")

@@ -383,6 +383,9 @@ def verdict_lines(result: Result,
     sentence = None if result.outliers is None else outlier_text(result.outliers)
     if sentence is not None:
         lines.append(sentence)
+    if not result.success and result.floor_tests:
+        lines.append("the tests below are of the estimate where the solve stopped, not of "
+                     "a solution: they say nothing of the model")
     lines += floor_lines(result)
     worst = _worst_text(result, floors)
     if worst is not None:
