@@ -620,3 +620,30 @@ def test_the_models_approximation_is_solved_whatever_its_prediction() -> None:
     assert _predicted_worse(diag, [term.label]) == (
         "not solved: the diagnosis predicts that the held-out constraint residuals do not "
         "fall (mean change +100.0%)")
+
+
+@pytest.mark.parametrize("corr", [0.0, 0.6, -0.95])
+def test_the_wald_test_holds_for_coefficients_of_very_different_sizes(corr) -> None:
+    # a new user's turbine meter: a quadratic's two coefficients with variances 1.2e-9 and
+    # 3.8e-27 (their own units); pinv of that covariance dropped the smaller direction and
+    # gave χ² 0.0396 for a term 15 standard errors from zero
+    from types import SimpleNamespace
+
+    import scipy.stats
+
+    from symcal.revise.watch import wald
+
+    se = np.array([np.sqrt(1.2e-9), np.sqrt(3.8e-27)])
+    cov = np.array([[1.0, corr], [corr, 1.0]]) * np.outer(se, se)
+    value = np.array([0.3 * se[0], -15.3 * se[1]])
+    names = ["tur.lin_q_t", "tur.quad_q_t"]
+    result = SimpleNamespace(
+        uncertainty=SimpleNamespace(names=["tur.k", *names],
+                                    covariance=np.block([[np.eye(1), np.zeros((1, 2))],
+                                                         [np.zeros((2, 1)), cov]])),
+        params={n: SimpleNamespace(value=v) for n, v in zip(names, value, strict=True)})
+    z = value / se                                  # the same test in standard units
+    expected = float(z @ np.linalg.solve(np.array([[1.0, corr], [corr, 1.0]]), z))
+    chi2, p = wald(result, names)
+    assert chi2 == pytest.approx(expected, rel=1e-9) and expected > 200
+    assert p == pytest.approx(scipy.stats.chi2.sf(expected, 2), rel=1e-6)

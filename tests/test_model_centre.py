@@ -84,3 +84,68 @@ def test_a_quadratic_is_written_about_the_models_centre(tmp_path) -> None:
         assert p.se is not None and abs(p.value - true) < 3 * p.se, (name, p.value, p.se)
     quad = final.params["tc.quad_T_tc"]
     assert quad.se is not None and abs(quad.value - QUAD) < 3 * quad.se
+
+
+NTC = {
+    "ref.yaml": MODELS["ref.yaml"],
+    "ntc.yaml": """\
+model: ntc
+constants:
+  T25: {value: 298.15, unit: K}
+inputs:
+  R: {unit: ohm, noise: 0.5 ohm}
+parameters:
+  R25: {value: 10000, unit: ohm, scale: 1000}
+  beta: {value: 3900, unit: K, scale: 100}
+outputs:
+  T: {expr: 1/(1/T25 + log(R/R25)/beta), unit: K}
+""",
+    "problem.yaml": """\
+problem: bath
+columns:
+  t: {unit: s, role: time}
+  T_ref: {unit: K}
+  R_nt: {unit: ohm}
+instances:
+  ref: {model: ref.yaml, inputs: {T_raw: T_ref}, candidates: {none: true}}
+  nt: {model: ntc.yaml, inputs: {R: R_nt}}
+constraints:
+  g: {expr: nt.T - ref.T, unit: mK}
+datasets:
+  calibration: {path: calibration.csv}
+  validation: {path: validation.csv}
+""",
+}
+NTC_TRUTH = {"nt.R25": 10050.0, "nt.beta": 3920.0}
+HEAT = -1.25e-6     # K/ohm: self-heating proportional to the resistance, about zero
+
+
+def _ntc_run(name: str, seed: int, n: int) -> symcal.Dataset:
+    rng = np.random.default_rng(seed)
+    temp = rng.uniform(273.15, 373.15, n)
+    r25, beta = NTC_TRUTH["nt.R25"], NTC_TRUTH["nt.beta"]
+    r = r25 * np.exp(beta * (1 / temp - 1 / 298.15))
+    for _ in range(8):      # the reading whose model temperature plus HEAT*R is the bath's
+        r = r25 * np.exp(beta * (1 / (temp - HEAT * r) - 1 / 298.15))
+    return make_dataset(name, "test", {"t": np.arange(n, dtype=float),
+                                       "T_ref": temp + rng.normal(0, 0.002, n),
+                                       "R_nt": r + rng.normal(0, 0.5, n)}, [])
+
+
+@pytest.mark.slow
+def test_a_linear_term_nearly_absorbed_is_written_about_zero(tmp_path) -> None:
+    # a new user's thermistor: centred at the data's mean, the term's value there went to
+    # R25, 36 standard errors off; R25 absorbs a constant on T only nearly (its effect
+    # varies as T^2 over 0-100 degC), and the term is now written about zero
+    for name, text in NTC.items():
+        (tmp_path / name).write_text(text)
+    data = {"calibration": _ntc_run("calibration", 1, 600),
+            "validation": _ntc_run("validation", 2, 300)}
+    result = symcal.improve(tmp_path / "problem.yaml", tmp_path / "out", data)
+    assert [r.added for r in result.rounds[1:]] == ["nt.T += a term linear in R_nt"]
+    model = next((tmp_path / "out" / "models").glob("*.yaml")).read_text()
+    assert "T: base.T + lin_R_nt*R" in model
+    final = result.rounds[-1].result
+    for name, true in NTC_TRUTH.items():
+        p = final.params[name]
+        assert p.se is not None and abs(p.value - true) < 3 * p.se, (name, p.value, p.se)

@@ -163,6 +163,15 @@ def redundant_columns(design: Design, x: np.ndarray) -> list[int]:
     return out
 
 
+def unexplained_share(design: Design, x: np.ndarray) -> float:
+    """The share of a column ``x`` (M,) the nuisance does not explain: the norm of its
+    part orthogonal to the nuisance's span over its own (1: orthogonal, 0: absorbed)."""
+    raw = float(np.linalg.norm(x))
+    if raw == 0.0:
+        return 0.0
+    return float(np.linalg.norm(_project(x[:, None], _basis(design)))) / raw
+
+
 def absorbed(design: Design, x: np.ndarray) -> bool:
     """Whether every column of ``x`` (M × m) lies in the nuisance's span: what adding it
     changes, the free parameters already do (an offset where a bias is free)."""

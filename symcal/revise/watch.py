@@ -49,7 +49,14 @@ def wald(new: Result, names: list[str]) -> tuple[float, float] | None:
     if not np.all(np.isfinite(cov)):
         return None
     value = np.array([new.params[n].value for n in names])
-    chi2 = float(value @ np.linalg.pinv(cov) @ value)
+    se = np.sqrt(np.diag(cov))
+    if not np.all(se > 0):
+        return None
+    # in standard units: the coefficients' own units can differ by many orders of
+    # magnitude (a quadratic's 3.8e-27 beside a linear part's 1.2e-9), where a
+    # pseudo-inverse of the covariance as it is drops the smaller direction
+    z = value / se
+    chi2 = float(z @ np.linalg.pinv(cov / np.outer(se, se), hermitian=True) @ z)
     return chi2, float(scipy.stats.chi2.sf(chi2, len(index)))
 
 
