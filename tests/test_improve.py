@@ -647,29 +647,3 @@ def test_the_wald_test_holds_for_coefficients_of_very_different_sizes(corr) -> N
     chi2, p = wald(result, names)
     assert chi2 == pytest.approx(expected, rel=1e-9) and expected > 200
     assert p == pytest.approx(scipy.stats.chi2.sf(expected, 2), rel=1e-6)
-
-
-def test_members_that_pay_are_compared_against_their_floors(monkeypatch) -> None:
-    # a new user's altimeter: a GNSS scale (shrinking the noisiest reading's residuals and
-    # their floor together) beat the barometer's temperature constant on spreads alone
-    from types import SimpleNamespace
-
-    from symcal.revise import improve as loop
-
-    def floored(chi2: dict[str, float | None]):
-        stats = [SimpleNamespace(dataset=d, noise=None if c is None else
-                                 SimpleNamespace(chi2_dof=c)) for d, c in chi2.items()]
-        return SimpleNamespace(problem=SimpleNamespace(fit_dataset="calibration"),
-                               statistics=stats)
-
-    results = {"scale": floored({"calibration": 0.99, "validation": 1.038}),
-               "T0": floored({"calibration": 1.01, "validation": 1.013})}
-    monkeypatch.setattr(loop, "with_floors", lambda new: new)
-    paying = [(-0.040, "scale", Path("a"), results["scale"]),   # spreads: scale first
-              (-0.035, "T0", Path("b"), results["T0"])]
-    scored = sorted(loop._against_floors(paying), key=lambda t: t[0])
-    assert [label for _, label, _, _ in scored] == ["T0", "scale"]
-    assert scored[0][0] == pytest.approx(np.log(1.013))
-    # a floor unknown anywhere: the spreads decide, as before
-    results["T0"].statistics[1].noise = None
-    assert loop._against_floors(paying) == paying

@@ -249,9 +249,9 @@ def _best_of_group(
 ) -> _Kept | None:
     """Try the lead and the members of its group (the constraints cannot tell them apart;
     a held-out reference may): keep the one that pays and predicts the held-out data
-    best (against their noise floors where known: :func:`_against_floors`), or None.
-    Members that pay as well (BIC within :data:`EQUAL_BIC`) but put a physical parameter
-    elsewhere (beyond 3 standard errors) are named: the data cannot tell them apart."""
+    best, or None.  Members that pay as well (BIC within :data:`EQUAL_BIC`) but put a
+    physical parameter elsewhere (beyond 3 standard errors) are named: the data cannot
+    tell them apart."""
     labels = [lead.label, *lead.indistinguishable[:GROUP - 1]]
     predicted = {label: predicted_change(diag, label) for label in labels}
     labels.sort(key=lambda label: predicted[label])
@@ -280,8 +280,6 @@ def _best_of_group(
         _remove({f for f in written[label] if f.resolve() not in used})
     if not paying:
         return None
-    if len(paying) > 1:
-        paying = _against_floors(paying)
     paying.sort(key=lambda t: t[0])
     _, label, path, new = paying[0]
     used = {f.resolve() for f in new.problem.source_files()}
@@ -292,27 +290,6 @@ def _best_of_group(
             for _, other, _, other_new in paying[1:])
     ambiguous = tuple(text for text in said if text)
     return _Kept(label, final, with_floors(_rebound(new, final)), ambiguous)
-
-
-def _against_floors(paying: list[tuple[float, str, Path, Result]]
-                    ) -> list[tuple[float, str, Path, Result]]:
-    """The members that pay, each scored by its held-out residuals' and comparisons' tests
-    against their noise floors (mean log χ²/dof, lower first) where every one has one:
-    a term that shrinks a noisy reading's gain shrinks its residuals' spread and their
-    floor together, so the spreads alone prefer it (a new user's altimeter kept a GNSS
-    scale standing in for a barometer's temperature constant, the physical parameters
-    hundreds of standard errors off); else as they are (the spreads' log ratio)."""
-    scored = []
-    for _, label, path, new in paying:
-        floored = with_floors(new)
-        fit = floored.problem.fit_dataset
-        held = [s for s in floored.statistics if s.dataset != fit]
-        tests = [None if s.noise is None else s.noise.chi2_dof for s in held]
-        known = [t for t in tests if t is not None and t > 0]
-        if not tests or len(known) != len(tests):
-            return paying
-        scored.append((float(np.mean(np.log(known))), label, path, new))
-    return scored
 
 
 def _rebound(result: Result, path: Path) -> Result:
