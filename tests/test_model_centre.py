@@ -32,22 +32,22 @@ parameters:
 outputs:
   T: {expr: T_raw + o + k*(T_raw - Tc), unit: K}
 """,
-    "problem.yaml": """\
-problem: bath
-columns:
-  t: {unit: s, role: time}
-  T_ref: {unit: K}
-  T_tc: {unit: K}
-instances:
-  ref: {model: ref.yaml, inputs: {T_raw: T_ref}, candidates: {none: true}}
-  tc: {model: tc.yaml, inputs: {T_raw: T_tc}}
-constraints:
-  g: {expr: tc.T - ref.T, unit: mK}
-datasets:
-  calibration: {path: calibration.csv}
-  validation: {path: validation.csv}
-""",
 }
+
+
+def _bath(column: str, unit: str, instance: str) -> str:
+    """A bath of a reference thermometer and one sensor under test (``instance``, named
+    as its model file, reading ``column``), their temperatures agreeing."""
+    name = instance.split(":")[0]
+    return (f"problem: bath\ncolumns:\n  t: {{unit: s, role: time}}\n  T_ref: {{unit: K}}\n"
+            f"  {column}: {{unit: {unit}}}\ninstances:\n"
+            f"  ref: {{model: ref.yaml, inputs: {{T_raw: T_ref}}, candidates: {{none: true}}}}\n"
+            f"  {instance}\nconstraints:\n  g: {{expr: {name}.T - ref.T, unit: mK}}\n"
+            f"datasets:\n  calibration: {{path: calibration.csv}}\n"
+            f"  validation: {{path: validation.csv}}\n")
+
+
+MODELS["problem.yaml"] = _bath("T_tc", "K", "tc: {model: tc.yaml, inputs: {T_raw: T_tc}}")
 TRUTH = {"tc.o": 0.15, "tc.k": 0.002}
 QUAD = 2e-5        # 1/K, about Tc: 0.05 K at the ends of 273-373 K
 
@@ -100,21 +100,7 @@ parameters:
 outputs:
   T: {expr: 1/(1/T25 + log(R/R25)/beta), unit: K}
 """,
-    "problem.yaml": """\
-problem: bath
-columns:
-  t: {unit: s, role: time}
-  T_ref: {unit: K}
-  R_nt: {unit: ohm}
-instances:
-  ref: {model: ref.yaml, inputs: {T_raw: T_ref}, candidates: {none: true}}
-  nt: {model: ntc.yaml, inputs: {R: R_nt}}
-constraints:
-  g: {expr: nt.T - ref.T, unit: mK}
-datasets:
-  calibration: {path: calibration.csv}
-  validation: {path: validation.csv}
-""",
+    "problem.yaml": _bath("R_nt", "ohm", "nt: {model: ntc.yaml, inputs: {R: R_nt}}"),
 }
 NTC_TRUTH = {"nt.R25": 10050.0, "nt.beta": 3920.0}
 HEAT = -1.25e-6     # K/ohm: self-heating proportional to the resistance, about zero
