@@ -104,6 +104,10 @@ class Candidate:
     q: np.ndarray | None = field(default=None, repr=False)
     mde: float | None = None     # the minimal detectable term's RMS, internal units
     reopens: str = ""            # why it is never proposed: it re-opens a gauge
+    # the parameters a term the test misses could move by more than UNSEEN standard
+    # errors, with how far (see unseen_bias)
+    unseen: tuple[tuple[str, float], ...] = ()
+    reach: float = 0.0           # a bound on every parameter's unseen_bias (inf: absorbed)
 
     @property
     def label(self) -> str:
@@ -305,6 +309,7 @@ def test_candidates(
             cand.biases = tuple(design.nuisance_names[i] for i in order[:4]
                                 if weight[i] > 0.05 * weight[order[0]])
             continue
+        cand.reach = _reach_bound(x, xp, level)
         extra = None if extras is None else extras[i]
         base, rb, m_extra = r, rss0, 0
         if extra is not None:
@@ -339,6 +344,50 @@ def test_candidates(
     _group(ranked, local)
     return ranked + [c for c in candidates if c.reopens] + \
         [c for c in candidates if c.absorbed]
+
+
+def unseen_bias(design: Design, x: np.ndarray, level: float) -> np.ndarray:
+    """How far a term of shape ``x`` (M × m) that the test would miss can move each of
+    the nuisance's parameters: Baarda's external reliability.  A term at its minimal
+    detectable size (power :data:`POWER` at ``level``, in the direction the data see
+    worst for each parameter) shifts the least-squares estimate by the part of it the
+    nuisance absorbs; the largest such shift of parameter k over the terms the test
+    misses, in units of k's standard error, is
+    ``sqrt(λ*) sqrt(s_kᵀ (X̃ᵀX̃)⁻¹ s_k) / sqrt((AᵀA)⁻¹_kk)``, ``s_k`` the shift of k per
+    unit coefficient and ``X̃`` the part of ``x`` the nuisance ``A`` does not explain.
+    The residual variance cancels: it is the geometry of the data alone.  Infinite for a
+    term the nuisance absorbs completely; one value per nuisance column."""
+    nuisance = _nuisance(design)
+    qn = nuisance.u
+    k = design.nuisance.shape[1]
+    if x.shape[1] == 0 or not np.any(x):
+        return np.zeros(k)
+    xp = _project(x, qn)
+    shift = nuisance.solve @ (qn.T @ x)              # k × m: each parameter per coefficient
+    gram = xp.T @ xp
+    sv = np.linalg.svd(gram, compute_uv=False)
+    rank = int(np.sum(sv > 1e-12 * float(np.linalg.norm(x)) ** 2))
+    if rank == 0:
+        return np.full(k, np.inf)
+    lam = noncentrality(rank, level)
+    reach = np.einsum("km,mn,kn->k", shift, np.linalg.pinv(gram, rcond=1e-12), shift)
+    se = np.sqrt(np.sum(nuisance.solve ** 2, axis=1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(se > 0, np.sqrt(lam * np.maximum(reach, 0.0)) / se, 0.0)
+
+
+def _reach_bound(x: np.ndarray, xp: np.ndarray, level: float) -> float:
+    """A bound on :func:`unseen_bias` over every parameter (Baarda's bias-to-noise
+    ratio): no parameter moves by more standard errors than the whole fit of the term's
+    absorbed part does, ``sqrt(λ* max_γ |x_a γ|² / |x_p γ|²)``, ``x_a = x - x_p``;
+    from the m × m Gram matrices, where :func:`unseen_bias` needs the nuisance."""
+    gram_p = xp.T @ xp
+    sv = np.linalg.svd(gram_p, compute_uv=False)
+    rank = int(np.sum(sv > 1e-12 * float(np.sum(x * x))))
+    if rank < x.shape[1]:
+        return float("inf")
+    ratio = float(np.max(np.real(scipy.linalg.eigvals(x.T @ x, gram_p))))
+    return float(np.sqrt(noncentrality(rank, level) * max(ratio - 1.0, 0.0)))
 
 
 def _reopens(q: np.ndarray, fixes: Mapping[str, np.ndarray]) -> str:

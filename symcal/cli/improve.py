@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the loop; write the ladder; print the rounds; exit 0 when the model is quiet."""
     from symcal.base.files import OutputSet, atomic_write_text, check_outputs
     from symcal.report.ladder import ladder_report, save_ladder_plot
-    from symcal.report.text import floor_lines, outcome_text, plain_json
+    from symcal.report.text import floor_lines, outcome_text, plain_json, unvouched, unvouched_line
     from symcal.revise.improve import improve
     from symcal.revise.ladder import compare
 
@@ -63,13 +63,18 @@ def run(args: argparse.Namespace) -> int:
             atomic_write_text(stage / "ladder.json", plain_json([r.to_dict() for r in rungs]))
             save_ladder_plot(rungs, stage)
     left = _left(result, args.alpha)
+    reach = unvouched(result.last)
     if args.json:
-        sys.stdout.write(plain_json({**result.to_dict(), "left": left}))
+        sys.stdout.write(plain_json({**result.to_dict(), "left": left, "unvouched": [
+            {"parameter": name, "reach_se": value} for name, value in reach]}))
     else:
         lines = [f"symcal improve: {len(result.rounds) - 1} round(s) kept; "
                  + outcome_text(result), ""]
         lines += [f"  {line}" for line in floor_lines(result.rounds[-1].result)]
         lines += [f"  what is left above the floor: {line}" for line in left[:3]]
+        if reach:
+            lines.append("  " + unvouched_line(reach, "symcal diagnose of the final problem "
+                                                      "names them"))
         for r in result.rounds:
             what = r.added or "(the starting problem)"
             lines.append(f"  round {r.index}: {what}  [{r.problem_file}]")

@@ -797,6 +797,9 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
                       "cannot determine")
     lines.append("what cannot be calibrated: " + ("; ".join(cannot) if cannot else
                                                   "nothing found"))
+    reach = unvouched(diag)
+    if reach:
+        lines.append(unvouched_line(reach, '"Nearly absorbed" below'))
     lines += design_pointer(result)
     return lines
 
@@ -909,8 +912,53 @@ def diagnosis_report(diag: Diagnosis) -> str:
         lines += ["", "Absorbed by the current parameters (invisible in these residuals; if "
                   "present, such an effect biases the parameters named):"]
         lines += [f"  {c.label}: would bias {', '.join(c.biases)}" for c in absorbed]
+    lines += _nearly_lines(diag)
     lines += _space_lines(diag)
     return "\n".join(lines) + "\n"
+
+
+#: Nearly absorbed candidates shown in the text (the JSON has up to 20).
+NEARLY_SHOWN = 6
+
+
+def unvouched(diag: Any) -> list[tuple[str, float]]:
+    """The parameters a candidate the tests would miss could move far (see
+    :mod:`symcal.revise.reliability`), each with the farthest, farthest first."""
+    out: dict[str, float] = {}
+    for c in getattr(diag, "candidates", ()):
+        for name, value in getattr(c, "unseen", ()):
+            out[name] = max(out.get(name, 0.0), value)
+    return sorted(out.items(), key=lambda kv: -kv[1])
+
+
+def unvouched_line(reach: list[tuple[str, float]], where: str) -> str:
+    """The verdict's line on :func:`unvouched` parameters, pointing to ``where``."""
+    return ("what the floor cannot vouch for: " + ", ".join(
+        f"{name} (up to {_reach_text(value)} SE)" for name, value in reach[:4])
+        + (f" and {len(reach) - 4} more" if len(reach) > 4 else "")
+        + f": effects the parameters nearly absorb would move them that far unseen ({where})")
+
+
+def _reach_text(value: float) -> str:
+    return f"{value:.0f}" if value >= 10 else f"{value:.1f}"
+
+
+def _nearly_lines(diag: Diagnosis) -> list[str]:
+    """The candidates the parameters nearly absorb: how large each can be unseen and how
+    far it would move them."""
+    nearly = [c for c in diag.candidates if getattr(c, "unseen", ())]
+    if not nearly:
+        return []
+    lines = ["", "Nearly absorbed by the current parameters (each may be present up to "
+             "the size shown and go unseen, moving the parameters named by up to that many "
+             "of their standard errors: the noise floor does not vouch for them)"]
+    for c in nearly[:NEARLY_SHOWN]:
+        moved = ", ".join(f"{name} {_reach_text(v)} SE" for name, v in c.unseen)
+        lines.append(f"  {c.label}: unseen up to {detectable_text(diag.result, c)}; "
+                     f"would move {moved}")
+    if len(nearly) > NEARLY_SHOWN:
+        lines.append(f"  and {len(nearly) - NEARLY_SHOWN} more (the JSON lists up to 20)")
+    return lines
 
 
 def _space_lines(diag: Diagnosis) -> list[str]:

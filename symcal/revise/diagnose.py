@@ -67,6 +67,7 @@ from symcal.revise.library import (
 from symcal.revise.library import (
     own_names as own_names_of,
 )
+from symcal.revise.reliability import mark_unseen
 from symcal.revise.variants import Variant, implicit_variant
 from symcal.revise.whitened import design, predict, predicted_spreads, whiten
 
@@ -219,6 +220,11 @@ class Diagnosis:
             "gauge_fixes": dict(self.gauge_fixes),
             "absorbed": [{"label": c.label, "biases": list(c.biases)}
                          for c in self.candidates if c.absorbed and c.biases][:20],
+            "nearly_absorbed": [
+                {"label": c.label, "moves": {name: v for name, v in c.unseen},
+                 "mde": None if c.mde is None else c.mde / DISPLAY_UNITS[self._unit(c)],
+                 "mde_unit": self._unit(c) or "(internal)"}
+                for c in self.candidates if c.unseen][:20],
             "outliers": None if self.outliers is None else {
                 **self.outliers.to_dict(), "remedy": remedy_yaml(self.outliers)
                 if self.outliers.dominate and self.outliers.squared else ""},
@@ -405,6 +411,8 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
         own, candidates, [own_regressor(e.raw) for e in entries], alpha, local,
         [None if e.extra is None else own_regressor(e.extra) for e in entries],
         gauge_columns)
+    mark_unseen(own, entries, ranked, own_regressor, alpha / max(len(candidates), 1),
+                [n for n, f in zip(problem.parameter_names, free, strict=True) if f])
     leads = [c for c in _leads(tuple(ranked)) if c.significant][:TOP]
     members = {label for c in leads for label in c.indistinguishable[:GROUP - 1]}
     for cand in [*leads, *(c for c in ranked if c.label in members)]:
@@ -482,7 +490,7 @@ def _without_redundant(entry: Entry, own: Design,
         return lambda i: raw(i)[:, :, keep]
 
     return Entry(Candidate(entry.candidate.output, reduced), pick(entry.raw),
-                 None if entry.extra is None else entry.extra)
+                 None if entry.extra is None else entry.extra, entry.lower)
 
 
 def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]) -> Entry:
@@ -518,7 +526,7 @@ def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]
     terms = basis.terms if v0 != 0.0 else tuple(
         t.replace("({v} - {centre})", "{v}") for t in basis.terms)
     return Entry(Candidate(entry.candidate.output, replace(basis, centre=v0, terms=terms)),
-                 raw, entry.extra)
+                 raw, entry.extra, lower)
 
 
 #: What a term's centre moves between it and the rest is nearly absorbed where the

@@ -224,7 +224,7 @@ def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shap
                     "product", v.name, f"the product of {v.name} and {v2.name}", ("prod",),
                     ("{v}*{w}",), unit=v.unit, centre=cv,
                     other=v2.name, other_unit=v2.unit, other_centre=cw),
-                    _product(v.name, cv, v2.name, cw), (v.name, v2.name)))
+                    _product(v.name, cv, v2.name, cw), (v.name, v2.name), lower=_ones))
     if allowed("angle_harmonic"):
         for a in angles:
             for v in periodic:

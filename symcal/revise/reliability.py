@@ -1,0 +1,67 @@
+"""What the noise floor cannot vouch for: effects the tests would miss that move a
+parameter far (Baarda's external reliability, per candidate).
+
+A diagnosis that finds every residual at its floor and no candidate significant says the
+data show no missing effect *of a size the tests can see*.  A candidate the parameters
+nearly absorb (a coupling on a reading proportional to what the sensor's gain multiplies;
+a constant whose change a gain takes) is seen only through the small part of it they do
+not absorb: below its minimal detectable size it can still move a parameter by hundreds
+of its standard errors.  Such candidates are named, with the parameters they reach, so
+that "quiet" is not read as "these parameters are right".
+
+A term's reach depends on how it is written: ``c*T`` moves a bias by ``c`` times the
+mean of T, which ``c*(T - mean)`` does not.  The reach stated is the smaller of the term
+as proposed and the term beyond its lower orders (a linear term without its constant, a
+quadratic without its affine part, a product without its linear terms and constant):
+what holds however the term is written.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from symcal.analysis.discovery import Candidate, Design, unseen_bias
+from symcal.revise.library import Entry, Raw
+
+#: A candidate is named where a term of it the test misses could move a parameter by
+#: more than this many of its standard errors.  An ordinary candidate reaches a few
+#: (the square root of its test's non-centrality, 4-5, times its correlation with the
+#: parameters over what is left of it); 20 is a correlation above about 0.97 with what
+#: the parameters already do, the near-absorption :data:`~symcal.revise.diagnose.NEARLY`
+#: speaks of.
+UNSEEN = 20.0
+#: At most this many parameters are named per candidate.
+NAMED = 3
+
+
+def mark_unseen(own: Design, entries: Sequence[Entry], ranked: Sequence[Candidate],
+                regressor: Callable[[Raw], np.ndarray], level: float,
+                physical: Sequence[str]) -> None:
+    """Fill :attr:`Candidate.unseen` of the tested candidates that are not significant:
+    the physical parameters (``physical``: the free ones, not the comparisons' offsets)
+    a term of theirs the test at ``level`` misses could move by more than
+    :data:`UNSEEN` standard errors."""
+    by_label = {e.candidate.label: e for e in entries}
+    wanted = set(physical)
+    for cand in ranked:
+        if cand.significant or cand.absorbed or cand.reopens or \
+                cand.label not in by_label or cand.reach <= UNSEEN:
+            continue            # (reach bounds every parameter's: none can go further)
+        entry = by_label[cand.label]
+        x = regressor(entry.raw)
+        lower = [regressor(part) for part in (entry.lower, entry.extra) if part is not None]
+        reach = unseen_bias(own, x, level)
+        if lower:
+            reach = np.minimum(reach, unseen_bias(own, _beyond(x, np.hstack(lower)), level))
+        order = np.argsort(-reach)
+        cand.unseen = tuple((own.nuisance_names[k], float(reach[k])) for k in order
+                            if reach[k] > UNSEEN and own.nuisance_names[k] in wanted
+                            )[:NAMED]
+
+
+def _beyond(x: np.ndarray, lower: np.ndarray) -> np.ndarray:
+    """``x`` without its least-squares part in the ``lower`` columns (whitened alike)."""
+    coef, *_ = np.linalg.lstsq(lower, x, rcond=None)
+    return x - lower @ coef
