@@ -52,6 +52,13 @@ CLOSE = 0.8
 #: Two revisions whose BIC differ by less than this fit about equally (Kass and Raftery:
 #: below 10 the evidence for one over the other is not strong).
 EQUAL_BIC = 10.0
+#: Members that pay are ranked first by whether their BIC is within this of the lowest
+#: (Kass and Raftery: from 2, positive evidence), then by their held-out change.  The
+#: held-out residuals' spreads alone favour a member that scales a noisy reading down (a
+#: GNSS height's quadratic shrinks its 0.5 m noise in every residual it enters) over the
+#: effect itself (a barometer's reference temperature, one parameter fewer, its BIC
+#: lower by 5): the BIC, of the whitened fit, is not fooled by a scale.
+CLEAR_BIC = 2.0
 #: A revision may make an existing parameter's standard error at most this many times
 #: larger (beyond it the new term is nearly aliased with what the model has).
 INFLATION = 5.0
@@ -280,7 +287,8 @@ def _best_of_group(
         _remove({f for f in written[label] if f.resolve() not in used})
     if not paying:
         return None
-    paying.sort(key=lambda t: t[0])
+    best = min(t[3].bic for t in paying)
+    paying.sort(key=lambda t: (t[3].bic > best + CLEAR_BIC, t[0]))
     _, label, path, new = paying[0]
     used = {f.resolve() for f in new.problem.source_files()}
     for _, other, _, _ in paying[1:]:
