@@ -160,11 +160,20 @@ class Gauge:
     generator: tuple[tuple[float, ...], ...] = ()
     weights: dict[str, float] | None = None
     degree: float | None = None
+    # its own fix and text where a fix set shared with other gauges replaced them (see
+    # _fix_sets): restored when the others do not hold (GaugeAnalysis.confirmed)
+    alone: tuple[str, str] | None = field(default=None, compare=False, repr=False)
 
     @property
     def dimension(self) -> int:
         """Number of independent directions."""
         return len(self.directions)
+
+    @property
+    def key(self) -> tuple[str, tuple[str, ...], tuple[Combination, ...]]:
+        """What the gauge is, whatever its fix says (a fix set's is rewritten when a gauge
+        it shared parameters with does not hold)."""
+        return self.kind, self.parameters, self.directions
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form."""
@@ -538,7 +547,7 @@ class GaugeAnalysis:
                     kept.append(gauge)
             basis = range_basis(np.column_stack([basis, *extra])) if extra else basis
         held = self if len(kept) == len(self.gauges) else replace(
-            self, gauges=tuple(g for g in self.gauges if g in kept))
+            self, gauges=_without(self.gauges, kept, self.names))
         return (basis * scales[:, None]).T, held
 
     def to_dict(self) -> dict[str, Any]:
@@ -829,7 +838,8 @@ def _suggested(gauge: Gauge) -> list[tuple[str, ...]]:
     return [(name,) for name in fix.split(", ")]
 
 
-def _fix_sets(gauges: list[Gauge], reference: _Point, names: tuple[str, ...]) -> list[Gauge]:
+def _fix_sets(gauges: list[Gauge], reference: _Point | None, names: tuple[str, ...]
+              ) -> list[Gauge]:
     """Gauges that share parameters, where fixing one suggested parameter of each can
     leave a direction free, as one fix set: each says how many of their parameters to
     fix, with an example that fixes them all."""
@@ -876,8 +886,22 @@ def _fix_sets(gauges: list[Gauge], reference: _Point, names: tuple[str, ...]) ->
             g = gauges[i]
             text = g.text[: len(g.text) - len(g.fix)] + fix if g.text.endswith(g.fix) \
                 else f"{g.text}; {fix}"
-            out[i] = replace(g, fix=fix, text=text)
+            out[i] = replace(g, fix=fix, text=text, alone=g.alone or (g.fix, g.text))
     return out
+
+
+def _without(gauges: tuple[Gauge, ...], kept: list[Gauge], names: tuple[str, ...]
+             ) -> tuple[Gauge, ...]:
+    """The gauges that hold (``kept``, in ``gauges``' order), their fix sets made again
+    among themselves: a symmetry found at the start and dismissed where it does not hold
+    no longer counts in the fix of a gauge it shared parameters with (a flow loop's scale
+    said "fix 2" where one fix does)."""
+    held = [g for g in gauges if g in kept]
+    if len(held) == len(gauges):
+        return gauges
+    own = [replace(g, fix=g.alone[0], text=g.alone[1], alone=None) if g.alone else g
+           for g in held]
+    return tuple(_fix_sets(own, None, names))
 
 
 def _varying_gauge(count: int, const: np.ndarray, reference: _Point, fallback: _Point,

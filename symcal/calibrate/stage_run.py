@@ -196,10 +196,12 @@ def run_stage_on(
     exact_null, confirmed = gauges.confirmed(plain, held.sample, out.theta)
     if len(confirmed.gauges) < len(gauges.gauges):
         gone = [g.text.split(":")[0] + " of " + ", ".join(g.parameters)
-                for g in gauges.gauges if g not in confirmed.gauges]
+                for g in gauges.gauges if g.key not in [c.key for c in confirmed.gauges]]
         notes.append(f"the {'; '.join(gone)} found before the solve does not hold at the "
                      "estimate: a degeneracy of the region the start lies in, not a gauge")
         gauges = confirmed
+        if collapse is not None:     # said with the fix of the gauges that hold
+            out = replace(out, message=gauges.collapse(theta, out.theta, plain) or collapse)
     ident, unc = analyse(out.r_factor, out.rows, out.rss, names, scales, out.theta[idx],
                          meat, exact_null)
     if out.success and ident.rank == 0:
