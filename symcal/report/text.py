@@ -16,6 +16,7 @@ import numpy as np
 
 from symcal.analysis.outliers import THRESHOLD, Outliers, remedy, remedy_yaml
 from symcal.analysis.verdicts import family_bands, family_verdicts
+from symcal.base.digits import estimate_text
 from symcal.base.files import json_text as plain_json
 from symcal.base.units import DISPLAY_UNITS, symbol
 from symcal.base.units import size as unit_size
@@ -517,7 +518,8 @@ def _parameter_lines(result: Result) -> list[str]:
                 p.se_reason or "")
         if p.at_bound:
             note = (note + "; " if note else "") + f"at {p.at_bound} bound"
-        rows.append([p.name, _num(p.value), _num(p.se, ".2g"), _num(p.initial),
+        value = "—" if not math.isfinite(p.value) else estimate_text(p.value, p.se)
+        rows.append([p.name, value, _num(p.se, ".2g"), _num(p.initial),
                      symbol(p.unit) if p.unit else "", note])
     return _table(rows, "lrrrll")
 

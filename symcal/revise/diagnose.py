@@ -49,6 +49,7 @@ from symcal.analysis.residuals import (
     structure,
     what_is_left,
 )
+from symcal.base.digits import estimate_text
 from symcal.base.numeric import mapped
 from symcal.base.units import DISPLAY_UNITS
 from symcal.calibrate.result import Result
@@ -325,7 +326,8 @@ def _value_words(cand: Candidate, stats: str) -> str:
             value, change = basis.centre / size, c / size
             rel = (f" ({100 * change / value:+.3g} % ± {100 * se / size / abs(value):.2g} %)"
                    if value else "")
-            asks = (f": the data ask for {value + change:.6g} ± {se / size:.2g} "
+            asks = (f": the data ask for {estimate_text(value + change, se / size)} ± "
+                    f"{se / size:.2g} "
                     f"{basis.unit} instead of {value:.6g}, a change of {change:+.3g}{rel}")
     what = {"fixed": "Freeing it", "constant": "Making it a parameter",
             "latency": "Allowing for the delay"}[basis.kind]

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from symcal.analysis.discovery import Candidate
+from symcal.base.digits import estimate_text
 from symcal.base.errors import SymcalError
 from symcal.base.files import write_output
 from symcal.base.progress import Bars, Report, reporting
@@ -379,8 +380,9 @@ def _ambiguity(label: str, new: Result, other: str, other_new: Result,
         if abs(a.value - b.value) > 3 * max(a.se, b.se):
             target = design_hint(new, path, (name, abs(a.value - b.value) / 3))
             return (f"the data cannot tell {label} from {other} (BIC {new.bic:.1f} and "
-                    f"{other_new.bic:.1f}): they give {name} = {a.value:.6g} ± {a.se:.2g} "
-                    f"and {b.value:.6g} ± {b.se:.2g} {a.unit}; {target}")
+                    f"{other_new.bic:.1f}): they give {name} = "
+                    f"{estimate_text(a.value, a.se)} ± {a.se:.2g} and "
+                    f"{estimate_text(b.value, b.se)} ± {b.se:.2g} {a.unit}; {target}")
     return ""
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import scipy.stats
 
+from symcal.base.digits import estimate_text
 from symcal.calibrate.result import Result
 from symcal.experiment.command import design_sentence
 
@@ -114,7 +115,8 @@ class Watch:
         if self.moved:
             ranked = sorted(self.moved, key=lambda m: -m.shift)
             shown = "; ".join(
-                f"{m.name} {m.old:.6g} ± {m.old_se:.2g} → {m.new:.6g} ± {m.new_se:.2g} "
+                f"{m.name} {estimate_text(m.old, m.old_se)} ± {m.old_se:.2g} → "
+                f"{estimate_text(m.new, m.new_se)} ± {m.new_se:.2g} "
                 f"{m.unit} ({m.shift:.3g} se)".replace("  ", " ") for m in ranked[:3])
             more = f"; and {len(ranked) - 3} more" if len(ranked) > 3 else ""
             tied = sorted({m.name for m in ranked} & (
