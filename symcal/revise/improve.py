@@ -34,7 +34,7 @@ from symcal.revise.diagnose import GROUP as DIAGNOSED
 from symcal.revise.diagnose import Diagnosis, diagnose
 from symcal.revise.effects import write_revision
 from symcal.revise.previous import clear_previous
-from symcal.revise.watch import Watch, design_hint, new_parameters, wald, watch
+from symcal.revise.watch import Watch, design_hint, new_parameters, same_fit, wald, watch
 
 #: A candidate is not solved when the diagnosis predicts its held-out constraint
 #: residuals grow by more than this (a mean log ratio of spreads, +0.1 %): the solve
@@ -367,6 +367,12 @@ def _close(score: float, best: float) -> bool:
     return best >= 0 or score <= CLOSE * best
 
 
+#: What is said of two members that are the same fit written two ways.
+SAME_WORDS = ("they are one fit written two ways (every residual the same to rounding): "
+              "no experiment separates them, and the parameter means something else in "
+              "each; keep the one whose parameters mean what you know")
+
+
 def _ambiguity(label: str, new: Result, other: str, other_new: Result,
                physical: set[str], path: Path) -> str:
     """A sentence when two revisions fit about equally (BIC within :data:`EQUAL_BIC`) and
@@ -378,11 +384,13 @@ def _ambiguity(label: str, new: Result, other: str, other_new: Result,
         if a is None or b is None or not a.se or not b.se:
             continue
         if abs(a.value - b.value) > 3 * max(a.se, b.se):
-            target = design_hint(new, path, (name, abs(a.value - b.value) / 3))
+            target = (SAME_WORDS if same_fit(new, other_new) else
+                      design_hint(new, path, (name, abs(a.value - b.value) / 3)))
             return (f"the data cannot tell {label} from {other} (BIC {new.bic:.1f} and "
                     f"{other_new.bic:.1f}): they give {name} = "
                     f"{estimate_text(a.value, a.se)} ± {a.se:.2g} and "
-                    f"{estimate_text(b.value, b.se)} ± {b.se:.2g} {a.unit}; {target}")
+                    f"{estimate_text(b.value, b.se)} ± {b.se:.2g}"
+                    f"{' ' + a.unit if a.unit else ''}; {target}")
     return ""
 
 

@@ -208,6 +208,29 @@ def _worst(moved: list[Moved], grown: list[tuple[str, float, float]],
     return None
 
 
+#: Two fits whose costs and residual spreads agree to this (relative) are the same fit:
+#: distinct models do not meet to 1e-7 on hundreds of noisy rows by chance.
+SAME_FIT = 1e-7
+
+
+def same_fit(a: Result, b: Result) -> bool:
+    """Whether two revisions fit the same data identically, to rounding: the last
+    stage's cost and every residual's spread on every dataset (two ways of writing one
+    model: a density's reference temperature freed where its expansion coefficient and
+    the gain could be, say).  No experiment separates them."""
+    if not a.stages or not b.stages or len(a.statistics) != len(b.statistics):
+        return False
+
+    def close(x: float, y: float) -> bool:
+        return abs(x - y) <= SAME_FIT * max(abs(x), abs(y), 1e-300)
+
+    if not close(a.stages[-1].cost_after, b.stages[-1].cost_after):
+        return False
+    return all(s.dataset == t.dataset and s.name == t.name
+               and close(s.after.rms, t.after.rms) and close(s.after.std, t.after.std)
+               for s, t in zip(a.statistics, b.statistics, strict=True))
+
+
 def design_hint(result: Result, problem_file: Path, target: tuple[str, float]) -> str:
     """The ``symcal design`` command that asks for an experiment determining ``target``'s
     parameter to the given standard error (in its unit)."""
