@@ -45,9 +45,22 @@ def sources(specs: Mapping[str, ColumnSpec], names: list[str]) -> list[str]:
     return out
 
 
-def rate(values: np.ndarray, time: np.ndarray) -> np.ndarray:
-    """d values / d time by central differences (one-sided at the ends), in the units of
-    ``values`` per unit of ``time``.
+#: The rate of a column with declared noise is smoothed until the noise it carries is at
+#: most this share of its variance: a delay fitted to it is then attenuated by at most
+#: about this much (errors in variables: central differences of a GNSS height with 0.5 m
+#: noise at 10 Hz left a third of a 0.3 s delay).
+ATTENUATION = 0.01
+#: The widest window a rate is smoothed over, as a share of the rows.
+WIDEST = 0.1
+
+
+def rate(values: np.ndarray, time: np.ndarray, noise: float | None = None) -> np.ndarray:
+    """d values / d time, in the units of ``values`` per unit of ``time``: central
+    differences (one-sided at the ends), or, where the column's declared ``noise`` (its
+    standard deviation, in the units of ``values``) would leave the rate with more than
+    :data:`ATTENUATION` of its variance in noise, the least-squares slope over the
+    narrowest window of rows about each row (shifted to fit at the ends) that does not,
+    at most :data:`WIDEST` of the rows.
 
     Raises
     ------
@@ -56,12 +69,43 @@ def rate(values: np.ndarray, time: np.ndarray) -> np.ndarray:
     """
     if len(values) < 2:
         raise ValueError("a rate needs at least two rows")
-    return np.gradient(np.asarray(values, dtype=float), np.asarray(time, dtype=float),
-                       edge_order=1)
+    v = np.asarray(values, dtype=float)
+    t = np.asarray(time, dtype=float)
+    central = np.gradient(v, t, edge_order=1)
+    n = len(v)
+    if noise is None or not noise > 0 or n < 7 or not np.all(np.isfinite(v)):
+        return central
+    widest = max(3, int(WIDEST * n) | 1)
+    half = 1
+    while True:
+        slope, spread = _slope(v, t, half)
+        if float(np.mean(noise**2 / spread)) <= ATTENUATION * float(np.var(slope)):
+            return central if half == 1 else slope
+        if 2 * half + 1 >= widest:
+            return slope
+        half = min(max(half + 1, int(half * 1.5)), (widest - 1) // 2)
+
+
+def _slope(v: np.ndarray, t: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares slope of ``v`` against ``t`` over a window of ``2 half + 1``
+    rows about each row (shifted to fit at the ends), and each window's Σ(t - mean)²
+    (the slope's noise variance is the column's over it)."""
+    n, w = len(v), 2 * half + 1
+    tc = t - float(np.mean(t))
+    start = np.clip(np.arange(n) - half, 0, n - w)
+
+    def window(x: np.ndarray) -> np.ndarray:
+        c = np.concatenate([[0.0], np.cumsum(x)])
+        return c[start + w] - c[start]
+
+    st, sv = window(tc), window(v)
+    spread = window(tc * tc) - st * st / w
+    return (window(tc * v) - st * sv / w) / spread, spread
 
 
 def with_derived(specs: Mapping[str, ColumnSpec], data: Dataset,
-                 needed: list[str] | None = None) -> Dataset:
+                 needed: list[str] | None = None,
+                 noise: Mapping[str, float] | None = None) -> Dataset:
     """``data`` with every derived column it can compute (its source is in the data)
     computed anew; unchanged without derived columns.
 
@@ -74,6 +118,9 @@ def with_derived(specs: Mapping[str, ColumnSpec], data: Dataset,
     needed
         Columns the problem reads: a derived one among them whose source is absent is
         refused (the others are computed where they can be).
+    noise
+        The declared noise of source columns (standard deviation, in the column's unit):
+        their rates are smoothed where it would leave them noisy (:func:`rate`).
 
     Raises
     ------
@@ -109,7 +156,7 @@ def with_derived(specs: Mapping[str, ColumnSpec], data: Dataset,
                             f"{rows_text(columns, bad)}: a rate needs time-ordered rows")
         # in the rate column's unit: source's and time's sizes over the rate's
         factor = size(columns_unit(specs, spec.rate_of)) / size(time.unit) / size(spec.unit)
-        values = rate(columns[spec.rate_of], t) * factor
+        values = rate(columns[spec.rate_of], t, (noise or {}).get(spec.rate_of)) * factor
         if not np.all(np.isfinite(values)):
             bad = np.flatnonzero(~np.isfinite(values))
             raise DataError(f"{data.source}: the rate '{name}' is not finite at "

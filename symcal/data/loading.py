@@ -16,6 +16,7 @@ from typing import Any
 
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError
+from symcal.base.units import size
 from symcal.data.dataset import Dataset, make_dataset, read_table
 from symcal.data.derived import sources, with_derived
 from symcal.language.problem_file import DatasetSpec
@@ -93,6 +94,13 @@ def scenario(path: str | Path) -> Any:
     return loaded
 
 
+def column_noise(problem: Problem) -> dict[str, float]:
+    """The declared noise of each data column (standard deviation, in the column's
+    unit)."""
+    return {name: r.sigma / size(r.unit) for name, r in problem.noise_columns().items()
+            if r.unit}
+
+
 def load_datasets(
     problem: Problem,
     given: Mapping[str, Dataset | str | Path] | None = None,
@@ -137,5 +145,6 @@ def load_datasets(
         else:
             out[name] = load_dataset(problem.datasets[name], read, item, drop_invalid)
         if isinstance(out[name], Dataset):
-            out[name] = with_derived(problem.column_specs, out[name], needed)
+            out[name] = with_derived(problem.column_specs, out[name], needed,
+                                     column_noise(problem))
     return out

@@ -36,6 +36,7 @@ import numpy as np
 from symcal.analysis.discovery import Basis, Candidate
 from symcal.analysis.residuals import Variable
 from symcal.base.units import DISPLAY_UNITS
+from symcal.data.derived import rate
 from symcal.problem.symbolic import Problem
 from symcal.revise.blocks import Block, distinct_groups, references
 
@@ -428,7 +429,8 @@ def latency_entries(problem: Problem, blocks: list[Block], fit: int,
         cols = sorted({c for c in inst.bindings.values() if c in index and c != time})
         if not cols:
             continue
-        rates = [_rates(b, time, cols) for b in blocks]
+        noise = {c: r.sigma for c, r in problem.noise_columns().items()}
+        rates = [_rates(b, time, cols, noise) for b in blocks]
         if all(r is None for r in rates):
             continue
 
@@ -449,9 +451,12 @@ def latency_entries(problem: Problem, blocks: list[Block], fit: int,
     return out
 
 
-def _rates(block: Block, time: str, cols: list[str]) -> np.ndarray | None:
+def _rates(block: Block, time: str, cols: list[str], noise: Mapping[str, float]
+           ) -> np.ndarray | None:
     """The columns' time derivatives (internal units per second) on a dataset whose rows
-    are time-ordered and whose columns move smoothly; None elsewhere."""
+    are time-ordered and whose columns move smoothly; None elsewhere.  As the derived
+    column the revision declares computes them: smoothed where a column's declared noise
+    (``noise``, internal units) would leave its rate noisy."""
     ds = block.dataset
     if time not in ds.columns or ds.n < 5:
         return None
@@ -471,7 +476,7 @@ def _rates(block: Block, time: str, cols: list[str]) -> np.ndarray | None:
         if ratio > SMOOTH:
             return None
         moving = True
-        out.append(np.gradient(v, t))
+        out.append(rate(v, t, noise.get(c)))
     return np.column_stack(out) if moving else None
 
 
