@@ -111,7 +111,7 @@ def spaces(problem: Problem) -> dict[str, Space]:
     for name, inst in problem.instances.items():
         declared = inst.candidates
         own = sorted(own_names(problem, name))
-        default = tuple(own + shared)
+        default = tuple(dict.fromkeys(own + shared))   # a state column it reads: once
         if declared is None:
             out[name] = Space(name, default, None, tuple(range(1, HARMONICS + 1)),
                               "default: its own readings, time and state columns")
