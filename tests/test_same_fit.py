@@ -45,3 +45,20 @@ def test_one_fit_written_two_ways_gets_no_experiment(tmp_path) -> None:
     said = [n for n in notes if f"from {other} (" in n]
     assert len(said) == 1 and said[0].endswith(SAME_WORDS)
     assert "symcal design" not in said[0]
+
+
+@pytest.mark.slow
+def test_improve_takes_a_loaded_problem(tmp_path) -> None:
+    """As solve does (a new user's script passed the Problem it had loaded and got a
+    TypeError from pathlib)."""
+    for name, text in MODELS.items():
+        (tmp_path / name).write_text(text.replace(
+            "  calibration: {path: calibration.csv}\n",
+            "  calibration: {path: calibration.csv}\n  validation: {path: validation.csv}\n"))
+    data = {"calibration": _dwells("calibration", 1), "validation": _dwells("validation", 2)}
+    by_path = symcal.improve(tmp_path / "fixed.yaml", tmp_path / "a", data)
+    loaded = symcal.improve(symcal.load_problem(tmp_path / "fixed.yaml"), tmp_path / "b", data)
+    assert [r.added for r in loaded.rounds] == [r.added for r in by_path.rounds]
+    assert [r.problem_file.name for r in loaded.rounds[1:]] == ["fixed_round1.yaml"]
+    np.testing.assert_allclose(loaded.rounds[-1].result.theta, by_path.rounds[-1].result.theta,
+                               rtol=1e-12)

@@ -522,7 +522,7 @@ def _revision(diag: Diagnosis, cand_label: str, directory: Path, name: str) -> P
 
 
 def improve(
-    problem: str | Path,
+    problem: Problem | str | Path,
     out: str | Path,
     data: Mapping[str, Dataset | str | Path] | None = None,
     max_rounds: int = 5,
@@ -536,10 +536,11 @@ def improve(
     Parameters
     ----------
     problem
-        The starting problem file.
+        The starting problem file, or a loaded :class:`~symcal.problem.symbolic.Problem`
+        (its file: every revision is an overlay that extends it).
     out
-        The folder for the revisions (``round_K.yaml``, their models in ``models/``) and
-        ``final.yaml``; created if absent.
+        The folder for the revisions (``PROBLEM_roundK.yaml``, named after the problem's
+        file, their models in ``models/``) and ``final.yaml``; created if absent.
     data
         Datasets replacing the problem's (objects or files), as ``--data``.
     max_rounds
@@ -564,13 +565,16 @@ def improve(
         return _improve(problem, out, data, max_rounds, alpha, drop_invalid, report)
 
 
-def _improve(problem: str | Path, out: str | Path,
+def _improve(problem: Problem | str | Path, out: str | Path,
              data: Mapping[str, Dataset | str | Path] | None, max_rounds: int, alpha: float,
              drop_invalid: bool, report: Report) -> Improvement:
     say = report.line
     directory = Path(out)
     directory.mkdir(parents=True, exist_ok=True)
-    current: Problem = load_problem(problem)
+    if isinstance(problem, Problem):
+        current, problem = problem, Path(problem.path)
+    else:
+        current = load_problem(problem)
     datasets = load_datasets(current, data, drop_invalid)
     stem = plain_name(Path(problem).stem)   # revisions are named after the file
     cleared = clear_previous(directory, stem)

@@ -16,6 +16,7 @@ experiment that would separate them (a ``symcal design`` target).
 
 from __future__ import annotations
 
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -239,4 +240,14 @@ def design_hint(result: Result, problem_file: Path, target: tuple[str, float]) -
     scenario = next((spec.scenario for spec in result.problem.datasets.values()
                      if spec.scenario is not None), None)
     return "an experiment that separates them: " + design_sentence(
-        problem_file, scenario, f"--optimize --target {name}={se:.2g}{unit.replace(' ', '')}")
+        problem_file, scenario, f"--optimize --target {target_arg(name, se, unit)}")
+
+
+def target_arg(name: str, value: float, unit: str) -> str:
+    """``NAME=VALUEUNIT`` as a shell takes it: the unit joined where it starts with a
+    letter (``l_y=0.31mm``), else after a space and quoted (``'ifm.kT=3.3e-09 1/K'``:
+    ``3.3e-091/K`` would read as another number)."""
+    unit = unit.replace(" ", "")
+    if not unit or unit[0].isalpha() or unit[0] in "µ°Ω":
+        return f"{name}={value:.2g}{unit}"
+    return shlex.quote(f"{name}={value:.2g} {unit}")
