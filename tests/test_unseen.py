@@ -104,12 +104,12 @@ K, B = 1.012, -0.8          # the turbine's gain and offset (L/min)
 COUPLING = 0.3              # L/min per m³/h of the ultrasonic meter's reading
 
 
-def _run(name: str, seed: int, n: int) -> symcal.Dataset:
+def _run(name: str, seed: int, n: int, u_noise: float = 0.05) -> symcal.Dataset:
     """Mass flow 1-10 kg/s; the turbine reads ``q`` with k q + b + c u = its flow in
     L/min; an ultrasonic meter reads the same flow in m³/h (the coupling's source)."""
     rng = np.random.default_rng(seed)
     m = rng.uniform(1, 10, n)
-    u = m * 3.6 + rng.normal(0, 0.05, n)          # 1 kg/s of water ≈ 3.6 m³/h here
+    u = m * 3.6 + rng.normal(0, u_noise, n)       # 1 kg/s of water ≈ 3.6 m³/h here
     q = (m * 60 - B - COUPLING * u) / K
     return make_dataset(name, "test", {"t": np.arange(n, dtype=float),
                                        "m_c": m + rng.normal(0, 0.002, n),
@@ -134,8 +134,8 @@ def test_a_nearly_absorbed_coupling_is_named_with_the_gain_it_moves(tmp_path) ->
     assert named == {"tur.mdot += a term linear in u_us": {"tur.k": reach["tur.k"]}}
     text = diagnosis_report(diag)
     assert (f"what the floor cannot vouch for: tur.k (up to {reach['tur.k']:.0f} SE): "
-            "effects the parameters nearly absorb would move them that far unseen "
-            '("Nearly absorbed" below)') in text
+            "effects the parameters absorb, or nearly, would move them that far unseen "
+            '("Absorbed" and "Nearly absorbed" below)') in text
     assert "  tur.mdot += a term linear in u_us: unseen up to " in text
     nearly = json.loads(json.dumps(diag.to_dict()))["nearly_absorbed"]
     assert [n["label"] for n in nearly] == ["tur.mdot += a term linear in u_us"]
@@ -165,8 +165,27 @@ def test_improve_says_what_the_floor_cannot_vouch_for(tmp_path, capsys) -> None:
     out = capsys.readouterr().out
     line = next(ln for ln in out.splitlines() if "cannot vouch" in ln)
     assert line.startswith("  what the floor cannot vouch for: tur.k (up to ")
-    assert line.endswith("SE): effects the parameters nearly absorb would move them that "
-                         "far unseen (symcal diagnose of the final problem names them)")
+    assert line.endswith("SE): effects the parameters absorb, or nearly, would move them "
+                         "that far unseen (symcal diagnose of the final problem names them)")
     assert main(["improve", problem, "--out", str(tmp_path / "b"), "--json", "--quiet"]) == 0
     unvouched_ = json.loads(capsys.readouterr().out)["unvouched"]
     assert [u["parameter"] for u in unvouched_] == ["tur.k"] and unvouched_[0]["reach_se"] > 100
+
+
+@pytest.mark.slow
+def test_an_absorbed_coupling_is_not_vouched_for_at_any_size(tmp_path) -> None:
+    """The ultrasonic reading exactly proportional to the flow: the coupling is absorbed
+    by the gain, the verdict says so; the term linear in the turbine's own reading (its
+    gain, restated) is not named."""
+    for name, text in MODELS.items():
+        (tmp_path / name).write_text(text.replace("noise: 0.05 m**3/h", "noise: 0 m**3/h"))
+    data = {"calibration": _run("calibration", 1, 400, 0.0),
+            "validation": _run("validation", 2, 200, 0.0)}
+    diag = diagnose(symcal.solve(tmp_path / "problem.yaml", data=data))
+    absorbed = {c.label for c in diag.candidates if c.absorbed}
+    assert {"tur.mdot += a term linear in u_us", "tur.mdot += a term linear in q_t"} <= absorbed
+    assert unvouched(diag) == [("tur.k", float("inf"))]
+    text = diagnosis_report(diag)
+    assert ("what the floor cannot vouch for: tur.k (by any amount: an effect it absorbs)"
+            in text)
+    assert json.loads(json.dumps(diag.to_dict()))["nearly_absorbed"] == []

@@ -4,6 +4,7 @@ the held-out residuals and BIC improve → repeat; every revision an overlay in 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -66,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
     reach = unvouched(result.last)
     if args.json:
         sys.stdout.write(plain_json({**result.to_dict(), "left": left, "unvouched": [
-            {"parameter": name, "reach_se": value} for name, value in reach]}))
+            {"parameter": name, "reach_se": value if math.isfinite(value) else None,
+             "absorbed": not math.isfinite(value)} for name, value in reach]}))
     else:
         lines = [f"symcal improve: {len(result.rounds) - 1} round(s) kept; "
                  + outcome_text(result), ""]

@@ -801,7 +801,7 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
                                                   "nothing found"))
     reach = unvouched(diag)
     if reach:
-        lines.append(unvouched_line(reach, '"Nearly absorbed" below'))
+        lines.append(unvouched_line(reach, '"Absorbed" and "Nearly absorbed" below'))
     lines += design_pointer(result)
     return lines
 
@@ -936,19 +936,23 @@ def unvouched(diag: Any) -> list[tuple[str, float]]:
 def unvouched_line(reach: list[tuple[str, float]], where: str) -> str:
     """The verdict's line on :func:`unvouched` parameters, pointing to ``where``."""
     return ("what the floor cannot vouch for: " + ", ".join(
-        f"{name} (up to {_reach_text(value)} SE)" for name, value in reach[:4])
+        f"{name} (up to {_reach_text(value)} SE)" if math.isfinite(value)
+        else f"{name} (by any amount: an effect it absorbs)" for name, value in reach[:4])
         + (f" and {len(reach) - 4} more" if len(reach) > 4 else "")
-        + f": effects the parameters nearly absorb would move them that far unseen ({where})")
+        + f": effects the parameters absorb, or nearly, would move them that far unseen "
+          f"({where})")
 
 
 def _reach_text(value: float) -> str:
+    if not math.isfinite(value):
+        return "any number of"
     return f"{value:.0f}" if value >= 10 else f"{value:.1f}"
 
 
 def _nearly_lines(diag: Diagnosis) -> list[str]:
     """The candidates the parameters nearly absorb: how large each can be unseen and how
     far it would move them."""
-    nearly = [c for c in diag.candidates if getattr(c, "unseen", ())]
+    nearly = [c for c in diag.candidates if getattr(c, "unseen", ()) and not c.absorbed]
     if not nearly:
         return []
     lines = ["", "Nearly absorbed by the current parameters (each may be present up to "

@@ -225,7 +225,7 @@ class Diagnosis:
                 {"label": c.label, "moves": {name: v for name, v in c.unseen},
                  "mde": None if c.mde is None else c.mde / DISPLAY_UNITS[self._unit(c)],
                  "mde_unit": self._unit(c) or "(internal)"}
-                for c in self.candidates if c.unseen][:20],
+                for c in self.candidates if c.unseen and not c.absorbed][:20],
             "outliers": None if self.outliers is None else {
                 **self.outliers.to_dict(), "remedy": remedy_yaml(self.outliers)
                 if self.outliers.dominate and self.outliers.squared else ""},
@@ -413,8 +413,19 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
         own, candidates, [own_regressor(e.raw) for e in entries], alpha, local,
         [None if e.extra is None else own_regressor(e.extra) for e in entries],
         gauge_columns)
+    def restates(cand: Candidate) -> bool:     # a term linear in its own reading: a gain
+        return cand.basis.kind == "linear" and cand.output in problem.diagnostic.hooks \
+            and local(cand)
+
+    def suspected(cand: Candidate) -> bool:    # a coupling the user asked about
+        if cand.output not in problem.diagnostic.hooks or local(cand):
+            return False
+        space = found.get(cand.output.split(".", 1)[0])
+        return space is not None and not space.origin.startswith("default")
+
     mark_unseen(own, entries, ranked, own_regressor, alpha / max(len(candidates), 1),
-                [n for n, f in zip(problem.parameter_names, free, strict=True) if f])
+                [n for n, f in zip(problem.parameter_names, free, strict=True) if f],
+                restates, suspected)
     leads = [c for c in _leads(tuple(ranked)) if c.significant][:TOP]
     members = {label for c in leads for label in c.indistinguishable[:GROUP - 1]}
     for cand in [*leads, *(c for c in ranked if c.label in members)]:

@@ -38,16 +38,32 @@ NAMED = 3
 
 def mark_unseen(own: Design, entries: Sequence[Entry], ranked: Sequence[Candidate],
                 regressor: Callable[[Raw], np.ndarray], level: float,
-                physical: Sequence[str]) -> None:
+                physical: Sequence[str],
+                restates: Callable[[Candidate], bool] = lambda c: False,
+                suspected: Callable[[Candidate], bool] = lambda c: False) -> None:
     """Fill :attr:`Candidate.unseen` of the tested candidates that are not significant:
     the physical parameters (``physical``: the free ones, not the comparisons' offsets)
     a term of theirs the test at ``level`` misses could move by more than
-    :data:`UNSEEN` standard errors."""
+    :data:`UNSEEN` standard errors; of an absorbed candidate the user asked about
+    (``suspected``: a term in another sensor's reading, in a declared ``candidates:``
+    space), the parameters of its own sensor it would bias, by any amount (infinite: a
+    coupling its gain takes; one another sensor's parameters take is the constraints'
+    own equivalence, a courier segment's harmonic seen through its neighbour's).  Candidates that
+    only restate a parameter (``restates``: a term linear in a sensor's own reading is
+    its gain, written again) are left out: that the gain absorbs them is what
+    calibrating it means.  Other absorbed candidates (a model's own harmonics, a
+    constant a gain multiplies) are equivalences of the model's own terms: the report
+    lists them as absorbed, the verdict does not repeat them."""
     by_label = {e.candidate.label: e for e in entries}
     wanted = set(physical)
     for cand in ranked:
+        if cand.absorbed and cand.biases and suspected(cand) and not restates(cand):
+            mine = cand.output.split(".", 1)[0] + "."     # its own sensor's parameters
+            cand.unseen = tuple((name, float("inf")) for name in cand.biases
+                                if name in wanted and name.startswith(mine))[:NAMED]
+            continue
         if cand.significant or cand.absorbed or cand.reopens or \
-                cand.label not in by_label or cand.reach <= UNSEEN:
+                cand.label not in by_label or cand.reach <= UNSEEN or restates(cand):
             continue            # (reach bounds every parameter's: none can go further)
         entry = by_label[cand.label]
         x = regressor(entry.raw)
