@@ -56,6 +56,7 @@ from symcal.calibrate.result import Result
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
 from symcal.revise.blocks import Block, distinct, evaluate
+from symcal.revise.centres import NEARLY, centred_product
 from symcal.revise.effects import effect_yaml
 from symcal.revise.library import (
     Entry,
@@ -405,7 +406,8 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
         instance = cand.output.split(".", 1)[0]
         return cand.basis.variable in own_names_of(problem, instance)
 
-    entries = [_without_redundant(e, own, own_regressor) for e in entries]
+    entries = [centred_product(_without_redundant(e, own, own_regressor), own,
+                               own_regressor, blocks[fit]) for e in entries]
     candidates = [e.candidate for e in entries]
     by_label = {e.candidate.label: e for e in entries}
     gauge_columns = {name: fixed_columns[name] for name in fixes}
@@ -542,12 +544,6 @@ def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]
                  raw, entry.extra, lower)
 
 
-#: What a term's centre moves between it and the rest is nearly absorbed where the
-#: parameters leave less than this share of each of its columns unexplained (a gain
-#: times a density that varies by a few per cent over the run; a thermistor's R25 over
-#: 0-100 degC): the term is then written about the model's own centre, as where they
-#: absorb it exactly, so that they keep their meaning.
-NEARLY = 0.2
 #: A free parameter's column is the model's own affine dependence on a variable when the
 #: part of it that is not is below this share of it.
 AFFINE = 1e-6

@@ -166,7 +166,9 @@ def _scales(sigma: float, columns: np.ndarray) -> tuple[float, ...]:
     return tuple(float(f"{s:.3g}") for s in out)
 
 
-def _centre(values: np.ndarray) -> float:
+def centre_of(values: np.ndarray) -> float:
+    """The data's centre of a variable: its mean, to six significant digits (a term's
+    ``centre`` in the files it is written to)."""
     return float(f"{float(np.mean(values)):.6g}")
 
 
@@ -204,7 +206,7 @@ def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shap
                                         ("drift",), ("{v}",), unit=v.unit),
                                   _linear(v.name, 0.0)))
             continue
-        c = _centre(block.values(v.name))
+        c = centre_of(block.values(v.name))
         if allowed("linear"):
             out.append(_Shape(Basis("linear", v.name, f"a term linear in {v.name}", ("lin",),
                                     ("({v} - {centre})",), unit=v.unit, centre=c),
@@ -325,7 +327,7 @@ def output_entries(problem: Problem, blocks: list[Block], fit: int
 
             extra = None
             if shape.contains:
-                parts = [_linear(n, 0.0 if v.kind == "drift" else _centre(blocks[fit].values(n)))
+                parts = [_linear(n, 0.0 if v.kind == "drift" else centre_of(blocks[fit].values(n)))
                          for n in shape.contains
                          for v in variables if v.name == n]
 

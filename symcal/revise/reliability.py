@@ -29,7 +29,7 @@ from symcal.revise.library import Entry, Raw
 #: more than this many of its standard errors.  An ordinary candidate reaches a few
 #: (the square root of its test's non-centrality, 4-5, times its correlation with the
 #: parameters over what is left of it); 20 is a correlation above about 0.97 with what
-#: the parameters already do, the near-absorption :data:`~symcal.revise.diagnose.NEARLY`
+#: the parameters already do, the near-absorption :data:`~symcal.revise.centres.NEARLY`
 #: speaks of.
 UNSEEN = 20.0
 #: At most this many parameters are named per candidate.
