@@ -605,11 +605,7 @@ def _improve(problem: Problem | str | Path, out: str | Path,
         leads = list(diag.significant)
         # the model's own approximation is a known defect, not a hypothesis: it goes
         # first, and the effects are then looked for in the model that has it right
-        # then the one the diagnosis predicts the held-out data best with: the most
-        # significant can be a part of the effect (a term linear in T before the gain's
-        # dependence on T) that, kept, stays as a stand-in
-        leads.sort(key=lambda c: (c.basis.kind != "approximation",
-                                  predicted_change(diag, c.label)))
+        leads.sort(key=lambda c: c.basis.kind != "approximation")
         for lead in leads[:TRIES]:
             single = _best_of_group(diag, lead, directory, name, datasets, result,
                                     rejected, say_round, alpha, physical)
