@@ -30,13 +30,18 @@ def _dwells(name: str, seed: int) -> symcal.Dataset:
         "T": temp + rng.normal(0, 0.05, n)}, [])
 
 
-@pytest.mark.slow
-def test_one_fit_written_two_ways_gets_no_experiment(tmp_path) -> None:
+def _write(tmp_path) -> dict[str, symcal.Dataset]:
+    """The flow loop's files with a validation run, and both runs' data."""
     for name, text in MODELS.items():
         (tmp_path / name).write_text(text.replace(
             "  calibration: {path: calibration.csv}\n",
             "  calibration: {path: calibration.csv}\n  validation: {path: validation.csv}\n"))
-    data = {"calibration": _dwells("calibration", 1), "validation": _dwells("validation", 2)}
+    return {"calibration": _dwells("calibration", 1), "validation": _dwells("validation", 2)}
+
+
+@pytest.mark.slow
+def test_one_fit_written_two_ways_gets_no_experiment(tmp_path) -> None:
+    data = _write(tmp_path)
     result = symcal.improve(tmp_path / "fixed.yaml", tmp_path / "out", data)
     notes = result.rounds[1].notes()
     pair = {"us's beta is off", "us's T0 is off"}
@@ -51,11 +56,7 @@ def test_one_fit_written_two_ways_gets_no_experiment(tmp_path) -> None:
 def test_improve_takes_a_loaded_problem(tmp_path) -> None:
     """As solve does (a new user's script passed the Problem it had loaded and got a
     TypeError from pathlib)."""
-    for name, text in MODELS.items():
-        (tmp_path / name).write_text(text.replace(
-            "  calibration: {path: calibration.csv}\n",
-            "  calibration: {path: calibration.csv}\n  validation: {path: validation.csv}\n"))
-    data = {"calibration": _dwells("calibration", 1), "validation": _dwells("validation", 2)}
+    data = _write(tmp_path)
     by_path = symcal.improve(tmp_path / "fixed.yaml", tmp_path / "a", data)
     loaded = symcal.improve(symcal.load_problem(tmp_path / "fixed.yaml"), tmp_path / "b", data)
     assert [r.added for r in loaded.rounds] == [r.added for r in by_path.rounds]
