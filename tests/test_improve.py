@@ -647,3 +647,21 @@ def test_the_wald_test_holds_for_coefficients_of_very_different_sizes(corr) -> N
     chi2, p = wald(result, names)
     assert chi2 == pytest.approx(expected, rel=1e-9) and expected > 200
     assert p == pytest.approx(scipy.stats.chi2.sf(expected, 2), rel=1e-6)
+
+
+@pytest.mark.slow
+def test_each_refusal_says_its_round(tmp_path, capsys) -> None:
+    """A candidate refused in one round may be tried and refused again in the next: each
+    "not kept" line and JSON entry says which round (a new user read the same label
+    twice, with different numbers, as a duplicate)."""
+    out = tmp_path / "out"
+    code = main(["improve", str(DUAL_IMPLICIT), "--out", str(out), "--json", "--quiet"])
+    doc = json.loads(capsys.readouterr().out)
+    assert code == 1
+    kept = len(doc["rounds"]) - 1
+    rounds = [r["round"] for r in doc["rejected"]]
+    assert rounds and rounds == sorted(rounds)
+    assert set(rounds) <= set(range(1, kept + 2)) and rounds[-1] == kept + 1
+    assert main(["improve", str(DUAL_IMPLICIT), "--out", str(tmp_path / "b"), "--quiet"]) == 1
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "not kept" in ln]
+    assert [int(ln.split("(round ")[1].split(")")[0]) for ln in lines] == rounds

@@ -81,8 +81,8 @@ def run(args: argparse.Namespace) -> int:
             what = r.added or "(the starting problem)"
             lines.append(f"  round {r.index}: {what}  [{r.problem_file}]")
             lines += [f"    {note}" for note in r.notes()]
-        for label, why in result.rejected:
-            lines.append(f"  not kept: {label}: {why}")
+        for (label, why), k in zip(result.rejected, result.tried_in(), strict=True):
+            lines.append(f"  not kept{'' if k is None else f' (round {k})'}: {label}: {why}")
         for label, why in result.aliased:
             lines.append(f"  real but not calibratable by these constraints: {label}: {why}")
         lines += ["", ladder_report(rungs).rstrip(), "",

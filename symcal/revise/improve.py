@@ -120,6 +120,9 @@ class Improvement:
     rejected: tuple[tuple[str, str], ...]
     last: Diagnosis
     aliased: tuple[tuple[str, str], ...] = ()
+    # the round each of ``rejected`` was tried in (a candidate refused in round 1 may be
+    # tried again, and refused again, in round 2)
+    rejected_rounds: tuple[int, ...] = ()
 
     @property
     def at_floor(self) -> bool | None:
@@ -133,12 +136,20 @@ class Improvement:
         aliased = dict(self.aliased)
         return any(c.label not in aliased for c in self.last.significant)
 
+    def tried_in(self) -> tuple[int | None, ...]:
+        """The round each rejected candidate was tried in (None where not recorded)."""
+        if len(self.rejected_rounds) == len(self.rejected):
+            return tuple(self.rejected_rounds)
+        return (None,) * len(self.rejected)
+
     def to_dict(self) -> dict:
         """``{"rounds": [...], "quiet": ..., "final_problem": ..., "at_floor": ...}`` (plus
         what was rejected and why)."""
         return {"rounds": [r.to_dict() for r in self.rounds], "quiet": self.quiet,
                 "final_problem": str(self.final_problem), "at_floor": self.at_floor,
-                "rejected": [{"label": label, "reason": why} for label, why in self.rejected],
+                "rejected": [{"label": label, "reason": why, "round": k}
+                             for (label, why), k in zip(self.rejected, self.tried_in(),
+                                                        strict=True)],
                 "aliased": [{"label": label, "reason": why} for label, why in self.aliased]}
 
 
@@ -590,9 +601,13 @@ def _improve(problem: Problem | str | Path, out: str | Path,
     else:    # candidates tested where a failed solve stopped say nothing of the physics
         say(f"round 0: {current.name}: the solve failed: no revision is tried")
     last_try = len(rejected)
+    tried_in: list[int] = []      # the round of each of rejected
+    ran = 0
     for k in range(1, max_rounds + 1):
+        tried_in += [ran] * (len(rejected) - len(tried_in))
         if not diag.significant or not result.success:
             break
+        ran = k
         last_try = len(rejected)
         kept = None
         name = f"{stem}_round{k}"
@@ -636,7 +651,9 @@ def _improve(problem: Problem | str | Path, out: str | Path,
     aliased = _aliased(diag, rejected[last_try:])
     left = [c for c in diag.significant if c.label not in dict(aliased)]
     quiet = result.success and not left and result.at_floor is not False
-    return Improvement(tuple(rounds), quiet, final, tuple(rejected), diag, aliased)
+    tried_in += [ran] * (len(rejected) - len(tried_in))
+    return Improvement(tuple(rounds), quiet, final, tuple(rejected), diag, aliased,
+                       tuple(tried_in))
 
 
 def _now_zero(new: Result, rounds: list[Round], alpha: float) -> tuple[str, ...]:
