@@ -20,6 +20,7 @@ from conftest import ROOT
 
 import symcal
 import symcal.simulation
+from symcal.base.files import write_output
 from symcal.base.numeric import mapped
 from symcal.cli import main
 from symcal.data.dataset import make_dataset, write_table
@@ -518,10 +519,13 @@ def test_a_new_run_removes_the_previous_runs_files_only(tmp_path) -> None:
     assert models == ["platen_segment_p_hat_h3_p.yaml"]
     (out / "notes.yaml").write_text("mine: true\n")
     (out / "problem_round7.yaml").write_text("problem: mine\n")   # not symcal's
+    # an interrupted run's trials of a round's other leads
+    for stem in ("problem_round1_alt0", "problem_round1_alt1_try2", "problem_round2_all"):
+        write_output(out / f"{stem}.yaml", f"problem: {stem}\n")
     lines: list[str] = []
     second = improve(hidden, out, max_rounds=0, progress=lines.append)
     assert len(second.rounds) == 1
-    assert lines[0] == f"removed the previous run's 3 file(s) from {out}"
+    assert lines[0] == f"removed the previous run's 6 file(s) from {out}"
     left = sorted(p.relative_to(out).as_posix() for p in out.rglob("*")
                   if p.is_file() and not p.name.startswith("."))
     assert left == ["final.yaml", "notes.yaml", "problem_round7.yaml"]

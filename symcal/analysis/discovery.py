@@ -108,6 +108,9 @@ class Candidate:
     # errors, with how far (see unseen_bias)
     unseen: tuple[tuple[str, float], ...] = ()
     reach: float = 0.0           # a bound on every parameter's unseen_bias (inf: absorbed)
+    # the BIC's predicted change when the term, as written, is added and the calibration
+    # solved again (see bic_change); None where not predicted
+    bic_change: float | None = None
 
     @property
     def label(self) -> str:
@@ -239,6 +242,25 @@ def refit(design: Design, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     dof = max(len(design.r) - qn.shape[1] - rank_x, 1)
     s2 = float(left @ left) / dof
     return coef_n, coef_x, s2 * inv, s2
+
+
+def bic_change(design: Design, x: np.ndarray) -> float:
+    """The change of the fit's BIC (``M log(RSS/M) + rank log M``, as
+    :attr:`~symcal.calibrate.result.Result.bic`) when the columns ``x`` (M × m) join the
+    nuisance: the residual sum of squares the fit of both leaves, against the nuisance's
+    alone, and one parameter per column the nuisance does not already hold.  Unlike the
+    F-test of :func:`test_candidates`, which tests a term beyond its simpler ones, this
+    is the term as it would be added, alone: what the BIC of the revision will say."""
+    qn = _basis(design)
+    r = _project(design.r, qn)
+    rss0 = float(r @ r)
+    q = _orthonormal(_project(x, qn))
+    proj = q.T @ r
+    rss1 = max(rss0 - float(proj @ proj), 1e-300)
+    rows = len(design.r)
+    if rss0 <= 0.0:
+        return 0.0
+    return rows * float(np.log(rss1 / rss0)) + q.shape[1] * float(np.log(rows))
 
 
 def _basis(design: Design) -> np.ndarray:

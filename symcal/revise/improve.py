@@ -259,6 +259,7 @@ class _Kept:
     path: Path
     result: Result
     ambiguous: tuple[str, ...] = ()
+    written: frozenset[Path] = frozenset()    # the files written for it (path included)
 
 
 def _best_of_group(
@@ -299,8 +300,8 @@ def _best_of_group(
         _remove({f for f in written[label] if f.resolve() not in used})
     if not paying:
         return None
-    best = min(t[3].bic for t in paying)
-    paying.sort(key=lambda t: (t[3].bic > best + CLEAR_BIC, t[0]))
+    fits = [t[3] for t in paying]
+    paying.sort(key=lambda t: _rank(t[3], t[0], fits))
     _, label, path, new = paying[0]
     used = {f.resolve() for f in new.problem.source_files()}
     for _, other, _, _ in paying[1:]:
@@ -309,7 +310,14 @@ def _best_of_group(
     said = (_ambiguity(label, new, other, other_new, physical, final)
             for _, other, _, other_new in paying[1:])
     ambiguous = tuple(text for text in said if text)
-    return _Kept(label, final, with_floors(_rebound(new, final)), ambiguous)
+    return _Kept(label, final, with_floors(_rebound(new, final)), ambiguous,
+                 frozenset(written[label] - {path} | {final}))
+
+
+def _rank(new: Result, change: float, paying: Sequence[Result]) -> tuple[bool, float]:
+    """The order of revisions that pay: those whose BIC is within :data:`CLEAR_BIC` of
+    the lowest first, then by their held-out change (``change``)."""
+    return new.bic > min(r.bic for r in paying) + CLEAR_BIC, change
 
 
 def _rebound(result: Result, path: Path) -> Result:
@@ -516,7 +524,73 @@ def _try_siblings(
         _remove(written)
         return single
     final = _renamed(path, name)
-    return _Kept(label, final, with_floors(_rebound(new, final)))
+    return _Kept(label, final, with_floors(_rebound(new, final)),
+                 written=frozenset(written - {path} | {final}))
+
+
+def _alternatives(diag: Diagnosis, lead: Candidate, kept: _Kept, result: Result,
+                  tried: set[str]) -> list[Candidate]:
+    """The significant leads not tried this round whose BIC the diagnosis predicts
+    (:attr:`~symcal.analysis.discovery.Candidate.bic_change`) clearly below both the kept
+    lead's prediction and the revision kept's own BIC (by more than :data:`CLEAR_BIC`),
+    best first, at most :data:`TRIES`.  The most significant lead is tested beyond its
+    simpler terms; added alone it can fit worse than another: a scale's thermal
+    expansion is then stood in for by the encoder's product with the temperature and
+    the interferometer's coefficient, hundreds of standard errors off."""
+    if lead.basis.kind == "approximation" or lead.bic_change is None:
+        return []
+    bar = min(lead.bic_change, kept.result.bic - result.bic) - CLEAR_BIC
+    found = [c for c in diag.significant if c.label not in tried
+             and c.basis.kind != "approximation"
+             and c.bic_change is not None and c.bic_change < bar]
+    return sorted(found, key=lambda c: c.bic_change or 0.0)[:TRIES]
+
+
+def _best_lead(
+    diag: Diagnosis, lead: Candidate, kept: _Kept, tried: set[str], directory: Path,
+    name: str, datasets: Mapping[str, Dataset], result: Result,
+    rejected: list[tuple[str, str]], say: Callable[[str], None], alpha: float,
+    physical: set[str],
+) -> _Kept:
+    """The revision kept this round: ``kept`` (the first lead's that pays) or one of the
+    :func:`_alternatives` that pays and fits better (ranked as a group's members are,
+    :func:`_rank`); the others' files are removed and a sentence says why each paying one
+    was not kept (and where two fit about equally but put a physical parameter apart)."""
+    contenders = [kept]
+    for j, rival in enumerate(_alternatives(diag, lead, kept, result, tried)):
+        say(f"{rival.label}: the diagnosis predicts a BIC of "
+            f"{result.bic + (rival.bic_change or 0.0):.1f} with it, below the "
+            f"{kept.result.bic:.1f} of {kept.label}: solved too")
+        single = _best_of_group(diag, rival, directory, f"{name}_alt{j}", datasets,
+                                result, rejected, say, alpha, physical)
+        found = _try_siblings(diag, rival, single, directory, f"{name}_alt{j}", datasets,
+                              result, rejected, say, alpha, physical)
+        if found is not None:
+            contenders.append(found)
+    if len(contenders) == 1:
+        return kept
+    changes = {c.label: held_out_change(c.result, result) for c in contenders}
+    fits = [c.result for c in contenders]
+    contenders.sort(key=lambda c: _rank(c.result, changes[c.label], fits))
+    best, *others = contenders
+    used = {f.resolve() for f in best.result.problem.source_files()}
+    for other in others:
+        _remove({f for f in other.written if f.resolve() not in used})
+        why = (f"{best.label} fits these data better (BIC {best.result.bic:.1f} against "
+               f"{other.result.bic:.1f})" if best.result.bic < other.result.bic else
+               f"{best.label} fits about as well (BIC {best.result.bic:.1f} against "
+               f"{other.result.bic:.1f}) and predicts the held-out data better")
+        rejected.append((other.label, why))
+        say(f"tried {other.label}: it pays, but not kept: {why}")
+    if best is kept:
+        final = kept.path
+    else:
+        final = _renamed(best.path, name)
+        best = replace(best, path=final, result=_rebound(best.result, final),
+                       written=best.written - {best.path} | {final})
+    said = (_ambiguity(best.label, best.result, other.label, other.result, physical, final)
+            for other in others)
+    return replace(best, ambiguous=best.ambiguous + tuple(text for text in said if text))
 
 
 def _revision(diag: Diagnosis, cand_label: str, directory: Path, name: str) -> Path:
@@ -621,12 +695,16 @@ def _improve(problem: Problem | str | Path, out: str | Path,
         # the model's own approximation is a known defect, not a hypothesis: it goes
         # first, and the effects are then looked for in the model that has it right
         leads.sort(key=lambda c: c.basis.kind != "approximation")
+        tried: set[str] = set()
         for lead in leads[:TRIES]:
+            tried.update((lead.label, *lead.indistinguishable))
             single = _best_of_group(diag, lead, directory, name, datasets, result,
                                     rejected, say_round, alpha, physical)
             kept = _try_siblings(diag, lead, single, directory, name, datasets, result,
                                  rejected, say_round, alpha, physical)
             if kept is not None:
+                kept = _best_lead(diag, lead, kept, tried, directory, name, datasets,
+                                  result, rejected, say_round, alpha, physical)
                 break
         if kept is None:
             break

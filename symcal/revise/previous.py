@@ -22,9 +22,8 @@ _FROM_MODELS = re.compile(r"(?<![\w./-])([\w.-]+\.yaml)")
 
 def clear_previous(directory: Path, stem: str) -> list[Path]:
     """Remove the previous run's files from ``directory`` (module doc); return them."""
-    revisions = [p for p in directory.glob(f"{stem}_*.yaml")
-                 if re.fullmatch(rf"{re.escape(stem)}_(round\d+|try\d+|all)",
-                                 p.stem)]
+    own = rf"{re.escape(stem)}_(round\d+(_alt\d+)?(_try\d+|_all)?|try\d+|all)"
+    revisions = [p for p in directory.glob(f"{stem}_*.yaml") if re.fullmatch(own, p.stem)]
     gone = [p for p in [*(directory / n for n in SUMMARY), *revisions]
             if p.is_file() and written_by_symcal(p)]
     models = directory / "models"

@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from symcal.analysis.discovery import Candidate, Design, refit
+from symcal.analysis.discovery import Candidate, Design, bic_change, refit
 from symcal.analysis.row_noise import EXACT
 from symcal.base.linalg import range_basis, whitening
 from symcal.base.units import DISPLAY_UNITS
@@ -123,8 +123,10 @@ def predict(cand: Candidate, own: Design, x_own: np.ndarray, blocks: list[Block]
     Gauss-Newton refit of the current parameters and the candidate's coefficients on the
     calibration's constraints, applied to every residual; fills ``reduction`` (std now →
     predicted, display units) and the coefficients of the term to add (regressors are the
-    change a term of coefficient 1 makes) with standard errors."""
+    change a term of coefficient 1 makes) with standard errors, and the BIC's predicted
+    change (:func:`~symcal.analysis.discovery.bic_change`)."""
     coef_x, cov, out = predicted_spreads(own, x_own, blocks, free, raw)
+    cand.bic_change = bic_change(own, x_own)
     # the fit explains the residual as X·δ; the term to add to the model is -δ
     cand.coefficient = tuple(-float(v) for v in coef_x)
     cand.coefficient_se = tuple(float(np.sqrt(max(cov[k, k], 0.0)))
