@@ -405,6 +405,14 @@ def test_symcal_improve_json_and_files(tmp_path, capsys) -> None:
     assert doc["rounds"][-1]["significant"] == 0
     final = symcal.load_problem(doc["final_problem"])
     assert "s1.drift_t" in final.parameter_names
+    # the final problem is solved on the data the loop was given, not the problem's own
+    assert {n: (d.path, d.role) for n, d in final.datasets.items()} == {
+        "calibration": (paths["calibration"].resolve(), "fit"),
+        "flyby": (paths["flyby"].resolve(), "check")}
+    again = symcal.solve(final)
+    last = symcal.solve(doc["rounds"][-1]["problem"],
+                        data={n: str(p) for n, p in paths.items()})
+    assert np.array_equal(again.theta, last.theta)
     for name in ("ladder.txt", "ladder.json", "ladder.png"):
         assert (out / name).exists()
 
