@@ -101,6 +101,10 @@ def test_the_scale_expands_not_the_encoder(tmp_path, seed: int) -> None:
         "final.yaml", "problem_round1.yaml"]
     assert [p.name for p in (tmp_path / "out" / "models").glob("*.yaml")] == [
         "glass_scale_x_prod_xs_T.yaml"]
+    # data given in memory: final.yaml cannot name them, and says so
+    final = (tmp_path / "out" / "final.yaml").read_text().replace("\n  ", " ")
+    assert ("fitted on data given in memory (calibration, validation), not on the datasets "
+            "the problem file names" in final)
 
 
 def test_bic_change_is_the_refit_bic() -> None:

@@ -723,15 +723,41 @@ def _improve(problem: Problem | str | Path, out: str | Path,
             say(f"round {k}: {line}")
     final = directory / "final.yaml"
     base = Path(os.path.relpath(rounds[-1].problem_file.resolve(), directory.resolve()))
+    given, unnamed = _given_files(current, data, directory)
+    doc = f"the last revision symcal improve kept ({len(rounds) - 1} round(s))"
+    if unnamed:
+        doc += (f"; fitted on data given in memory ({', '.join(unnamed)}), not on the "
+                "datasets the problem file names: solve it with the same data")
     write_output(final, dump_yaml({
-        "problem": f"{stem}_final", "extends": base.as_posix(),
-        "doc": f"the last revision symcal improve kept ({len(rounds) - 1} round(s))"}))
+        "problem": f"{stem}_final", "extends": base.as_posix(), "doc": doc,
+        **({"datasets": given} if given else {})}))
     aliased = _aliased(diag, rejected[last_try:])
     left = [c for c in diag.significant if c.label not in dict(aliased)]
     quiet = result.success and not left and result.at_floor is not False
     tried_in += [ran] * (len(rejected) - len(tried_in))
     return Improvement(tuple(rounds), quiet, final, tuple(rejected), diag, aliased,
                        tuple(tried_in))
+
+
+def _given_files(problem: Problem, data: Mapping[str, Dataset | str | Path] | None,
+                 directory: Path) -> tuple[dict[str, dict[str, str]], list[str]]:
+    """``final.yaml``'s ``datasets``: each dataset given as a file (``--data NAME=PATH``)
+    in place of the problem's own, its path relative to ``directory`` and its role as
+    the problem resolved it, so that the final problem is solved on the data the loop
+    was; and the names of those given in memory (a file cannot name them)."""
+    files: dict[str, dict[str, str]] = {}
+    unnamed = []
+    for name, given in (data or {}).items():
+        if isinstance(given, Dataset):
+            unnamed.append(name)
+            continue
+        target = Path(given).resolve()
+        try:
+            where = Path(os.path.relpath(target, directory.resolve())).as_posix()
+        except ValueError:         # another drive: no relative path
+            where = target.as_posix()
+        files[name] = {"path": where, "role": problem.datasets[name].role}
+    return files, unnamed
 
 
 def _now_zero(new: Result, rounds: list[Round], alpha: float) -> tuple[str, ...]:
