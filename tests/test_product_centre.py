@@ -51,6 +51,7 @@ def test_the_gain_stays_the_gain_at_the_runs_temperature(tmp_path, seed: int) ->
     # the gain at the run's own centre, where the term is written about
     at_centre = K * (1 + TEMPCO * (centre - 293.15))
     assert abs(params["tur.k"].value - at_centre) < 4 * params["tur.k"].se
-    slope = params["tur.prod_q_t_T"]      # rho K TEMPCO, in g/mm³/K (rho 1e-3 g/mm³)
-    assert slope.unit == "g/mm^3/K"
-    assert abs(slope.value - 1e-3 * K * TEMPCO) < 4 * slope.se
+    slope = params["tur.prod_q_t_T"]      # rho K TEMPCO, in kg/K/l (rho 1 kg/l)
+    # g/s over L/min over K: two times reduced to one, not internal units (g/mm^3/K)
+    assert slope.unit == "kg/K/l"
+    assert abs(slope.value - 1.0 * K * TEMPCO) < 4 * slope.se

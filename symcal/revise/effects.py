@@ -82,8 +82,10 @@ def per(numerator: str, *denominators: tuple[str, int]) -> str:
     """``numerator`` over each ``(unit, power)``, as a person reads it: the declared units
     with what cancels cancelled (``m/s**2`` over ``K`` is ``m/K/s^2``, ``m/s`` over
     ``rad/s`` is ``m/rad``), ``""`` for a plain ratio (``m/s**2`` over ``m/s**2``, ``um``
-    over ``mm``); two different units of one dimension left (``um*s/mm``) are written in
-    internal units (``s``)."""
+    over ``mm``); two different units of one dimension left are reduced to one of them
+    (``um*s/mm`` is ``s``; a load cell's ``kN`` over ``mV/V`` over ``delta_degC`` is
+    ``kN/Δ°C``, where internal units read ``g*mm/s^2/K``): the value is written in that
+    unit, whatever factor it differs from the first by."""
     unit = parse_unit(numerator or "1")
     for den, power in denominators:
         unit = unit / parse_unit(den or "1") ** power
@@ -94,7 +96,7 @@ def per(numerator: str, *denominators: tuple[str, int]) -> str:
                   for name, _ in reg.Quantity(1.0, unit).unit_items()]
     named = [s for s in signatures if s]
     if len(set(named)) < len(named):
-        return internal_of(unit)
+        unit = reg.Quantity(1.0, unit).to_reduced_units().units
     return text_of(unit).replace("µ", "u")
 
 
