@@ -30,6 +30,7 @@ import casadi as ca
 import numpy as np
 
 from symcal.analysis.discovery import (
+    STANDALONE,
     Basis,
     Candidate,
     Design,
@@ -184,7 +185,8 @@ class Diagnosis:
         """The candidate in words."""
         if cand in self.uncalibratable:
             return _uncalibratable_words(cand, self.needs.get(cand.label, ""), self.own)
-        return _words(cand, self.alpha, self.tested, self.variant, self.own)
+        return _words(cand, self.alpha, self.tested, self.variant, self.own) + \
+            _reference_words(cand, self.result)
 
     def _unit(self, cand: Candidate) -> str:
         """The declared unit of a candidate's output."""
@@ -310,6 +312,23 @@ def _words(cand: Candidate, alpha: float, tested: int, variant: Variant | None,
             f"{cross} Adding it would remove {cand.share:.0%} of what the calibration's "
             f"constraints cannot yet explain; solving again with it would give "
             f"{_falls(cand)}; {stats}." + _group_words(cand, own))
+
+
+def _reference_words(cand: Candidate, result: Result) -> str:
+    """A warning where the candidate changes a sensor whose every parameter is fixed: the
+    problem's reference (a certified load cell).  A term there says the reference reads
+    wrong, and its shape in the reference's reading is often the same effect in a
+    calibrated sensor's (a stack of load cells carries one force): that one leaves the
+    reference as certified and puts the other sensors' parameters elsewhere."""
+    instance = cand.output.split(".", 1)[0]
+    names = [p for p in result.params.values() if p.name.startswith(f"{instance}.")]
+    if cand.basis.kind in STANDALONE or not names or not all(p.fixed for p in names):
+        return ""
+    return (f" Every parameter of {instance} is fixed: the problem trusts it as its "
+            f"reference, and this term says the reference itself reads wrong. Where a "
+            f"calibrated sensor's candidate explains about as much, prefer it (symcal "
+            f"improve compares them on their BIC), and check {instance} against its own "
+            f"calibration before adding a term to it.")
 
 
 def _value_words(cand: Candidate, stats: str) -> str:

@@ -1,0 +1,60 @@
+"""A candidate on the problem's reference (every parameter of the sensor fixed: a
+certified load cell) is said to be one: a new user's stack of load cells, one of them
+not linear, had the same quadratic on the reference as the diagnosis's second
+suggestion, which reached the floor with the other cells' parameters 5-9 standard
+errors off."""
+
+from __future__ import annotations
+
+import numpy as np
+
+import symcal
+from symcal.data.dataset import make_dataset
+
+CELL = """model: load_cell
+inputs:
+  r: {unit: mV/V}
+parameters:
+  zero: {value: 0, unit: mV/V, scale: 0.01}
+  sens: {value: 0.4, unit: mV/V/kN, scale: 0.4}
+outputs:
+  F: {expr: (r - zero)/sens, unit: kN}
+"""
+PROBLEM = """problem: stack
+columns:
+  t: {unit: s, role: time}
+  rA: {unit: mV/V, noise: 0.0002 mV/V}
+  rB: {unit: mV/V, noise: 0.0005 mV/V}
+  rC: {unit: mV/V, noise: 0.0005 mV/V}
+instances:
+  A: {model: cell.yaml, inputs: {r: rA},
+      parameters: {sens: {value: 0.40012, fixed: true}, zero: {value: 0.012, fixed: true}}}
+  B: {model: cell.yaml, inputs: {r: rB}}
+  C: {model: cell.yaml, inputs: {r: rC}}
+constraints:
+  g_AB: {expr: A.F - B.F, unit: N}
+  g_AC: {expr: A.F - C.F, unit: N}
+datasets:
+  calibration: {path: calibration.csv}
+"""
+WARNING = ("Every parameter of A is fixed: the problem trusts it as its reference, and "
+           "this term says the reference itself reads wrong.")
+
+
+def test_a_term_on_the_reference_says_so(tmp_path) -> None:
+    (tmp_path / "cell.yaml").write_text(CELL)
+    (tmp_path / "problem.yaml").write_text(PROBLEM)
+    rng = np.random.default_rng(7)
+    force = np.tile(np.linspace(0, 5, 200), 6)           # kN, six load cycles
+    n = force.size
+    columns = {"t": 2.0 * np.arange(n),
+               "rA": 0.012 + 0.40012 * force + rng.normal(0, 0.0002, n),
+               "rB": -0.0083 + 0.3987 * force + rng.normal(0, 0.0005, n),
+               "rC": 0.0215 + 0.4021 * force + 1e-3 * force**2 + rng.normal(0, 0.0005, n)}
+    data = {"calibration": make_dataset("calibration", "test", columns, [])}
+    diag = symcal.diagnose(symcal.solve(tmp_path / "problem.yaml", data))
+    texts = {c.label: diag.candidate_text(c) for c in diag.significant}
+    on_c = "C.F += a quadratic dependence on rC"
+    assert next(iter(texts)) == on_c and WARNING not in texts[on_c]
+    on_a = [label for label in texts if label.startswith("A.F += ")]
+    assert on_a and all(WARNING in texts[label] for label in on_a), texts
