@@ -545,3 +545,16 @@ def test_a_printed_design_command_pastes_into_a_shell(tmp_path, monkeypatch) -> 
         f"declare which run may change and its limits in {shlex.quote(str(platen))} (a "
         f"'design:' section), then: symcal design p.yaml --scenario "
         f"{shlex.quote(str(platen))} -x")
+    # a scenario of series only: a 'design:' section alone would not do (a new user's axis)
+    series = folder / "series.yaml"
+    series.write_text("scenario: s\nconstants:\n  v: {value: 3, unit: mm/s}\n"
+                      "states:\n  x: {unit: mm}\ncolumns:\n"
+                      "  t: {expr: t, unit: s}\n  xs: {expr: x, unit: mm, noise: 0.1}\n"
+                      "runs:\n  calibration:\n    dt: 1\n"
+                      "    series: {n: 10, x: v*t}\n")
+    assert load_scenario(series).runs[0].motion.kind == "series"
+    assert design_sentence("p.yaml", series, "-x") == (
+        "the runs of 'nu enc#2/series.yaml' are series or lines, which symcal design cannot "
+        "vary: add a run of scattered poses or dwells (a 'scatter:' or 'dwells:' motion) "
+        "and declare it and its limits in a 'design:' section, then: symcal design p.yaml "
+        "--scenario 'nu enc#2/series.yaml' -x")

@@ -19,21 +19,39 @@ def design_command(problem: str | Path, scenario: str | Path | None, options: st
 def designable(scenario: str | Path | None) -> bool:
     """Whether ``symcal design`` can vary the scenario's motion as it is written (it has
     a ``design`` section); True where it cannot be read here (the command says why)."""
+    return _kinds(scenario)[0]
+
+
+def _kinds(scenario: str | Path | None) -> tuple[bool, bool]:
+    """Whether the scenario declares a ``design`` section, and whether any of its runs is
+    a motion ``symcal design`` can vary (a scatter or dwells run); both True where it
+    cannot be read here (the command then says why)."""
     if scenario is None:
-        return True
+        return True, True
     from symcal.simulation import load_scenario
+    from symcal.simulation.scenario import DESIGNABLE
 
     try:
-        return load_scenario(scenario).design is not None
+        found = load_scenario(scenario)
     except (SymcalError, OSError):
-        return True
+        return True, True
+    return (found.design is not None,
+            any(run.motion.kind in DESIGNABLE for run in found.runs))
 
 
 def design_sentence(problem: str | Path, scenario: str | Path | None, options: str) -> str:
     """The command, preceded where the scenario has no ``design`` section by what to
-    declare first."""
+    declare first, and where none of its runs can be varied (series and lines only) by
+    the run to add."""
     command = design_command(problem, scenario, options)
-    if designable(scenario):
+    declared, variable = _kinds(scenario)
+    if declared:
         return command
-    return (f"declare which run may change and its limits in {command_path(scenario or '')} "
+    where = command_path(scenario or "")
+    if not variable:
+        return (f"the runs of {where} are series or lines, which symcal design cannot "
+                "vary: add a run of scattered poses or dwells (a 'scatter:' or 'dwells:' "
+                f"motion) and declare it and its limits in a 'design:' section, then: "
+                f"{command}")
+    return (f"declare which run may change and its limits in {where} "
             f"(a 'design:' section), then: {command}")
