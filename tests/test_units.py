@@ -282,6 +282,22 @@ def test_declared_units_are_checked_against_the_expression(tmp_path: Path) -> No
         "length, but the reference 'th' is in rad, an angle")
 
 
+def test_a_models_expression_may_declare_its_unit(tmp_path: Path) -> None:
+    """A model's expression written as ``{expr, unit, doc}``, as a problem's expressions
+    and a model's outputs are (a new user's model was refused): it builds the same
+    constraint as the text form, and its unit is checked against the expression."""
+    text = _load(tmp_path).constraint("g").sx
+    form = "{expr: k0 + k1*sin(2*pi*p/rho), unit: um, doc: the segment's error}"
+    problem = _load(tmp_path, expr_text=form)
+    assert str(problem.constraint("g").sx) == str(text)
+    assert _error(tmp_path, expr_text="{expr: k0 + k1*sin(2*pi*p/rho), unit: rad}") == (
+        "seg.yaml:11: expressions.e.expr: 'e' is declared in rad, an angle, but its "
+        "expression is in mm, a length")
+    assert _error(tmp_path, expr_text="{expr: k0, units: mm}") == (
+        "seg.yaml:11: expressions.e.units: unknown key 'units' (did you mean 'unit'?); allowed "
+        "keys: expr, unit, doc")
+
+
 def test_inputs_are_checked_against_their_bindings(tmp_path: Path) -> None:
     (tmp_path / "seg.yaml").write_text(SEG.replace("EXPR", "k0").replace("OUT", "mm"))
     (tmp_path / "toy.yaml").write_text(TOY.replace("COL", "deg").replace("REF", "p1")

@@ -101,6 +101,8 @@ class ModelSpec:
     #: The search space of candidate effects the model declares (``candidates:``, its own
     #: or inherited); None: not declared.
     candidates: CandidatesSpec | None = None
+    #: The units expressions declare (``NAME: {expr: ..., unit: ...}``), by name.
+    expression_units: dict[str, str] = field(default_factory=dict)
 
     def error_expression(self, output: str) -> str | None:
         """The expression E when ``output`` is ``input + E`` (or ``E + input``): the
@@ -187,6 +189,33 @@ def _check_implicit(model: ModelSpec) -> None:
                                         f"'{model.name}'{did_you_mean(name, defined)}")
 
 
+def _parse_expression(name: str, value: Any, where: Where) -> tuple[ExprSpec, str]:
+    """An expression, written as text (or a number), or as ``{expr, unit, doc}`` as a
+    problem's expressions and a model's outputs are: its unit is then checked against
+    the expression's."""
+    if not isinstance(value, dict):
+        return parse_expr(value, where), ""
+    entry = check_keys(value, where, required=["expr"], optional=["unit", "doc"])
+    if "doc" in entry:
+        expect_str(entry["doc"], child_where(entry, where, "doc"))
+    return (parse_expr(entry["expr"], child_where(entry, where, "expr")),
+            display_unit(entry.get("unit"), child_where(entry, where, "unit")))
+
+
+def _merge_units(parent: dict[str, str], child: dict[str, str],
+                 redefined: set[str]) -> dict[str, str]:
+    """The declared units of the merged expressions, keyed as :func:`_merge_definitions`
+    keys them: a parent's moves to ``base.NAME`` where the child redefines ``NAME``, whose
+    own unit is the child's, or else the parent's."""
+    merged = {(BASE + k if k.startswith(BASE) else k): u for k, u in parent.items()}
+    for name in redefined:
+        if name in merged:
+            merged[BASE + name] = merged.pop(name)
+            merged[name] = merged[BASE + name]
+    merged.update(child)
+    return merged
+
+
 def _shift_base(spec: ExprSpec) -> ExprSpec:
     """Push a parent's own ``base.X`` references one level down (``base.base.X``)."""
     node = expr.rename(spec.node, lambda n: BASE + n if n.startswith(BASE) else n)
@@ -229,6 +258,8 @@ def _extend(parent: ModelSpec, child: ModelSpec) -> ModelSpec:
         {**parent.parameters, **child.parameters}, expressions, outputs, child.where, parent,
         {**parent.implicit, **child.implicit},
         child.candidates if child.candidates is not None else parent.candidates,
+        _merge_units(parent.expression_units, child.expression_units,
+                     set(child.expressions)),
     )
     _check_sections(model)
     _check_implicit(model)
@@ -302,7 +333,9 @@ def load_model(path: str | Path, _chain: tuple[Path, ...] = ()) -> ModelSpec:
     constants = entries("constants", parse_constant)
     inputs = entries("inputs", _parse_input)
     parameters = entries("parameters", parse_parameter)
-    expressions = entries("expressions", lambda k, v, at: parse_expr(v, at))
+    declared = entries("expressions", _parse_expression)
+    expressions = {k: spec for k, (spec, _) in declared.items()}
+    units = {k: unit for k, (_, unit) in declared.items() if unit}
     for key in expressions:
         expect_symbol(key, expressions[key].where, "an expression's name")
     outputs = entries("outputs", _parse_output)
@@ -313,7 +346,8 @@ def load_model(path: str | Path, _chain: tuple[Path, ...] = ()) -> ModelSpec:
     candidates = (parse_candidates(doc["candidates"], child_where(doc, where, "candidates"))
                   if "candidates" in doc else None)
     model = ModelSpec(name, text, path.resolve(), constants, inputs, parameters, expressions,
-                      outputs, where, None, entries("implicit", parse_implicit), candidates)
+                      outputs, where, None, entries("implicit", parse_implicit), candidates,
+                      units)
     _check_sections(model)
     if "extends" not in doc:
         _check_implicit(model)

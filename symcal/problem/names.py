@@ -254,6 +254,7 @@ def instance_scope(inst: InstanceSpec, inputs: dict[str, ca.SX], params: dict[st
     units["pi"] = declared("1")
     defs = dict(model.expressions)
     defs.update({k: o.expr for k, o in model.outputs.items()})
-    outputs = {k: declared(o.unit) for k, o in model.outputs.items()}
+    outputs = {k: declared(u) for k, u in model.expression_units.items() if k in defs}
+    outputs.update({k: declared(o.unit) for k, o in model.outputs.items()})
     return Scope(f"{inst.name}.", Symbols(values, units, defs, outputs),
                  _ModelOutside(model.name), stack, Implicits(model.implicit, opened), hooked)
