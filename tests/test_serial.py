@@ -145,3 +145,52 @@ def test_independent_rows_are_rarely_called_correlated(problem) -> None:
     assert sum(found) <= 4
     z = [v for seed in range(30) for v in _z(_halves(problem, _recording(seed, 0.0)))]
     assert 0.6 < float(np.mean(np.square(z))) < 1.5
+
+
+ABBE = GAUGE.replace("  k: {value: 0, unit: 1, scale: 0.01, doc: gain error}\n",
+                     "  k: {value: 0, unit: 1, scale: 0.01, doc: gain error}\n"
+                     "  d: {value: 0, unit: mm/rad, scale: 10, doc: Abbe offset}\n"
+                     ).replace("  r: {unit: mm, noise: 10 um, doc: raw reading}\n",
+                               "  r: {unit: mm, noise: 10 um, doc: raw reading}\n"
+                               "  w: {unit: rad, doc: pitch}\n"
+                               ).replace("c + (1 + k)*r", "c + (1 + k)*r + d*w")
+
+
+def test_newey_west_errors_keep_every_direction(tmp_path) -> None:
+    """The Newey-West meat of a gauge with an Abbe term (its pitch 2e-5 rad against a
+    5 mm swing: the sum of the scores' products spans 1e13 in the parameters' units) gives
+    the standard errors of numpy's sandwich, computed in scaled coordinates: the sum was
+    cut at 1e-9 of its largest eigenvalue, which dropped part of the Abbe direction and
+    stated its error 10 times too small (6.0 against 58.8 mm/rad)."""
+    (tmp_path / "gauge.yaml").write_text(ABBE)
+    (tmp_path / "two.yaml").write_text(PROBLEM.replace(
+        "  s: {model: gauge.yaml, inputs: {r: b}}",
+        "  s: {model: gauge.yaml, inputs: {r: b, w: w}}").replace(
+        "  b: {unit: mm}\n", "  b: {unit: mm}\n  w: {unit: rad}\n"))
+    cols = _recording(5, 0.8)
+    rng = np.random.default_rng(6)
+    cols["w"] = 2e-5 * np.sin(2 * np.pi * cols["t"] / 7.3 + 1.0) + rng.normal(0, 2e-6, 2000)
+    cols["b"] = cols["b"] - 30.0 * cols["w"] / 1.002
+    result = symcal.solve(tmp_path / "two.yaml", {"calibration": make_dataset(
+        "calibration", "abbe", cols, [])})
+    serial = result.stages[-1].serial
+    assert serial is not None and serial.detected
+    names = ["s.c", "s.k", "s.d"]
+    c, k, d = (result.params[n].value for n in names)
+    # residual g = c + (1 + k) b + d w - a (mm); its Jacobian [1, b, w]; the sandwich
+    # with Bartlett weights over the stated lags, times rows/(rows - 3)
+    jac = np.column_stack([np.ones(2000), cols["b"], cols["w"]])
+    g = c + (1 + k) * cols["b"] + d * cols["w"] - cols["a"]
+    scale = 1 / np.linalg.norm(jac, axis=0)
+    js = jac * scale
+    scores = js * g[:, None]
+    lags = serial.lags
+    meat = scores.T @ scores
+    for lag in range(1, lags + 1):
+        cross = scores[:-lag].T @ scores[lag:]
+        meat += (1 - lag / (lags + 1)) * (cross + cross.T)
+    bread = np.linalg.inv(js.T @ js)
+    cov = bread @ meat @ bread * 2000 / 1997 * np.outer(scale, scale)
+    expected = np.sqrt(np.diag(cov))
+    stated = np.array([result.params[n].se for n in names])
+    np.testing.assert_allclose(stated, expected, rtol=1e-6)

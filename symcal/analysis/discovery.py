@@ -296,6 +296,7 @@ def test_candidates(
     local: Callable[[Candidate], bool] | None = None,
     extras: list[np.ndarray | None] | None = None,
     gauges: Mapping[str, np.ndarray] | None = None,
+    reference: Callable[[Candidate], bool] | None = None,
 ) -> list[Candidate]:
     """Test every candidate (regressor ``(M, m)``) and rank them, best first.
 
@@ -307,7 +308,9 @@ def test_candidates(
     simpler terms it contains).  A candidate that explains the residual exactly re-opens
     a gauge (``reopens``; never significant): on noisy data only a direction no data can
     determine does that; ``gauges`` (name → whitened column of a fixed parameter that
-    fixes one) name which.
+    fixes one) name which.  ``reference`` marks the candidates on a sensor the problem
+    trusts (every parameter fixed): after the local ones, the others lead a group
+    before them.
     """
     nuisance = _nuisance(design)
     qn = nuisance.u
@@ -363,7 +366,7 @@ def test_candidates(
         cand.mde = _detectable(xp, cand.basis.scales, m, level, denom, cand.basis.term)
     tested = [c for c in candidates if not c.absorbed and not c.reopens]
     ranked = sorted(tested, key=lambda c: (c.log_p, -c.delta_rss))
-    _group(ranked, local)
+    _group(ranked, local, reference=reference)
     return ranked + [c for c in candidates if c.reopens] + \
         [c for c in candidates if c.absorbed]
 
@@ -480,13 +483,16 @@ def _same(a: Candidate, b: Candidate) -> bool:
 
 
 def _group(ranked: list[Candidate], local: Callable[[Candidate], bool] | None,
-           top: int = 8) -> None:
+           top: int = 8, reference: Callable[[Candidate], bool] | None = None) -> None:
     """Fill ``indistinguishable`` for the leading candidates (canonical correlation); the
     simplest member of a group that explains as much (:data:`EQUAL`) moves up to lead it:
-    a term in the sensor's own input (``local``) first, then the simpler shape
-    (:attr:`Basis.complexity`)."""
-    def simplicity(c: Candidate) -> tuple[bool, tuple[int, int]]:
-        return (local is not None and not local(c)), c.basis.complexity
+    a term in the sensor's own input (``local``) first, then one on a sensor the problem
+    does not trust as its reference (``reference``: a pressure sensor's dependence on
+    the temperature, where both sides of the constraint read it alike, belongs to the
+    sensor being calibrated), then the simpler shape (:attr:`Basis.complexity`)."""
+    def simplicity(c: Candidate) -> tuple[bool, bool, tuple[int, int]]:
+        return ((local is not None and not local(c)),
+                (reference is not None and reference(c)), c.basis.complexity)
 
     for i in range(min(top, len(ranked))):
         lead = ranked[i]

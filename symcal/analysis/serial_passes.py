@@ -31,7 +31,7 @@ from symcal.analysis.serial import (
     lag_one_of,
     lag_sums,
 )
-from symcal.base.linalg import numerical_rank, sqrt_psd
+from symcal.base.linalg import information_coordinates, numerical_rank, sqrt_psd
 from symcal.base.numeric import Mapped, chunks
 from symcal.problem.symbolic import Problem
 from symcal.solvers.base import SolverOutput
@@ -133,7 +133,8 @@ class _Lags:
 @dataclass(frozen=True)
 class _Scores:
     """A piece's :class:`~symcal.analysis.serial.HacPart` of the per-row scores
-    ``J_iᵀ g_i`` (weighted) at ``theta``."""
+    ``J_iᵀ g_i`` (weighted) at ``theta``, in the coordinates ``to`` maps them to
+    (:func:`~symcal.base.linalg.information_coordinates`)."""
 
     fn: Mapped
     theta: np.ndarray
@@ -141,6 +142,7 @@ class _Scores:
     shape: tuple[int, int]
     lags: int
     columns: tuple[str, ...]
+    to: np.ndarray
 
     def scores(self, u: np.ndarray) -> Iterator[np.ndarray]:
         ng, n = self.shape
@@ -154,11 +156,11 @@ class _Scores:
                 g, jac = np.einsum("mab,mb->ma", w, g), np.einsum("mab,mbn->man", w, jac)
             elif w is not None:
                 g, jac = g * w, jac * w[:, :, None]
-            yield np.einsum("ma,man->mn", g, jac)
+            yield np.einsum("ma,man->mn", g, jac) @ self.to
 
     def __call__(self, piece: Any) -> HacPart:
         return hac_part(self.scores(read_piece(piece, self.columns)), self.lags,
-                        self.shape[1])
+                        self.to.shape[1])
 
 
 def serial_passes(objective: Objective, data: Source, out: SolverOutput
@@ -178,8 +180,10 @@ def serial_passes(objective: Objective, data: Source, out: SolverOutput
     lags = bandwidth(max(found.rho, key=abs), n)
     rank = numerical_rank(out.r_factor, out.rows, objective.scales)
     n_free = len(objective.index)
+    to, back = information_coordinates(out.r_factor, out.rows, objective.scales)
     task = _Scores(linearised_function(objective, data.n), rows.rows.theta, rows.weigher,
-                   (len(objective.constraints), n_free), lags, columns)
-    meat = hac_combine(map_pieces(task, data, "hac_scores", "linearised"), lags, n_free)
+                   (len(objective.constraints), n_free), lags, columns, to)
+    meat = hac_combine(map_pieces(task, data, "hac_scores", "linearised"), lags,
+                       to.shape[1])
     meat *= out.rows / max(out.rows - rank, 1)
-    return replace(found, lags=lags), sqrt_psd(meat).T
+    return replace(found, lags=lags), sqrt_psd(meat).T @ back

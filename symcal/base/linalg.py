@@ -34,6 +34,23 @@ def numerical_rank(r_factor: np.ndarray, rows: int, scales: np.ndarray) -> int:
     return int(np.sum(s > rank_tolerance(s, rows)))
 
 
+def information_coordinates(r_factor: np.ndarray, rows: int, scales: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """``(P, B)`` for sums of per-row scores ``s`` (gradients in the parameters' units,
+    in the row space of ``R``): ``c = s P`` are their coordinates where ``RᵀR`` is the
+    identity, and ``s = c B``.  A sum ``Σ s sᵀ`` formed and cut in the parameters' units
+    spans the square of their scales and of the Jacobian's conditioning (1e17 and more
+    on a linear axis whose Abbe term is 4e-5 mm per µrad: a relative cut of its
+    eigenvalues drops directions and understates standard errors); ``Σ c cᵀ`` is about
+    the residual variance times the identity.  From the SVD of ``R·diag(scales)``, its
+    rank by :func:`rank_tolerance`; ``P`` is ``n × r``, ``B`` is ``r × n``."""
+    d = np.asarray(scales, dtype=float)
+    _, sv, vt = np.linalg.svd(r_factor * d[None, :], full_matrices=False)
+    keep = sv > rank_tolerance(sv, rows)
+    v, s = vt[keep], sv[keep]
+    return (d[:, None] * v.T) / s[None, :], (s[:, None] * v) / d[None, :]
+
+
 def range_basis(matrix: np.ndarray) -> np.ndarray:
     """Orthonormal columns spanning the numerical range of ``matrix`` (``M × k``), its
     singular values above :func:`rank_tolerance`."""

@@ -212,4 +212,5 @@ def _detectable(parsed: Any, problem: Any, scenario: Any, seed: int, alpha: floa
     output = next((q.unit for q in problem.signals if q.name == cand.output), "")
     value, shown = amplitude(parsed, output)
     return Detectable(cand.label, revised, added, tuple(float(x) for x in cand.basis.scales),
-                      alpha / tested, value, shown, parsed.text, alpha, tested)
+                      alpha / tested, value, shown, parsed.text, alpha, tested,
+                      float(cand.basis.term))

@@ -17,7 +17,7 @@ covariance C of the term's coefficients in its calibration is ``σ² (X̃ᵀX̃)
 unscaled coefficients (the Schur complement of the Fisher information: the other free
 parameters are what the projection removes), so that
 
-    MDE = TERM · sqrt(λ* · λ_max(D⁻¹ C D⁻¹)),    D = diag(scales),
+    MDE = term · sqrt(λ* · λ_max(D⁻¹ C D⁻¹)),    D = diag(scales),
 
 with C the covariance :func:`~symcal.experiment.predict.predict` states for the motion
 (the scenario's noise through the constraints, the solve's weighting).  It shrinks as
@@ -118,7 +118,7 @@ class Detectable:
     names
         The coefficient parameters, free in the last stage of ``problem``.
     scales
-        Per coefficient, the value (internal units) that makes a term of RMS ``TERM``.
+        Per coefficient, the value (internal units) that makes a term of RMS ``term``.
     level
         The level of the candidate's F-test (α over the candidates tested).
     value
@@ -129,6 +129,11 @@ class Detectable:
         The target as given.
     alpha, tested
         The diagnosis's family-wise level and its number of candidates.
+    term
+        The RMS (internal units) of the term when every coefficient is its scale: the
+        candidate's own (:attr:`~symcal.analysis.discovery.Basis.term`, about one noise
+        standard deviation of the output, as diagnose scales it), or ``TERM`` for a term
+        named by its coefficients (:func:`coefficient_scales`).
     """
 
     label: str
@@ -141,6 +146,7 @@ class Detectable:
     text: str
     alpha: float = 0.01
     tested: int = 1
+    term: float = TERM
 
     @property
     def noncentrality(self) -> float:
@@ -162,7 +168,7 @@ class Detectable:
         scaled = self.to_internal() / np.asarray(self.scales)
         m = unc.covariance[np.ix_(idx, idx)] * np.outer(scaled, scaled)
         top = float(np.linalg.eigvalsh(0.5 * (m + m.T))[-1])
-        return TERM * float(np.sqrt(self.noncentrality * max(top, 0.0)))
+        return self.term * float(np.sqrt(self.noncentrality * max(top, 0.0)))
 
     def describe(self) -> str:
         """The level in words: ``level 0.01 over 232 candidates (4.3e-05 each), power

@@ -431,11 +431,9 @@ class _Model:
 
     def mde2(self, cov: Any, detect: Detectable) -> Any:
         """The squared minimal detectable effect of ``detect``'s term (internal units)
-        from a scaled covariance: ``TERM² λ* λ_max(D⁻¹ C D⁻¹)``, the largest eigenvalue
+        from a scaled covariance: ``term² λ* λ_max(D⁻¹ C D⁻¹)``, the largest eigenvalue
         by the smooth upper bound ``trace(M^16)^(1/16)`` (at most 4.4 % above it for two
         columns; the design is predicted exactly afterwards)."""
-        from symcal.analysis.discovery import TERM
-
         idx = [self.names.index(n) for n in detect.names]
         factor = (np.asarray(self.scales)[idx] * detect.to_internal()
                   / np.asarray(detect.scales))
@@ -449,7 +447,7 @@ class _Model:
             for _ in range(int(math.log2(E_POWER))):
                 power = ca.mtimes(power, power)
             top = size_ * ca.trace(power) ** (1.0 / E_POWER)
-        return TERM**2 * detect.noncentrality * top
+        return detect.term**2 * detect.noncentrality * top
 
 
 def _criterion(kind: str, cov: Any, rank: int, reference: float) -> Any:

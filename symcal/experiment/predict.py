@@ -44,7 +44,7 @@ import numpy as np
 from symcal.analysis.identifiability import Identifiability, Uncertainty, analyse
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SymcalError
-from symcal.base.linalg import numerical_rank, sqrt_psd, whitening
+from symcal.base.linalg import numerical_rank, whitening
 from symcal.base.numeric import chunks, mapped
 from symcal.base.units import size
 from symcal.data.dataset import Dataset, make_dataset
@@ -210,20 +210,33 @@ def misfit_covariance(objective: Objective, data: Dataset, theta: np.ndarray,
 def sandwich_meat(objective: Objective, data: Dataset, theta: np.ndarray,
                   columns_cov: np.ndarray, transform: np.ndarray | None,
                   misfit: bool = True) -> np.ndarray:
-    """``Σ_i J̃_iᵀ (T (G_i Σ G_iᵀ + m_i m_iᵀ) Tᵀ) J̃_i`` at the refit ``theta``: the spread
-    of the calibration's estimating equations over data sets, each observation with its
-    own noise covariance (it changes with the pose, e.g. with the sign of θ) and its own
-    misfit ``m_i`` (it changes with the pose drawn; False: left out); ``J̃_i = T J_i``."""
+    """``M`` (``n_free × n_free``, upper triangular) with
+    ``MᵀM = Σ_i J̃_iᵀ (T (G_i Σ G_iᵀ + m_i m_iᵀ) Tᵀ) J̃_i`` at the refit ``theta``: the
+    spread of the calibration's estimating equations over data sets, each observation
+    with its own noise covariance (it changes with the pose, e.g. with the sign of θ) and
+    its own misfit ``m_i`` (it changes with the pose drawn; False: left out);
+    ``J̃_i = T J_i``.
+
+    ``M`` is the R factor of the rows ``a_kᵀ J̃_i`` (``a_k`` the columns of
+    ``T G_i Σ^½`` and ``T m_i``), reduced chunk by chunk as the solve reduces its own
+    meat (:meth:`Objective.accumulate_r`): the sum ``Σ J̃ᵀ S̃ J̃`` is never formed, so
+    its condition number is the Jacobian's, not its square, and no direction of it is
+    dropped as numerically zero (its eigenvalues span the square of the parameters'
+    scales and of the Jacobian's conditioning: 1e12 and more on a linear axis with a
+    product and an Abbe term, where a relative PSD cut of the sum dropped half of it)."""
     nf = len(objective.index)
-    meat = np.zeros((nf, nf))
+    w, v = np.linalg.eigh((columns_cov + columns_cov.T) / 2)
+    root = v * np.sqrt(np.clip(w, 0.0, None))[None, :]     # Σ^½, no relative cut
+    meat = np.zeros((0, nf))
     for g, g_u, jac in _blocks(objective, data, theta):
         t = np.eye(g.shape[1]) if transform is None else transform
         tj = np.einsum("ab,mbp->map", t, jac)
-        s = np.einsum("ab,mbu,uv,mcv,dc->mad", t, g_u, columns_cov, g_u, t)
+        a = np.einsum("ab,mbu,ur->mar", t, g_u, root)
         if misfit:
-            tg = g @ t.T
-            s += tg[:, :, None] * tg[:, None, :]
-        meat += np.einsum("map,mab,mbq->pq", tj, s, tj)
+            a = np.concatenate([a, (g @ t.T)[:, :, None]], axis=2)
+        rows = np.einsum("mar,map->mrp", a, tj).reshape(-1, nf)
+        stacked = np.vstack([meat, rows])
+        meat = np.linalg.qr(stacked, mode="r")  # type: ignore[assignment]
     return meat
 
 
@@ -250,7 +263,7 @@ def covariance_of(objective: Objective, data: Dataset, theta: np.ndarray, cov: n
     seen = cov if transform is None else transform @ cov @ transform.T
     meat = sandwich_meat(objective, data, at, columns_cov, transform, misfit)
     return analyse(r, rows, float(np.trace(seen)) / seen.shape[0] * dof, solved.names,
-                   solved.scales, at[solved.index], sqrt_psd(meat).T)
+                   solved.scales, at[solved.index], meat)
 
 
 def noiseless_data(problem: Problem, scenario: Scenario, run: str, seed: int) -> Dataset:

@@ -314,6 +314,16 @@ def _words(cand: Candidate, alpha: float, tested: int, variant: Variant | None,
             f"{_falls(cand)}; {stats}." + _group_words(cand, own))
 
 
+def references(problem: Problem) -> set[str]:
+    """The instances whose every parameter is fixed: the sensors the problem trusts."""
+    found: dict[str, list[bool]] = {}
+    for p in problem.parameters:
+        inst, dot, _ = p.name.partition(".")
+        if dot and inst in problem.instances:
+            found.setdefault(inst, []).append(p.fixed)
+    return {inst for inst, fixed in found.items() if all(fixed)}
+
+
 def _reference_words(cand: Candidate, result: Result) -> str:
     """A warning where the candidate changes a sensor whose every parameter is fixed: the
     problem's reference (a certified load cell).  A term there says the reference reads
@@ -321,8 +331,7 @@ def _reference_words(cand: Candidate, result: Result) -> str:
     calibrated sensor's (a stack of load cells carries one force): that one leaves the
     reference as certified and puts the other sensors' parameters elsewhere."""
     instance = cand.output.split(".", 1)[0]
-    names = [p for p in result.params.values() if p.name.startswith(f"{instance}.")]
-    if cand.basis.kind in STANDALONE or not names or not all(p.fixed for p in names):
+    if cand.basis.kind in STANDALONE or instance not in references(result.problem):
         return ""
     return (f" Every parameter of {instance} is fixed: the problem trusts it as its "
             f"reference, and this term says the reference itself reads wrong. Where a "
@@ -430,10 +439,11 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
     candidates = [e.candidate for e in entries]
     by_label = {e.candidate.label: e for e in entries}
     gauge_columns = {name: fixed_columns[name] for name in fixes}
+    trusted = references(problem)
     ranked = test_candidates(
         own, candidates, [own_regressor(e.raw) for e in entries], alpha, local,
         [None if e.extra is None else own_regressor(e.extra) for e in entries],
-        gauge_columns)
+        gauge_columns, lambda c: c.output.split(".", 1)[0] in trusted)
     def restates(cand: Candidate) -> bool:     # a term linear in its own reading: a gain
         return cand.basis.kind == "linear" and cand.output in problem.diagnostic.hooks \
             and local(cand)
@@ -536,7 +546,10 @@ def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]
     sensor's scale factor its slope at c, and its bias its reading there).  A quadratic
     goes about the model's own centre instead where its gain in the variable is written
     about another point (:func:`_model_centre`: ``k*(T - Tc)`` makes k the slope at Tc,
-    which a ``quad*T**2`` would move)."""
+    which a ``quad*T**2`` would move).  Where zero is no point of the run
+    (:func:`_far_from_zero`: a temperature in kelvin or degC) and the model has no centre
+    of its own, the term stays about the run's centre: the bias a gyro had in the run is
+    its meaning there, not its extrapolation to 0 K."""
     basis = entry.candidate.basis
     lower = entry.lower
     if lower is None or basis.centre == 0.0:
@@ -547,6 +560,8 @@ def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]
         return entry        # the parameters do not (nearly) take what the centre moves
     c = basis.centre
     v0 = _model_centre(own, x_lower, c) if basis.kind == "quadratic" else 0.0
+    if v0 == 0.0 and _far_from_zero(regressor(entry.raw)[:, 0], x_lower[:, 0], c):
+        return entry        # about the data: zero is no point of the run (0 K, 0 degC)
     d = c - v0
     if basis.kind == "linear":          # v = (v - c) + c
         def raw(i: int) -> np.ndarray:
@@ -561,6 +576,26 @@ def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]
         t.replace("({v} - {centre})", "{v}") for t in basis.terms)
     return Entry(Candidate(entry.candidate.output, replace(basis, centre=v0, terms=terms)),
                  raw, entry.extra, lower)
+
+
+#: A variable's zero is no point of the run when it lies more than this many of the
+#: variable's standard deviations from the run's centre (0 K under a temperature of
+#: 293-313 K, 0 degC under 20-40 degC): a term in it is then written about the run's
+#: centre, and the parameters that absorb what that moves (a gyro's bias) keep their
+#: value in the run, instead of becoming an extrapolation to zero (the bias at 0 K, 74
+#: standard errors from the bias in the run and 9 times less determined).
+FAR = 3.0
+
+
+def _far_from_zero(centred: np.ndarray, ones: np.ndarray, centre: float) -> bool:
+    """Whether zero is more than :data:`FAR` standard deviations of the variable from
+    its centre ``centre``: ``centred`` and ``ones`` are the whitened ``v - centre`` and
+    ``1`` of the term's output (their ratio, row by row, is ``v - centre``)."""
+    rows = np.abs(ones) > 1e-12 * float(np.max(np.abs(ones), initial=0.0))
+    if not rows.any():
+        return False
+    spread = float(np.std(centred[rows] / ones[rows]))
+    return abs(centre) > FAR * spread
 
 
 #: A free parameter's column is the model's own affine dependence on a variable when the

@@ -274,7 +274,7 @@ def _best_of_group(
     tell them apart."""
     labels = [lead.label, *lead.indistinguishable[:GROUP - 1]]
     predicted = {label: predicted_change(diag, label) for label in labels}
-    labels.sort(key=lambda label: predicted[label])
+    labels.sort(key=lambda label: _level(predicted[label]))
     paying: list[tuple[float, str, Path, Result]] = []
     written: dict[str, set[Path]] = {}
     for i, label in enumerate(labels):
@@ -316,8 +316,20 @@ def _best_of_group(
 
 def _rank(new: Result, change: float, paying: Sequence[Result]) -> tuple[bool, float]:
     """The order of revisions that pay: those whose BIC is within :data:`CLEAR_BIC` of
-    the lowest first, then by their held-out change (``change``)."""
-    return new.bic > min(r.bic for r in paying) + CLEAR_BIC, change
+    the lowest first, then by their held-out change (``change``, to :data:`SAME_CHANGE`:
+    one fit written two ways keeps the order it was tried in, the group's lead first)."""
+    return new.bic > min(r.bic for r in paying) + CLEAR_BIC, _level(change)
+
+
+#: Held-out changes (mean log ratios) closer than this are the same: a term on either
+#: side of a constraint that reads it alike (a reference's or the calibrated sensor's
+#: dependence on the temperature) is one fit, and rounding must not choose between them.
+SAME_CHANGE = 1e-9
+
+
+def _level(change: float) -> float:
+    """``change`` to :data:`SAME_CHANGE` (for ordering)."""
+    return round(change / SAME_CHANGE) * SAME_CHANGE if np.isfinite(change) else change
 
 
 def _rebound(result: Result, path: Path) -> Result:
