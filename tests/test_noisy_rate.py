@@ -9,7 +9,7 @@ import pytest
 from test_member_bic import FILES
 
 import symcal
-from symcal.data.derived import ATTENUATION, rate
+from symcal.data.derived import ATTENUATION, rate, rate_and_noise
 
 
 def _climb(n: int = 3000, dt: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -41,6 +41,27 @@ def test_without_declared_noise_the_rate_is_central_differences() -> None:
     np.testing.assert_array_equal(rate(h, t, 1e-6), np.gradient(h, t, edge_order=1))
 
 
+@pytest.mark.parametrize("sigma", [0.0005, 0.05, 0.5])
+def test_the_noise_a_rate_carries_is_what_its_noise_leaves(sigma: float) -> None:
+    """The stated root mean square of a rate's noise is the spread of the difference of
+    two draws' rates over √2, on 20 pairs (central differences: sigma/(√2 dt) exactly;
+    smoothed where the noise would dominate: less)."""
+    t, h, _ = _climb()
+    rng = np.random.default_rng(5)
+    diffs, stated = [], set()
+    for _ in range(20):
+        one, s1 = rate_and_noise(h + rng.normal(0, sigma, len(t)), t, sigma)
+        two, s2 = rate_and_noise(h + rng.normal(0, sigma, len(t)), t, sigma)
+        diffs.append(one - two)
+        stated |= {s1, s2}
+    assert len(stated) == 1          # the same window on every draw
+    spread = float(np.sqrt(np.mean(np.square(diffs)) / 2))
+    assert spread == pytest.approx(stated.pop(), rel=0.05)
+    if sigma == 0.0005:              # central differences
+        assert spread == pytest.approx(sigma / (np.sqrt(2) * 0.1), rel=0.05)
+    assert rate_and_noise(h, t)[1] == 0.0
+
+
 LATE = FILES["scenario.yaml"].replace("""  warm_day:
     on: true
     values: {dT0: {value: 10, unit: K}}
@@ -66,3 +87,28 @@ def test_a_late_gnss_is_found_with_its_whole_delay(tmp_path, seed: int) -> None:
     assert abs(tau.value - 0.3) < 4 * tau.se and tau.se < 0.01
     rate_column = (tmp_path / "out" / "problem_fixed_round1.yaml").read_text()
     assert "h_gnss_rate: {rate_of: h_gnss" in rate_column
+    # its noise declared as what the GNSS's 0.5 m leaves in the smoothed rate (neglected,
+    # a gyro's 4 ms delay ended 4 % above its floor: the rate of its 0.05 deg/s noise at
+    # 100 Hz carries 3.5 deg/s², 14 mdeg/s times the delay)
+    assert "its noise is what h_gnss's declared noise leaves in a rate" in rate_column
+    declared = symcal.load_problem(tmp_path / "out" / "problem_fixed_round1.yaml")
+    noise = declared.column_specs["h_gnss_rate"].noise
+    assert noise is not None and noise.unit == "m/s"      # smoothed: below central diffs
+    assert 0 < noise.value < 0.5 / (np.sqrt(2) * 0.1)
+
+
+@pytest.mark.slow
+def test_design_predicts_a_problem_with_a_rate_column(tmp_path) -> None:
+    """`symcal design` computes the columns a problem derives (``rate_of``) on the run it
+    simulates, as a solve does (it refused: "missing column 'h_gnss_rate'"), and predicts
+    the delay's standard error the solve states (within 20 %)."""
+    from symcal.experiment.predict import predict
+    from symcal.simulation import load_scenario
+
+    for name, text in {**FILES, "scenario.yaml": LATE}.items():
+        (tmp_path / name).write_text(text)
+    result = symcal.improve(tmp_path / "problem_fixed.yaml", tmp_path / "out")
+    revised = symcal.load_problem(tmp_path / "out" / "problem_fixed_round1.yaml")
+    predicted = predict(revised, load_scenario(tmp_path / "scenario.yaml"), "calibration")
+    stated = result.rounds[-1].result.params["tau_gnss"].se
+    assert predicted.se["tau_gnss"] == pytest.approx(stated, rel=0.2)

@@ -72,6 +72,9 @@ class Basis:
     # the RMS of the term (internal units of what it changes) when every coefficient is
     # its scale; for constant, fixed and latency, the scale itself (the coefficient's size)
     term: float = 1e-3
+    # ``latency``: the noise each target's declared noise leaves in its rate on the data
+    # (root mean square, internal units per second; 0 where none is declared)
+    rate_noise: tuple[float, ...] = ()
 
     @property
     def complexity(self) -> tuple[int, int]:

@@ -67,22 +67,33 @@ def rate(values: np.ndarray, time: np.ndarray, noise: float | None = None) -> np
     ValueError
         With fewer than two rows.
     """
+    return rate_and_noise(values, time, noise)[0]
+
+
+def rate_and_noise(values: np.ndarray, time: np.ndarray, noise: float | None = None
+                   ) -> tuple[np.ndarray, float]:
+    """:func:`rate`, and the root mean square of the noise ``noise`` leaves in it (0
+    without a declared noise): ``noise / sqrt(Σ(t - mean)²)`` of each row's window,
+    ``noise / (√2 dt)`` for central differences at a constant step."""
     if len(values) < 2:
         raise ValueError("a rate needs at least two rows")
     v = np.asarray(values, dtype=float)
     t = np.asarray(time, dtype=float)
     central = np.gradient(v, t, edge_order=1)
     n = len(v)
-    if noise is None or not noise > 0 or n < 7 or not np.all(np.isfinite(v)):
-        return central
+    if noise is None or not noise > 0 or not np.all(np.isfinite(v)):
+        return central, 0.0
+    if n < 7:
+        return central, float(noise * np.sqrt(np.mean(2 / np.diff(t) ** 2)) / 2)
     widest = max(3, int(WIDEST * n) | 1)
     half = 1
     while True:
         slope, spread = _slope(v, t, half)
-        if float(np.mean(noise**2 / spread)) <= ATTENUATION * float(np.var(slope)):
-            return central if half == 1 else slope
+        left = float(np.mean(noise**2 / spread))
+        if left <= ATTENUATION * float(np.var(slope)):
+            return (central if half == 1 else slope), float(np.sqrt(left))
         if 2 * half + 1 >= widest:
-            return slope
+            return slope, float(np.sqrt(left))
         half = min(max(half + 1, int(half * 1.5)), (widest - 1) // 2)
 
 

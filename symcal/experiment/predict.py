@@ -48,7 +48,8 @@ from symcal.base.linalg import numerical_rank, whitening
 from symcal.base.numeric import chunks, mapped
 from symcal.base.units import size
 from symcal.data.dataset import Dataset, make_dataset
-from symcal.data.loading import needed_columns
+from symcal.data.derived import sources, with_derived
+from symcal.data.loading import column_noise, needed_columns
 from symcal.problem.symbolic import Problem, Stage
 from symcal.simulation import Scenario, input_noise, quiet, simulate_run, true_values
 from symcal.solvers.objective import Objective
@@ -267,10 +268,13 @@ def covariance_of(objective: Objective, data: Dataset, theta: np.ndarray, cov: n
 
 
 def noiseless_data(problem: Problem, scenario: Scenario, run: str, seed: int) -> Dataset:
-    """The run simulated without noise, as the calibration dataset."""
+    """The run simulated without noise, as the calibration dataset, with the columns the
+    problem derives from it (``rate_of``) computed as a solve computes them."""
     columns = simulate_run(quiet(scenario), run, seed=seed)
-    return make_dataset(problem.fit_dataset, f"{scenario.name} run '{run}' without noise",
-                        columns, needed_columns(problem))
+    needed = needed_columns(problem)
+    data = make_dataset(problem.fit_dataset, f"{scenario.name} run '{run}' without noise",
+                        columns, sources(problem.column_specs, needed))
+    return with_derived(problem.column_specs, data, needed, column_noise(problem))
 
 
 def predict(problem: Problem, scenario: Scenario, run: str | None = None, seed: int = 0,

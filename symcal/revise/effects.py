@@ -379,6 +379,11 @@ def _late(node: expr.Node, rates: Mapping[str, str], tau: str) -> expr.Node:
     return node
 
 
+def _noise_text(value: float, unit: str) -> str:
+    """A noise of ``value`` (internal units) as a column declares it: ``3.54 deg/s^2``."""
+    return f"{value / size(unit or '1'):.3g} {unit}".strip()
+
+
 def _latency(problem: Problem, cand: Candidate) -> Revision:
     """Instance ``variable`` reads its columns ``targets`` late by one delay ``tau``."""
     inst = cand.basis.variable
@@ -392,6 +397,7 @@ def _latency(problem: Problem, cand: Candidate) -> Revision:
     tau = _free(problem, f"tau_{_ident(inst)}")
     rates: dict[str, str] = {}
     columns: dict[str, Any] = {}
+    left = dict(zip(cand.basis.targets, cand.basis.rate_noise, strict=False))
     for col in cand.basis.targets:
         if col not in specs:
             raise ValueError(f"'{col}' is not a column of problem '{problem.name}'")
@@ -400,11 +406,15 @@ def _latency(problem: Problem, cand: Candidate) -> Revision:
             rates[col] = existing
             continue
         rates[col] = _free(problem, f"{col}_rate")
-        columns[rates[col]] = {"rate_of": col,
-                               **_unit_key(per(specs[col].unit, (time.unit, 1))),
-                               "noise": 0,
-                               "doc": f"rate of {col} (its noise, times the delay {tau}, "
-                                      "is neglected)"}
+        unit = per(specs[col].unit, (time.unit, 1))
+        noisy = left.get(col, 0.0)
+        columns[rates[col]] = {"rate_of": col, **_unit_key(unit),
+                               "noise": _noise_text(noisy, unit) if noisy > 0 else 0,
+                               "doc": (f"rate of {col}; its noise is what {col}'s declared "
+                                       "noise leaves in a rate at the fitted data's "
+                                       "sampling" if noisy > 0 else
+                                       f"rate of {col} (its noise, times the delay {tau}, "
+                                       "is neglected)")}
     inputs: dict[str, str] = {}
     for key, text in problem.instances[inst].bindings.items():
         node = expr.parse(text)

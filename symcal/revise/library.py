@@ -36,7 +36,7 @@ import numpy as np
 from symcal.analysis.discovery import Basis, Candidate
 from symcal.analysis.residuals import Variable
 from symcal.base.units import DISPLAY_UNITS
-from symcal.data.derived import rate
+from symcal.data.derived import rate_and_noise
 from symcal.problem.symbolic import Problem
 from symcal.revise.blocks import Block, distinct_groups, references
 
@@ -432,9 +432,11 @@ def latency_entries(problem: Problem, blocks: list[Block], fit: int,
         if not cols:
             continue
         noise = {c: r.sigma for c, r in problem.noise_columns().items()}
-        rates = [_rates(b, time, cols, noise) for b in blocks]
+        found_rates = [_rates(b, time, cols, noise) for b in blocks]
+        rates = [None if r is None else r[0] for r in found_rates]
         if all(r is None for r in rates):
             continue
+        left = next(r[1] for r in (found_rates[fit], *found_rates) if r is not None)
 
         def raw(i: int, cols: list[str] = cols, rates: list = rates) -> np.ndarray:
             b = blocks[i]
@@ -448,17 +450,19 @@ def latency_entries(problem: Problem, blocks: list[Block], fit: int,
         scale = column_scale(blocks[fit], x_fit) if np.any(x_fit) else 1e-3
         basis = Basis("latency", name, f"{name}'s readings ({', '.join(cols)}) lag by a "
                       "constant delay", ("tau",), (), unit="s",
-                      scales=(float(f"{scale:.3g}"),), term=scale, targets=tuple(cols))
+                      scales=(float(f"{scale:.3g}"),), term=scale, targets=tuple(cols),
+                      rate_noise=left)
         out.append(Entry(Candidate("", basis), raw))
     return out
 
 
 def _rates(block: Block, time: str, cols: list[str], noise: Mapping[str, float]
-           ) -> np.ndarray | None:
+           ) -> tuple[np.ndarray, tuple[float, ...]] | None:
     """The columns' time derivatives (internal units per second) on a dataset whose rows
-    are time-ordered and whose columns move smoothly; None elsewhere.  As the derived
-    column the revision declares computes them: smoothed where a column's declared noise
-    (``noise``, internal units) would leave its rate noisy."""
+    are time-ordered and whose columns move smoothly, with the noise their declared
+    noise leaves in each (root mean square; 0 where none is declared); None elsewhere.
+    As the derived column the revision declares computes them: smoothed where a column's
+    declared noise (``noise``, internal units) would leave its rate noisy."""
     ds = block.dataset
     if time not in ds.columns or ds.n < 5:
         return None
@@ -466,6 +470,7 @@ def _rates(block: Block, time: str, cols: list[str], noise: Mapping[str, float]
     if np.any(np.diff(t) <= 0):
         return None
     out = []
+    left: list[float] = []
     moving = False
     for c in cols:
         v = block.values(c) if c in block.regressors or any(
@@ -473,13 +478,16 @@ def _rates(block: Block, time: str, cols: list[str], noise: Mapping[str, float]
         var = float(np.var(v))
         if var <= 0:
             out.append(np.zeros_like(v))
+            left.append(0.0)
             continue
         ratio = float(np.mean(np.diff(v) ** 2)) / (2 * var)
         if ratio > SMOOTH:
             return None
         moving = True
-        out.append(rate(v, t, noise.get(c)))
-    return np.column_stack(out) if moving else None
+        found, noisy = rate_and_noise(v, t, noise.get(c))
+        out.append(found)
+        left.append(noisy)
+    return (np.column_stack(out), tuple(left)) if moving else None
 
 
 def _unit(block: Block, col: str) -> str:
