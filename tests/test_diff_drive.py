@@ -206,7 +206,7 @@ def test_the_readme_walkthrough_runs_as_written(tmp_path, monkeypatch, capsys) -
     diagnosed = next(o for c, o in outputs.items() if c.startswith("symcal diagnose"))
     assert blocks[2] in diagnosed                            # never proposed, as shown
     improve = next(o for c, o in outputs.items() if c.startswith("symcal improve"))
-    assert "round 1: right.v += a slow drift in time (t)" in improve
+    assert "round 1: left.v += a slow drift in time (t)" in improve
     assert "the diagnosis is quiet: every dataset is at its noise floor" in improve
     designed = next(o for c, o in outputs.items() if c.startswith("symcal design"))
     assert blocks[3] in designed
