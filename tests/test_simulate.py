@@ -734,3 +734,47 @@ def test_the_toy_is_valid_and_unknown_runs_are_named(toy):
     with pytest.raises(SpecError, match=r"no run named 'calbration' \(did you mean "
                                         r"'calibration'\?\); runs: calibration, line"):
         simulate_run(toy, "calbration")
+
+
+TURNTABLE = """scenario: turntable
+constants:
+  P1: {value: 40, unit: s}
+  A: {value: 400, unit: deg}
+states:
+  theta: {unit: deg}
+  omega: {unit: OMEGA}
+columns:
+  t: {expr: t, unit: s}
+  theta_ref: {expr: theta, unit: deg}
+  omega_ref: {expr: omega, unit: OMEGA}
+runs:
+  calibration:
+    dt: 0.01
+    series: {n: 3, theta: 400*sin(2*pi*t/P1), omega: RATE}
+"""
+
+
+def test_a_series_rate_without_its_angle_is_refused(tmp_path) -> None:
+    """A new user's turntable: the angle written as a plain number (read in deg) and its
+    rate with no angle in it (1/s, read as rad/s) made the rate 57 times too large,
+    silently; it is refused, with the fix.  With the angle's unit, or in rad/s, it is
+    read as written."""
+    def scenario(omega: str, rate: str) -> Path:
+        path = tmp_path / f"s{abs(hash((omega, rate)))}.yaml"
+        path.write_text(TURNTABLE.replace("OMEGA", omega).replace("RATE", rate))
+        return path
+
+    with pytest.raises(SpecError) as err:
+        simulate_run(load_scenario(scenario("deg/s", "400*(2*pi/P1)*cos(2*pi*t/P1)")),
+                     "calibration", seed=0)
+    assert str(err.value).split(": ", 1)[1] == (
+        "runs.calibration.series.omega: state 'omega' is in deg/s but its expression is in "
+        "1/s, which has no angle in it: it would be read as radians (57.3 deg/s per 1/s). "
+        "Give the expression its angle (a constant with an angle unit, e.g. A: {value: "
+        "400, unit: deg}), or write a plain number in deg/s")
+    good = simulate_run(load_scenario(scenario("deg/s", "A*(2*pi/P1)*cos(2*pi*t/P1)")),
+                        "calibration", seed=0)
+    assert good["omega_ref"][0] == pytest.approx(400 * 2 * np.pi / 40)
+    rad = simulate_run(load_scenario(scenario("rad/s", "(2*pi/P1)*cos(2*pi*t/P1)")),
+                       "calibration", seed=0)
+    assert rad["omega_ref"][0] == pytest.approx(2 * np.pi / 40)

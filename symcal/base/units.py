@@ -187,6 +187,13 @@ def _root(unit: Unit) -> tuple[float, dict[str, float]]:
                                     for k, v in root.unit_items()}
 
 
+def angle_power(unit: Unit) -> float:
+    """The power of the radian in ``unit`` (``deg/s``: 1; ``1/s``: 0): two units of one
+    dimension whose powers differ are told apart only by an angle, which is
+    dimensionless (``1/s`` reads as ``rad/s``)."""
+    return _root(unit)[1].get("radian", 0.0)
+
+
 @functools.lru_cache(maxsize=4096)
 def size_of(unit: Unit) -> float:
     """How many internal units (mm, rad, s, ...) one ``unit`` is."""

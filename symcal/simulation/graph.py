@@ -11,6 +11,7 @@ over the same parse (:func:`symcal.language.dimensions.unit_of`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -19,7 +20,7 @@ import casadi as ca
 
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import SpecError, Where
-from symcal.base.units import Unit, parse_unit, text_of
+from symcal.base.units import Unit, angle_power, parse_unit, size, text_of
 from symcal.language import expr
 from symcal.language.common import ExprSpec
 from symcal.language.dimensions import DimensionError, describe, same_dimension, unit_of
@@ -269,6 +270,20 @@ def check(scenario: Scenario) -> None:
             series_function(scenario, run.motion.exprs)
 
 
+def _angle_words(name: str, state_unit: str, unit: Unit) -> str:
+    """Why a series expression whose unit differs from its state's by an angle alone is
+    refused: an angle is dimensionless, so ``1/s`` would be read as ``rad/s`` where a
+    plain number is read in the state's own unit (a new user's ``400*(2*pi/P1)*cos(...)``
+    for a rate in deg/s was 57 times too large, silently)."""
+    shown = text_of(unit) or "a plain ratio"
+    factor = size(text_of(unit) or "1") / size(state_unit)
+    return (f"state '{name}' is in {state_unit} but its expression is in {shown}, which "
+            f"has no angle in it: it would be read as radians ({factor:.4g} {state_unit} "
+            f"per {shown}). Give the expression its angle (a constant with an angle "
+            f"unit, e.g. A: {{value: 400, unit: deg}}), or write a plain number in "
+            f"{state_unit}")
+
+
 def series_function(scenario: Scenario, exprs: tuple[tuple[str, ExprSpec], ...]) -> Any:
     """The states of a ``series`` run as a CasADi function of ``t`` (internal units)."""
     b = _Builder(scenario)
@@ -291,5 +306,8 @@ def series_function(scenario: Scenario, exprs: tuple[tuple[str, ExprSpec], ...])
         if state.unit and not same_dimension(parse_unit(state.unit), unit):
             raise SpecError(spec.where, f"state '{name}' is in {describe(parse_unit(state.unit))}"
                                         f" but its expression is {describe(unit)}")
+        if state.unit and angle_power(parse_unit(state.unit)) > angle_power(unit) \
+                and not math.isclose(size(text_of(unit) or "1") / size(state.unit), 1.0):
+            raise SpecError(spec.where, _angle_words(name, state.unit, unit))
         outs.append(sx)
     return ca.Function("series", [b.t], [ca.vertcat(*outs)])
