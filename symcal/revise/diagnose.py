@@ -58,7 +58,7 @@ from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
 from symcal.revise.blocks import Block, distinct, evaluate
 from symcal.revise.centres import NEARLY, centred_product
-from symcal.revise.effects import effect_yaml
+from symcal.revise.effects import coefficient_names, effect_yaml
 from symcal.revise.library import (
     Entry,
     Raw,
@@ -444,9 +444,18 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
         own, candidates, [own_regressor(e.raw) for e in entries], alpha, local,
         [None if e.extra is None else own_regressor(e.extra) for e in entries],
         gauge_columns, lambda c: c.output.split(".", 1)[0] in trusted)
-    def restates(cand: Candidate) -> bool:     # a term linear in its own reading: a gain
-        return cand.basis.kind == "linear" and cand.output in problem.diagnostic.hooks \
-            and local(cand)
+    have = set(problem.parameter_names)
+
+    def restates(cand: Candidate) -> bool:
+        """A term linear in its own reading (a gain), or one an earlier round added,
+        tested again (its sensor already has its coefficients: what it absorbs is what
+        calibrating them means)."""
+        if cand.basis.kind == "linear" and cand.output in problem.diagnostic.hooks \
+                and local(cand):
+            return True
+        inst = cand.output.split(".", 1)[0]
+        return any(all(f"{inst}.{n}" in have for n in names)
+                   for names in coefficient_names(cand))
 
     def suspected(cand: Candidate) -> bool:    # a coupling the user asked about
         if cand.output not in problem.diagnostic.hooks or local(cand):

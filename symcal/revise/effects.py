@@ -62,6 +62,22 @@ def _ident(text: str) -> str:
     return re.sub(r"_+", "_", re.sub(r"[^A-Za-z0-9_]", "_", text)).strip("_")
 
 
+def coefficient_names(cand: Candidate) -> tuple[tuple[str, ...], ...]:
+    """The names a revision gives the coefficients of ``cand``'s term, without the
+    instance (``("prod_gyro_T",)``), for each order a product's variables can be written
+    in: a candidate whose names its sensor already has is a term an earlier round added,
+    tested again.  Empty for kinds that are not a term."""
+    basis = cand.basis
+    if basis.kind not in TERMS:
+        return ()
+    instance = cand.output.split(".", 1)[0]
+    names = [_ident(v.replace(f"{instance}.", "")) for v in (basis.variable, basis.other)
+             if v]
+    orders = [names] if len(names) < 2 else [names, names[::-1]]
+    return tuple(tuple(f"{col}_{'_'.join(order)}" for col in basis.columns)
+                 for order in orders)
+
+
 def _rel(path: Path, start: Path) -> str:
     return Path(os.path.relpath(Path(path).resolve(), Path(start).resolve())).as_posix()
 
