@@ -31,7 +31,7 @@ from symcal.analysis.serial import (
     lag_one_of,
     lag_sums,
 )
-from symcal.base.linalg import information_coordinates, numerical_rank, sqrt_psd
+from symcal.base.linalg import information_coordinates, sqrt_psd
 from symcal.base.numeric import Mapped, chunks
 from symcal.problem.symbolic import Problem
 from symcal.solvers.base import SolverOutput
@@ -178,9 +178,9 @@ def serial_passes(objective: Objective, data: Source, out: SolverOutput
     if not found.detected:
         return found, None
     lags = bandwidth(max(found.rho, key=abs), n)
-    rank = numerical_rank(out.r_factor, out.rows, objective.scales)
     n_free = len(objective.index)
     to, back = information_coordinates(out.r_factor, out.rows, objective.scales)
+    rank = to.shape[1]                # the identifiable parameters, by the same SVD
     task = _Scores(linearised_function(objective, data.n), rows.rows.theta, rows.weigher,
                    (len(objective.constraints), n_free), lags, columns, to)
     meat = hac_combine(map_pieces(task, data, "hac_scores", "linearised"), lags,

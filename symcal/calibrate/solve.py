@@ -18,7 +18,7 @@ from symcal.analysis.row_noise import Fit, inverse_sqrt_rows, row_covariances
 from symcal.analysis.serial import SerialCorrelation, bandwidth, detect, hac_meat
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, SolveError, SymcalError
-from symcal.base.linalg import information_coordinates, numerical_rank, sqrt_psd, whitening
+from symcal.base.linalg import information_coordinates, sqrt_psd, whitening
 from symcal.base.options import METHODS, SolveOptions
 from symcal.base.progress import Bars, reporting
 from symcal.base.units import DISPLAY_UNITS
@@ -207,8 +207,8 @@ def _serial(objective: Objective, data: Dataset, out: SolverOutput
     if not found.detected:
         return found, None
     lags = bandwidth(max(found.rho, key=abs), data.n)
-    rank = numerical_rank(out.r_factor, out.rows, objective.scales)
     to, back = information_coordinates(out.r_factor, out.rows, objective.scales)
+    rank = to.shape[1]                # the identifiable parameters, by the same SVD
     meat = hac_meat((s @ to for s in objective.score_chunks(data, out.theta)), lags,
                     to.shape[1])
     meat *= out.rows / max(out.rows - rank, 1)

@@ -598,13 +598,17 @@ FAR = 3.0
 
 def _far_from_zero(centred: np.ndarray, ones: np.ndarray, centre: float) -> bool:
     """Whether zero is more than :data:`FAR` standard deviations of the variable from
-    its centre ``centre``: ``centred`` and ``ones`` are the whitened ``v - centre`` and
-    ``1`` of the term's output (their ratio, row by row, is ``v - centre``)."""
+    its centre ``centre`` (:func:`_spread` of ``centred`` and ``ones``)."""
+    spread = _spread(centred, ones)
+    return spread is not None and abs(centre) > FAR * spread
+
+
+def _spread(centred: np.ndarray, ones: np.ndarray) -> float | None:
+    """The variable's standard deviation over the rows, from the whitened ``v - c`` and
+    ``1`` of a term's output (their ratio, row by row, is ``v - c``); None where no row
+    sees it."""
     rows = np.abs(ones) > 1e-12 * float(np.max(np.abs(ones), initial=0.0))
-    if not rows.any():
-        return False
-    spread = float(np.std(centred[rows] / ones[rows]))
-    return abs(centre) > FAR * spread
+    return float(np.std(centred[rows] / ones[rows])) if rows.any() else None
 
 
 #: A free parameter's column is the model's own affine dependence on a variable when the
@@ -624,10 +628,9 @@ def _model_centre(own: Design, x_lower: np.ndarray, centre: float) -> float:
     ``[1, v - c]`` of the term's output (each observation's rows the same multiple of
     the variable's distance to ``centre``)."""
     ones, slope = x_lower[:, 0], x_lower[:, 1]
-    rows = np.abs(ones) > 1e-12 * float(np.max(np.abs(ones), initial=0.0))
-    if not rows.any():
+    spread = _spread(slope, ones)
+    if spread is None:
         return 0.0
-    spread = float(np.std(slope[rows] / ones[rows]))
     coef, *_ = np.linalg.lstsq(x_lower, own.nuisance, rcond=None)
     left = own.nuisance - x_lower @ coef
     roots = []
