@@ -295,6 +295,33 @@ def test_minimal_detectable_effect_is_detected_with_its_power() -> None:
     assert 0.75 <= found / 400 <= 0.85, found / 400
 
 
+def test_very_significant_candidates_are_ranked_by_their_evidence_not_a_tie() -> None:
+    """Two candidates whose F-tests' tails both underflow: a product tested beyond the
+    simpler term it contains (which the residual holds too), and a linear term along
+    most of that simpler term.  Beyond its simpler term the product leaves a fraction of
+    what the linear term leaves: by far the stronger evidence, though the sum of squares
+    it removes beyond that term is smaller.  With both log p at −inf the tie went to the
+    larger sum removed: the linear term, the wrong one."""
+    from symcal.analysis.discovery import Basis, Candidate, Design, test_candidates
+
+    rng = np.random.default_rng(3)
+    n = 2000
+    e, x, w = (rng.normal(size=n) for _ in range(3))
+    r = 40.0 * e + 8.0 * x + rng.normal(size=n)
+    product = Basis("product", "v", "product", ("a",), ("",), scales=(1e-3,))
+    linear = Basis("linear", "w", "linear", ("b",), ("",), scales=(1e-3,))
+    cands = [Candidate("y", linear), Candidate("y", product)]
+    design = Design(r, np.ones((n, 1)), ("o",), ())
+    ranked = test_candidates(design, cands, [(e + 0.6 * w)[:, None], x[:, None]], 0.01,
+                             extras=[None, e[:, None]])
+    first, second = ranked[0], ranked[1]
+    assert first.basis is product and second.basis is linear
+    assert first.delta_rss < 0.1 * second.delta_rss     # the smaller sum removed first
+    assert first.p_value == 0.0 and second.p_value == 0.0                # both underflow
+    assert -np.inf < first.log_p < 2 * second.log_p < -1400
+    assert first.significant and second.significant
+
+
 def test_a_chunks_share_computed_apart_adds_up_to_the_sequential_sums() -> None:
     """The pass's threads compute each chunk's share of an entry's sums without the rows
     before it (``_part``); folded in order they give the sequential sums bit for bit,

@@ -461,6 +461,40 @@ def test_beta_function_and_quantiles_against_scipy() -> None:
             assert beta_quantile(p, a, b) == pytest.approx(stats.beta.ppf(p, a, b), rel=1e-8)
 
 
+def test_the_f_tests_log_tail_is_finite_where_the_tail_underflows() -> None:
+    """The candidates' F-test ranks by the log of its tail.  Where scipy's tail is a
+    normal number, the log equals scipy's; far beyond, where the tail underflows and
+    scipy's ``logsf`` is −inf (every very significant candidate then tied), it equals the
+    log of the density's integral taken in log space (an independent computation), and
+    it keeps falling with the statistic."""
+    from scipy import integrate, stats
+
+    from symcal.analysis.bands import f_log_sf
+
+    for d1 in (1, 2, 3, 7):
+        for d2 in (5.0, 80.0, 3e3, 2e5, 4e6):
+            for f in (0.05, 0.9, 1.3, 4.0, 30.0, 300.0):
+                ref = stats.f.logsf(f, d1, d2)
+                if stats.f.sf(f, d1, d2) > 1e-290:
+                    assert f_log_sf(f, d1, d2) == pytest.approx(ref, rel=1e-7, abs=1e-12)
+    for d1, d2, f in ((1, 1e4, 1e4), (2, 1e5, 1e5), (1, 3e3, 5e3), (3, 50.0, 1e20)):
+        assert stats.f.logsf(f, d1, d2) == -np.inf          # what the ranking had
+        peak = stats.f.logpdf(f, d1, d2)
+
+        def scaled(t: float, d1: float = d1, d2: float = d2, f: float = f,
+                   peak: float = peak) -> float:
+            return float(np.exp(stats.f.logpdf(f * t, d1, d2) - peak) * f)
+
+        # the density falls steeply from f: its first thousandth apart
+        area = sum(integrate.quad(scaled, lo, hi, epsabs=0.0, epsrel=1e-12, limit=400)[0]
+                   for lo, hi in ((1.0, 1.001), (1.001, 2.0), (2.0, np.inf)))
+        ours = f_log_sf(f, d1, d2)
+        assert np.isfinite(ours) and ours < -700
+        assert ours == pytest.approx(peak + np.log(area), rel=1e-9)
+        assert f_log_sf(1.01 * f, d1, d2) < ours
+    assert f_log_sf(np.inf, 1, 10.0) == -np.inf and f_log_sf(0.0, 1, 10.0) == 0.0
+
+
 @pytest.mark.parametrize("centred", [False, True])
 @pytest.mark.parametrize("n", [60, 400])
 def test_the_band_of_an_estimated_floor_holds_on_white_noise(n: int, centred: bool) -> None:

@@ -141,6 +141,27 @@ def beta_cdf(x: float, a: float, b: float) -> float:
     return 1.0 - front * _beta_fraction(1.0 - x, b, a) / b
 
 
+def f_log_sf(f: float, d1: float, d2: float) -> float:
+    """The natural log of the F(d1, d2) distribution's upper tail at ``f``, computed in
+    log space: ``log I_x(d2/2, d1/2)`` with ``x = d2 / (d2 + d1 f)``.  It stays finite
+    far beyond where the tail itself underflows (scipy's ``f.logsf`` gives −inf there, so
+    every very significant test looked alike)."""
+    if not f > 0.0:
+        return 0.0
+    if math.isinf(f):
+        return -math.inf
+    a, b = d2 / 2.0, d1 / 2.0
+    x = d2 / (d2 + d1 * f)
+    if x <= 0.0:
+        return -math.inf
+    if x < (a + 1.0) / (a + b + 2.0):
+        return _log_beta_front(x, a, b) + math.log(_beta_fraction(x, a, b) / a)
+    # the tail is not small here: one minus the lower side's (its continued fraction
+    # converges on the other side)
+    lower = math.exp(_log_beta_front(1.0 - x, b, a)) * _beta_fraction(1.0 - x, b, a) / b
+    return math.log1p(-min(lower, 1.0)) if lower < 1.0 else -math.inf
+
+
 def beta_quantile(p: float, a: float, b: float) -> float:
     """The ``p`` quantile of Beta(a, b) (a, b > 1): Newton's method on its distribution
     function from the normal approximation, inside a bracket that bisection narrows."""

@@ -7,7 +7,8 @@ comparisons of one observation are correlated and have different noise), then th
 nuisance — what the current parameters and the comparisons' arbitrary offsets can
 already absorb — is projected out.  A candidate is ranked by the residual sum of squares
 it removes, tested with an F-test at a Bonferroni-corrected level, ranked by its
-significance (the F-test's log p-value: a one-column term that removes a little less than
+significance (the F-test's log p-value, computed in log space so that it stays finite where
+p underflows: a one-column term that removes a little less than
 a two-column one can still be the stronger evidence), and grouped with the candidates
 whose projected regressors it cannot be told apart from; a group is led by its simplest
 member (a term in the sensor's own input first, lower order before higher).
@@ -29,6 +30,7 @@ import numpy as np
 import scipy.linalg
 import scipy.stats
 
+from symcal.analysis.bands import f_log_sf
 from symcal.base.linalg import rank_tolerance
 
 ABSORBED = 1e-3         # projected norm below this share of the raw norm: absorbed
@@ -363,7 +365,7 @@ def test_candidates(
         denom = (rb - delta) / rest
         cand.f_stat = (delta / m) / denom if denom > 0 else float("inf")
         cand.p_value = float(scipy.stats.f.sf(cand.f_stat, m, rest))
-        cand.log_p = float(scipy.stats.f.logsf(cand.f_stat, m, rest))
+        cand.log_p = f_log_sf(cand.f_stat, m, rest)     # finite where p underflows
         cand.significant = cand.p_value < level
         cand.reduction = _reduction(design, r, base - q @ proj)
         cand.mde = _detectable(xp, cand.basis.scales, m, level, denom, cand.basis.term)
