@@ -110,8 +110,9 @@ def differences(a: Any, b: Any, rel: float = 1e-9, path: str = "", size: float =
     number to ``rel`` of its size, or of the largest number of its list (the singular
     values of a null direction are rounding), or of its spread's RMS (a mean); 1e-7 for a
     spread found as √(rms² - mean²), which loses digits to cancellation; near-null
-    directions whatever their sign; the times a solve took, where the data came from and
-    the keys ``skip`` excepted."""
+    directions whatever their sign; a correlation to ``rel`` of 1 (a correlation of 3e-5
+    is the difference of products of 1's size); the times a solve took, where the data
+    came from and the keys ``skip`` excepted."""
     last = path.rsplit("/", 1)[-1]
     if last in ("seconds", "datasets", *skip):
         return []
@@ -131,6 +132,8 @@ def differences(a: Any, b: Any, rel: float = 1e-9, path: str = "", size: float =
                       for d in differences(x, y, rel, f"{path}/{i}", top, skip)]
     if isinstance(a, float) and isinstance(b, float):
         tol = 1e-7 if last == "std" else rel
+        if "/correlations/" in path:     # a correlation's size is 1, not its own value
+            size = max(size, 1.0)
         same = a == b or (math.isnan(a) and math.isnan(b)) or \
             abs(a - b) <= tol * max(abs(a), abs(b), size)
         return [] if same else [(path, a, b)]

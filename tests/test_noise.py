@@ -493,6 +493,9 @@ def test_the_f_tests_log_tail_is_finite_where_the_tail_underflows() -> None:
         assert ours == pytest.approx(peak + np.log(area), rel=1e-9)
         assert f_log_sf(1.01 * f, d1, d2) < ours
     assert f_log_sf(np.inf, 1, 10.0) == -np.inf and f_log_sf(0.0, 1, 10.0) == 0.0
+    for tiny in (1e-300, 1e-30, 1e-12):       # 1 - x rounds to 0 in x = d2/(d2 + d1 f)
+        assert f_log_sf(tiny, 1, 2017.0) == pytest.approx(stats.f.logsf(tiny, 1, 2017.0),
+                                                          rel=1e-12)
 
 
 @pytest.mark.parametrize("centred", [False, True])

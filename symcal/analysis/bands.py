@@ -151,14 +151,16 @@ def f_log_sf(f: float, d1: float, d2: float) -> float:
     if math.isinf(f):
         return -math.inf
     a, b = d2 / 2.0, d1 / 2.0
-    x = d2 / (d2 + d1 * f)
+    x, y = d2 / (d2 + d1 * f), d1 * f / (d2 + d1 * f)        # y = 1 - x, without rounding
     if x <= 0.0:
         return -math.inf
+    if y <= 0.0:
+        return 0.0
     if x < (a + 1.0) / (a + b + 2.0):
         return _log_beta_front(x, a, b) + math.log(_beta_fraction(x, a, b) / a)
     # the tail is not small here: one minus the lower side's (its continued fraction
     # converges on the other side)
-    lower = math.exp(_log_beta_front(1.0 - x, b, a)) * _beta_fraction(1.0 - x, b, a) / b
+    lower = math.exp(_log_beta_front(y, b, a)) * _beta_fraction(y, b, a) / b
     return math.log1p(-min(lower, 1.0)) if lower < 1.0 else -math.inf
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from symcal.analysis.discovery import Candidate
+from symcal.analysis.discovery import STANDALONE, Candidate
 from symcal.base.digits import estimate_text
 from symcal.base.errors import SymcalError
 from symcal.base.files import write_output
@@ -31,7 +31,7 @@ from symcal.language.yamlio import dump_yaml
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
 from symcal.revise.diagnose import GROUP as DIAGNOSED
-from symcal.revise.diagnose import Diagnosis, diagnose
+from symcal.revise.diagnose import Diagnosis, diagnose, references
 from symcal.revise.effects import write_revision
 from symcal.revise.previous import clear_previous
 from symcal.revise.watch import Watch, design_hint, new_parameters, same_fit, wald, watch
@@ -301,7 +301,7 @@ def _best_of_group(
     if not paying:
         return None
     fits = [t[3] for t in paying]
-    paying.sort(key=lambda t: _rank(t[3], t[0], fits))
+    paying.sort(key=lambda t: _rank(t[3], t[0], fits, _on_reference(diag, t[1], result)))
     _, label, path, new = paying[0]
     used = {f.resolve() for f in new.problem.source_files()}
     for _, other, _, _ in paying[1:]:
@@ -314,11 +314,36 @@ def _best_of_group(
                  frozenset(written[label] - {path} | {final}))
 
 
-def _rank(new: Result, change: float, paying: Sequence[Result]) -> tuple[bool, float]:
+def _rank(new: Result, change: float, paying: Sequence[Result], on_reference: bool
+          ) -> tuple[bool, bool, float]:
     """The order of revisions that pay: those whose BIC is within :data:`CLEAR_BIC` of
-    the lowest first, then by their held-out change (``change``, to :data:`SAME_CHANGE`:
-    one fit written two ways keeps the order it was tried in, the group's lead first)."""
-    return new.bic > min(r.bic for r in paying) + CLEAR_BIC, _level(change)
+    the lowest first; among them a term on a calibrated sensor before one on the
+    problem's reference (``on_reference``: :func:`_on_reference`); then by their held-out
+    change (``change``, to :data:`SAME_CHANGE`: one fit written two ways keeps the order
+    it was tried in, the group's lead first)."""
+    return new.bic > min(r.bic for r in paying) + CLEAR_BIC, on_reference, _level(change)
+
+
+def _on_reference(diag: Diagnosis, label: str, result: Result) -> bool:
+    """Whether the candidate ``label`` adds a term to a sensor whose every parameter is
+    fixed (:func:`~symcal.revise.diagnose.references`): the sensor the problem trusts.
+    Where a calibrated sensor's term fits about as well, the reference is left as
+    declared: a term in the reference's own noisy reading scales its noise down and fits
+    a drone altimeter's barometer temperature as well (BIC equal), with the laser's
+    scale 500 standard errors off."""
+    cand = next((c for c in diag.candidates if c.label == label), None)
+    if cand is None:
+        return False
+    kind, basis = cand.basis.kind, cand.basis
+    if kind == "latency":
+        touched = {basis.variable}                    # the instance whose readings lag
+    elif kind in ("fixed", "constant"):               # a parameter or model constant of
+        touched = {t.split(".", 1)[0] for t in basis.targets if "." in t}   # an instance
+    elif kind in STANDALONE:
+        touched = set()
+    else:
+        touched = {cand.output.split(".", 1)[0]}
+    return bool(touched & references(result.problem))
 
 
 #: Held-out changes (mean log ratios) closer than this are the same: a term on either
@@ -583,7 +608,8 @@ def _best_lead(
         return kept
     changes = {c.label: held_out_change(c.result, result) for c in contenders}
     fits = [c.result for c in contenders]
-    contenders.sort(key=lambda c: _rank(c.result, changes[c.label], fits))
+    contenders.sort(key=lambda c: _rank(c.result, changes[c.label], fits,
+                                        _on_reference(diag, c.label, result)))
     best, *others = contenders
     used = {f.resolve() for f in best.result.problem.source_files()}
     for other in others:
