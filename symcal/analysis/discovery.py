@@ -184,6 +184,11 @@ def unexplained_share(design: Design, x: np.ndarray) -> float:
     return float(np.linalg.norm(_project(x[:, None], _basis(design)))) / raw
 
 
+def unexplained(design: Design, x: np.ndarray) -> np.ndarray:
+    """The part of ``x`` (M × m) the nuisance does not explain: what a test of it sees."""
+    return _project(x, _basis(design))
+
+
 def absorbed(design: Design, x: np.ndarray) -> bool:
     """Whether every column of ``x`` (M × m) lies in the nuisance's span: what adding it
     changes, the free parameters already do (an offset where a bias is free)."""
