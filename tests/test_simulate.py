@@ -624,6 +624,34 @@ def test_a_scatter_draws_within_ranges_in_the_states_unit(toy):
     np.testing.assert_allclose(r + 0.2 * r**3, 1.5 * (tip * 1000) / 250, rtol=0, atol=1e-13)
 
 
+def test_a_solved_reading_in_a_large_internal_unit_converges(tmp_path):
+    """A turbine's pulse rate solved from its flow in L/min (1.7e4 mm³/s internally): the
+    equation's rounding is of the size of its terms, far above the absolute tolerance, and
+    even the linear equation 'did not converge'.  Solved, it is the closed form."""
+    (tmp_path / "flow.yaml").write_text("""\
+scenario: flow
+constants:
+  K: {value: 52.3, unit: 1/L}
+  b: {value: 0.4, unit: L/min}
+states:
+  Q: {unit: L/min}
+columns:
+  q_ref: {expr: Q, unit: L/min}
+  f: {solve: f/K + b + q*f**2 - Q, start: 100, unit: Hz}
+truth:
+  q: {value: 1.0e-6, unit: L/min/Hz**2}
+runs:
+  calibration:
+    scatter: {n: 500, Q: [30, 190]}
+""")
+    data = simulate_run(load_scenario(tmp_path / "flow.yaml"), "calibration", seed=1)
+    f, flow = data["f"], data["q_ref"]
+    # f/K + q f² = Q - b, K in 1/L and the flow per minute: f/(K·60) in L/min
+    a, bq = 1e-6 * 1.0, 1.0 / (52.3 / 60.0)
+    closed = (-bq + np.sqrt(bq**2 + 4 * a * (flow - 0.4))) / (2 * a)
+    np.testing.assert_allclose(f, closed, rtol=1e-11)
+
+
 def test_lines_dwells_and_series(toy):
     line = simulate_run(toy, "line")
     np.testing.assert_allclose(line["a_ref"], [-10, -5, 0, 5, 10], atol=1e-12)
