@@ -38,7 +38,7 @@ datasets:
   calibration: {path: calibration.csv}
 """
 WARNING = ("Every parameter of A is fixed: the problem trusts it as its reference, and "
-           "this term says the reference itself reads wrong.")
+           "this candidate says the reference itself reads wrong.")
 
 
 def test_a_term_on_the_reference_says_so(tmp_path) -> None:
@@ -58,3 +58,30 @@ def test_a_term_on_the_reference_says_so(tmp_path) -> None:
     assert next(iter(texts)) == on_c and WARNING not in texts[on_c]
     on_a = [label for label in texts if label.startswith("A.F += ")]
     assert on_a and all(WARNING in texts[label] for label in on_a), texts
+
+
+def test_freeing_the_references_fixed_parameter_says_so(tmp_path) -> None:
+    """Flow meters in series, the Coriolis meter the reference (its zero fixed), the
+    density law trusted (no constant tested): with the turbine's K-factor growing with
+    the temperature, the diagnosis's lead is the Coriolis zero freed, which says nothing
+    of its being the reference (a new user applied it: the zero came out at 145 % of the
+    mean flow).  It now says so; the turbine's product with the temperature does not."""
+    from conftest import ROOT
+
+    from symcal.simulation import load_scenario, simulate_run
+
+    flow = ROOT / "tests" / "data" / "flow"
+    (tmp_path / "problem-nc.yaml").write_text(
+        f"problem: flow_pair_nc\nextends: {(flow / 'problem.yaml').as_posix()}\n"
+        "candidates:\n  constants: false\n")
+    scenario = load_scenario(flow / "scenario.yaml").overlay(
+        {"effects": {"ktemp": {"on": True}}})
+    data = {name: make_dataset(name, "simulated", simulate_run(scenario, name, 1), [])
+            for name in ("calibration", "validation")}
+    diag = symcal.diagnose(symcal.solve(tmp_path / "problem-nc.yaml", data))
+    texts = {c.label: diag.candidate_text(c) for c in diag.significant}
+    zero = next(label for label in texts if label.startswith("the fixed parameter cor.zero"))
+    assert ("Every parameter of cor is fixed: the problem trusts it as its reference, and "
+            "this candidate says the reference itself reads wrong.") in texts[zero]
+    product = "tur.Qv += the product of f_tur and T"
+    assert product in texts and "Every parameter of" not in texts[product]

@@ -324,20 +324,41 @@ def references(problem: Problem) -> set[str]:
     return {inst for inst, fixed in found.items() if all(fixed)}
 
 
+def changed_instances(cand: Candidate) -> set[str]:
+    """The instances a candidate changes: its output's; a latency's lagging instance; the
+    instance of a fixed parameter freed or of a model constant made a parameter (none for
+    the problem's own constants and the model's approximation)."""
+    basis = cand.basis
+    if basis.kind == "latency":
+        return {basis.variable}
+    if basis.kind in ("fixed", "constant"):
+        return {t.split(".", 1)[0] for t in basis.targets if "." in t}
+    if basis.kind in STANDALONE:
+        return set()
+    return {cand.output.split(".", 1)[0]}
+
+
+def on_reference(cand: Candidate, problem: Problem) -> str | None:
+    """The reference (:func:`references`) the candidate changes, or None."""
+    found = sorted(changed_instances(cand) & references(problem))
+    return found[0] if found else None
+
+
 def _reference_words(cand: Candidate, result: Result) -> str:
     """A warning where the candidate changes a sensor whose every parameter is fixed: the
-    problem's reference (a certified load cell).  A term there says the reference reads
-    wrong, and its shape in the reference's reading is often the same effect in a
-    calibrated sensor's (a stack of load cells carries one force): that one leaves the
-    reference as certified and puts the other sensors' parameters elsewhere."""
-    instance = cand.output.split(".", 1)[0]
-    if cand.basis.kind in STANDALONE or instance not in references(result.problem):
+    problem's reference (a certified load cell).  A term there (or its fixed parameter
+    freed, its constant or its clock changed) says the reference reads wrong, and its
+    shape in the reference's reading is often the same effect in a calibrated sensor's
+    (a stack of load cells carries one force): that one leaves the reference as
+    certified and puts the other sensors' parameters elsewhere."""
+    instance = on_reference(cand, result.problem)
+    if instance is None:
         return ""
     return (f" Every parameter of {instance} is fixed: the problem trusts it as its "
-            f"reference, and this term says the reference itself reads wrong. Where a "
-            f"calibrated sensor's candidate explains about as much, prefer it (symcal "
+            f"reference, and this candidate says the reference itself reads wrong. Where "
+            f"a calibrated sensor's candidate explains about as much, prefer it (symcal "
             f"improve compares them on their BIC), and check {instance} against its own "
-            f"calibration before adding a term to it.")
+            f"calibration before changing it.")
 
 
 def _value_words(cand: Candidate, stats: str) -> str:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from symcal.analysis.discovery import STANDALONE, Candidate
+from symcal.analysis.discovery import Candidate
 from symcal.base.digits import estimate_text
 from symcal.base.errors import SymcalError
 from symcal.base.files import write_output
@@ -31,7 +31,7 @@ from symcal.language.yamlio import dump_yaml
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
 from symcal.revise.diagnose import GROUP as DIAGNOSED
-from symcal.revise.diagnose import Diagnosis, diagnose, references
+from symcal.revise.diagnose import Diagnosis, diagnose, on_reference
 from symcal.revise.effects import write_revision
 from symcal.revise.previous import clear_previous
 from symcal.revise.watch import Watch, design_hint, new_parameters, same_fit, wald, watch
@@ -325,25 +325,15 @@ def _rank(new: Result, change: float, paying: Sequence[Result], on_reference: bo
 
 
 def _on_reference(diag: Diagnosis, label: str, result: Result) -> bool:
-    """Whether the candidate ``label`` adds a term to a sensor whose every parameter is
-    fixed (:func:`~symcal.revise.diagnose.references`): the sensor the problem trusts.
+    """Whether the candidate ``label`` changes a sensor whose every parameter is fixed (a
+    term, a fixed parameter freed, a model constant, its clock:
+    :func:`~symcal.revise.diagnose.on_reference`): the sensor the problem trusts.
     Where a calibrated sensor's term fits about as well, the reference is left as
     declared: a term in the reference's own noisy reading scales its noise down and fits
     a drone altimeter's barometer temperature as well (BIC equal), with the laser's
     scale 500 standard errors off."""
     cand = next((c for c in diag.candidates if c.label == label), None)
-    if cand is None:
-        return False
-    kind, basis = cand.basis.kind, cand.basis
-    if kind == "latency":
-        touched = {basis.variable}                    # the instance whose readings lag
-    elif kind in ("fixed", "constant"):               # a parameter or model constant of
-        touched = {t.split(".", 1)[0] for t in basis.targets if "." in t}   # an instance
-    elif kind in STANDALONE:
-        touched = set()
-    else:
-        touched = {cand.output.split(".", 1)[0]}
-    return bool(touched & references(result.problem))
+    return cand is not None and on_reference(cand, result.problem) is not None
 
 
 #: Held-out changes (mean log ratios) closer than this are the same: a term on either
