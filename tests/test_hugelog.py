@@ -281,7 +281,7 @@ def test_a_robust_loss_on_shards_equals_the_in_memory_solve(slips) -> None:
     assert all(o.weight < 0.05 for o in outliers.listed)
     assert sharded.stages[-1].serial is None        # not examined under a robust loss
     # nothing of the log's size in the lead: no pass returned residual rows or scores
-    assert "residuals" not in counts.by_method and "score_rows" not in counts.by_method
+    assert "residuals" not in counts.by_method and "score_chunks" not in counts.by_method
 
 
 def test_outliers_that_dominate_a_squared_fit_on_shards(slips, monkeypatch) -> None:
@@ -375,7 +375,7 @@ def test_propagated_weights_of_two_constraints_on_shards(tmp_path) -> None:
     assert differences(sharded.to_dict(), full.to_dict()) == []
     coordination = next(s for s in sharded.stages if s.name == "coordination")
     assert any("propagated from the readings' declared noise" in n for n in coordination.notes)
-    assert "residuals" not in counts.by_method and "score_rows" not in counts.by_method
+    assert "residuals" not in counts.by_method and "score_chunks" not in counts.by_method
 
 
 LOG_FIT = """\

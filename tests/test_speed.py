@@ -15,7 +15,6 @@ import pytest
 from conftest import ROOT
 
 import symcal
-from symcal.base.numeric import chunks
 from symcal.solvers import trust_region
 
 DUAL = ROOT / "problems" / "dual_sensor_calibration.yaml"
@@ -388,29 +387,6 @@ def test_a_repeated_solve_builds_nothing_again_and_finds_the_same(monkeypatch) -
     assert one == two
 
 
-@pytest.mark.parametrize(("rows", "lags"), [(20_000, 7), (20_000, 300),
-                                            (2 * 8192 + 50, 100), (20_000, 1100)])
-def test_hac_meat_computed_apart_equals_the_lag_by_lag_sum(rows: int, lags: int) -> None:
-    """The Newey-West meat of a solve with each chunk's windows computed on the passes'
-    threads and the windows across chunks joined by the lead equals the sum over lags on
-    the same per-row scores: several chunks, a last chunk shorter than the bandwidth
-    (joined to the one before) and a bandwidth too long for chunks apart (the sequential
-    form)."""
-    from symcal.analysis.serial import hac_meat_apart
-    from symcal.solvers.executor import threads
-
-    problem, _, data, objective = _dual_objective(rows)
-    theta = np.array([p.value for p in problem.parameters])
-    score = objective.score_rows(data, theta)
-    scores = np.vstack([score(p) for p in chunks(data.n)])
-    direct = scores.T @ scores
-    for lag in range(1, lags + 1):
-        cross = scores[:-lag].T @ scores[lag:]
-        direct += (1 - lag / (lags + 1)) * (cross + cross.T)
-    got = hac_meat_apart(score, data.n, lags, scores.shape[1], threads(2).map)
-    np.testing.assert_allclose(got, direct, rtol=1e-10, atol=1e-12 * np.abs(direct).max())
-
-
 def test_hac_meat_of_a_solve_equals_the_lag_by_lag_sum() -> None:
     """The window-sum form of the Newey-West meat equals the sum over lags (the form it
     replaced) on a real fit's per-row scores, whatever the chunking."""
@@ -418,8 +394,7 @@ def test_hac_meat_of_a_solve_equals_the_lag_by_lag_sum() -> None:
 
     problem, _, data, objective = _dual_objective(3_000)
     theta = np.array([p.value for p in problem.parameters])
-    score = objective.score_rows(data, theta)
-    scores = np.vstack([score(p) for p in chunks(data.n)])
+    scores = np.vstack(list(objective.score_chunks(data, theta)))
     for lags in (1, 7, 40):
         direct = scores.T @ scores
         for lag in range(1, lags + 1):

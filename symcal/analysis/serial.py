@@ -21,14 +21,13 @@ were are too small (two halves of one recording disagree by several of them).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from symcal.analysis.bands import normal_quantile
-from symcal.base.numeric import CHUNK, chunks
 
 #: Family-wise level of the detection (over a stage's constraints).
 ALPHA = 0.01
@@ -224,56 +223,6 @@ def hac_combine(parts: Iterable[HacPart], lags: int, n_free: int) -> np.ndarray:
 def _last(rows: np.ndarray, k: int) -> np.ndarray:
     """The last ``k`` rows (none for 0)."""
     return rows[max(rows.shape[0] - k, 0):] if k > 0 else rows[:0]
-
-
-#: The longest bandwidth, as a share of a chunk's rows, at which :func:`hac_meat_apart`
-#: computes the chunks apart (its pieces must each hold at least L rows).
-APART_SHARE = 8
-#: An executor's ``map``: a function applied to each piece, the results in order.
-Pieces = Callable[[Callable[[slice], Any], list[slice]], Iterable[Any]]
-
-
-def hac_meat_apart(score: Callable[[slice], np.ndarray], rows: int, lags: int,
-                   n_free: int, map_pieces: Pieces) -> np.ndarray:
-    """:func:`hac_meat` of the scores of ``rows`` rows, ``score(part)`` those of the rows
-    ``part`` (``m × n_free``), each piece's heavy work (its scores, their running sums
-    and the product of its windows that lie within it) computed apart by ``map_pieces``
-    (an executor's ``map``, results in order); the windows that straddle two pieces (the
-    first L rows of each) are joined here from the pieces' first running sums and the
-    sums of the last rows before them.  The same sum as :func:`hac_meat` (to rounding:
-    the products are summed in another grouping); where the bandwidth is long against a
-    chunk (beyond 1/:data:`APART_SHARE` of it) or the rows few, :func:`hac_meat` itself."""
-    if lags <= 0 or lags * APART_SHARE > CHUNK or rows < 4 * lags:
-        return hac_meat((score(p) for p in chunks(rows)), lags, n_free)
-    width = lags + 1
-    pieces = list(chunks(rows))
-    if len(pieces) > 1 and pieces[-1].stop - pieces[-1].start < lags:
-        pieces[-2:] = [slice(pieces[-2].start, pieces[-1].stop)]   # every piece ≥ L rows
-
-    def one(piece: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        block = np.concatenate([np.asarray(score(slice(a, min(a + CHUNK, piece.stop))),
-                                           dtype=float).reshape(-1, n_free)
-                                for a in range(piece.start, piece.stop, CHUNK)])
-        run = np.cumsum(block, axis=0)
-        # windows ending at rows L, L + 1, ...: within the piece (the first L + 1 rows'
-        # running sum, then differences of running sums L + 1 apart)
-        inner = run[lags:].copy()
-        inner[1:] -= run[:max(inner.shape[0] - 1, 0)]
-        return inner.T @ inner, run[:lags], block[-lags:]
-
-    meat = np.zeros((n_free, n_free))
-    tail: np.ndarray | None = None
-    for gram, head, last in map_pieces(one, pieces):
-        meat += gram
-        # windows ending at the piece's first L rows: their running sums there, plus the
-        # sums of the last L, L - 1, ..., 1 rows before the piece (none before the first)
-        windows = head if tail is None else head + np.cumsum(tail[::-1], axis=0)[::-1]
-        meat += windows.T @ windows
-        tail = last
-    assert tail is not None
-    suffix = np.cumsum(tail[::-1], axis=0)      # windows overhanging the end
-    meat += suffix.T @ suffix
-    return meat / width
 
 
 def hac_meat(scores: Iterator[np.ndarray], lags: int, n_free: int) -> np.ndarray:

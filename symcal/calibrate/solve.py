@@ -15,7 +15,7 @@ from symcal.analysis.identifiability import Uncertainty
 from symcal.analysis.implicit import implicit_checks
 from symcal.analysis.outliers import Outliers, find_outliers
 from symcal.analysis.row_noise import Fit, inverse_sqrt_rows, row_covariances
-from symcal.analysis.serial import SerialCorrelation, bandwidth, detect, hac_meat_apart
+from symcal.analysis.serial import SerialCorrelation, bandwidth, detect, hac_meat
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, SolveError, SymcalError
 from symcal.base.linalg import information_coordinates, sqrt_psd, whitening
@@ -36,7 +36,7 @@ from symcal.data.loading import load_datasets
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem, Stage
 from symcal.solvers.base import SolverOutput
-from symcal.solvers.executor import blas_limited, default_executor
+from symcal.solvers.executor import blas_limited
 from symcal.solvers.objective import Objective
 from symcal.solvers.robust import RobustOutput, RowLosses, sandwich_meat, solve_robust
 
@@ -209,9 +209,8 @@ def _serial(objective: Objective, data: Dataset, out: SolverOutput
     lags = bandwidth(max(found.rho, key=abs), data.n)
     to, back = information_coordinates(out.r_factor, out.rows, objective.scales)
     rank = to.shape[1]                # the identifiable parameters, by the same SVD
-    score = objective.score_rows(data, out.theta)
-    meat = hac_meat_apart(lambda part: score(part) @ to, data.n, lags, rank,
-                          default_executor(data.n).map)
+    meat = hac_meat((s @ to for s in objective.score_chunks(data, out.theta)), lags,
+                    to.shape[1])
     meat *= out.rows / max(out.rows - rank, 1)
     return replace(found, lags=lags), sqrt_psd(meat).T @ back
 

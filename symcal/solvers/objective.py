@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import copy
 import weakref
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -225,13 +225,11 @@ class Objective:
         rows = count * self.g.shape[0]
         return gram / count * rows / max(rows - rank, 1)
 
-    def score_rows(self, dataset: Dataset, theta: np.ndarray
-                   ) -> Callable[[slice], np.ndarray]:
-        """The per-row scores ``J_iᵀ g_i`` of the weighted residual at ``theta``: a function
-        of a slice of the rows (at most :data:`~symcal.base.numeric.CHUNK` of them) giving
-        theirs, ``m × n_free`` (in-memory data only; any thread may call it), for standard
+    def score_chunks(self, dataset: Dataset, theta: np.ndarray) -> Iterator[np.ndarray]:
+        """Per-row scores ``J_iᵀ g_i`` of the weighted residual at ``theta``, chunk by
+        chunk in row order (``m × n_free`` each; in-memory data only), for standard
         errors that allow for correlated rows (:mod:`symcal.analysis.serial`)."""
-        instrument.record_pass("linearised", "score_rows", dataset.n)
+        instrument.record_pass("linearised", "score_chunks", dataset.n)
         fn = jit.select(self._mapped("linearised", [self.g, self.jac.T]), dataset.n)
         ng, n = self.g.shape[0], int(self.free.sum())
         u = dataset.matrix(self.problem.columns)
@@ -247,7 +245,8 @@ class Objective:
                 g, jac = g * w, jac * w[:, :, None]
             return np.einsum("ma,man->mn", g, jac)
 
-        return scores
+        # on the passes' executor (threads for a large dataset), the chunks in order
+        yield from default_executor(dataset.n).map(scores, list(chunks(dataset.n)))
 
     def _kept_g(self, dataset: Source, theta: np.ndarray) -> np.ndarray | None:
         """The residuals kept from an earlier :meth:`residuals` of this dataset at this
