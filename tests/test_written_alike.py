@@ -39,3 +39,4 @@ def test_an_effect_a_parameter_absorbs_whole_is_named_with_it() -> None:
     product = next(c for c in diag.candidates
                    if c.label == "tur.Qv += the product of f_tur and T")
     assert dict(product.unseen)["beta"] >= off
+
