@@ -301,7 +301,8 @@ def _best_of_group(
     if not paying:
         return None
     fits = [t[3] for t in paying]
-    paying.sort(key=lambda t: _rank(t[3], t[0], fits, _on_reference(diag, t[1], result)))
+    paying.sort(key=lambda t: _rank(t[3], t[0], fits, _on_reference(diag, t[1], result),
+                                    _declared_change(t[3], result)))
     _, label, path, new = paying[0]
     used = {f.resolve() for f in new.problem.source_files()}
     for _, other, _, _ in paying[1:]:
@@ -314,14 +315,30 @@ def _best_of_group(
                  frozenset(written[label] - {path} | {final}))
 
 
-def _rank(new: Result, change: float, paying: Sequence[Result], on_reference: bool
-          ) -> tuple[bool, bool, float]:
+def _rank(new: Result, change: float, paying: Sequence[Result], on_reference: bool,
+          declared: float = 0.0) -> tuple[bool, bool, float, float]:
     """The order of revisions that pay: those whose BIC is within :data:`CLEAR_BIC` of
     the lowest first; among them a term on a calibrated sensor before one on the
     problem's reference (``on_reference``: :func:`_on_reference`); then by their held-out
-    change (``change``, to :data:`SAME_CHANGE`: one fit written two ways keeps the order
-    it was tried in, the group's lead first)."""
-    return new.bic > min(r.bic for r in paying) + CLEAR_BIC, on_reference, _level(change)
+    change (``change``, to :data:`SAME_CHANGE`); one fit written two ways, the one that
+    moves a declared value least (``declared``: :func:`_declared_change`), else in the
+    order it was tried, the group's lead first."""
+    return (new.bic > min(r.bic for r in paying) + CLEAR_BIC, on_reference,
+            _level(change), declared)
+
+
+def _declared_change(new: Result, old: Result) -> float:
+    """How far the revision moves a value the user declared: of its new parameters that
+    were a constant or a fixed parameter (a declared value, not zero), the largest
+    relative change (0 for none).  Where two revisions are one fit written two ways, the
+    data cannot choose; the declared values can: a flow pair's reference temperature of
+    the density law made a parameter went from 20 to -2803 degC, where its expansion
+    coefficient, the same fit, went from 2.1e-4 to 5.2e-4."""
+    freed = [name for name, p in new.params.items() if not p.fixed
+             and (name not in old.params or old.params[name].fixed)]
+    found = [abs(p.value - p.initial) / abs(p.initial)
+             for p in (new.params[name] for name in freed) if p.initial]
+    return max(found, default=0.0)
 
 
 def _on_reference(diag: Diagnosis, label: str, result: Result) -> bool:
@@ -599,7 +616,8 @@ def _best_lead(
     changes = {c.label: held_out_change(c.result, result) for c in contenders}
     fits = [c.result for c in contenders]
     contenders.sort(key=lambda c: _rank(c.result, changes[c.label], fits,
-                                        _on_reference(diag, c.label, result)))
+                                        _on_reference(diag, c.label, result),
+                                        _declared_change(c.result, result)))
     best, *others = contenders
     used = {f.resolve() for f in best.result.problem.source_files()}
     for other in others:
