@@ -63,9 +63,10 @@ def test_a_term_on_the_reference_says_so(tmp_path) -> None:
 def test_freeing_the_references_fixed_parameter_says_so(tmp_path) -> None:
     """Flow meters in series, the Coriolis meter the reference (its zero fixed), the
     density law trusted (no constant tested): with the turbine's K-factor growing with
-    the temperature, the diagnosis's lead is the Coriolis zero freed, which says nothing
+    the temperature, the diagnosis's lead was the Coriolis zero freed, which said nothing
     of its being the reference (a new user applied it: the zero came out at 145 % of the
-    mean flow).  It now says so; the turbine's product with the temperature does not."""
+    mean flow).  It now says so, and a calibrated sensor's member leads its group; the
+    turbine's product with the temperature says nothing of a reference."""
     from conftest import ROOT
 
     from symcal.simulation import load_scenario, simulate_run
@@ -79,9 +80,76 @@ def test_freeing_the_references_fixed_parameter_says_so(tmp_path) -> None:
     data = {name: make_dataset(name, "simulated", simulate_run(scenario, name, 1), [])
             for name in ("calibration", "validation")}
     diag = symcal.diagnose(symcal.solve(tmp_path / "problem-nc.yaml", data))
-    texts = {c.label: diag.candidate_text(c) for c in diag.significant}
-    zero = next(label for label in texts if label.startswith("the fixed parameter cor.zero"))
+    zero = next(c for c in diag.candidates
+                if c.label.startswith("the fixed parameter cor.zero"))
+    assert zero.significant
     assert ("Every parameter of cor is fixed: the problem trusts it as its reference, and "
-            "this candidate says the reference itself reads wrong.") in texts[zero]
-    product = "tur.Qv += the product of f_tur and T"
-    assert product in texts and "Every parameter of" not in texts[product]
+            "this candidate says the reference itself reads wrong.") in \
+        diag.candidate_text(zero)
+    # it no longer leads its group: a calibrated sensor's member does
+    lead = next(c for c in diag.significant if zero.label in c.indistinguishable)
+    assert lead.output.startswith("tur.") and lead is diag.significant[0]
+    product = next(c for c in diag.significant
+                   if c.label == "tur.Qv += the product of f_tur and T")
+    assert "Every parameter of" not in diag.candidate_text(product)
+
+
+SHUNT = """model: shunt
+constants:
+  alpha: {value: 5.0e-5, unit: 1/delta_degC}
+  T25: {value: 25, unit: delta_degC}
+inputs:
+  v: {unit: mV}
+  T: {unit: delta_degC}
+parameters:
+  R0: {value: 1.0, unit: mohm, scale: 1.0, fixed: true}
+outputs:
+  I: {expr: v/(R0*(1 + alpha*(T - T25))), unit: A}
+"""
+HALL = """model: hall
+inputs:
+  v: {unit: V}
+parameters:
+  off: {value: 2.5, unit: V, scale: 0.01}
+  sens: {value: 0.040, unit: V/A, scale: 0.001}
+outputs:
+  I: {expr: (v - off)/sens, unit: A}
+"""
+BENCH = """problem: bench
+columns:
+  t: {unit: s, role: time}
+  v_sh: {unit: mV, noise: 0.01 mV}
+  v_hall: {unit: V, noise: 0.005 V}
+  T: {unit: delta_degC, role: state, noise: 0.05 delta_degC}
+instances:
+  sh: {model: shunt.yaml, inputs: {v: v_sh, T: T}}
+  hall: {model: hall.yaml, inputs: {v: v_hall}}
+constraints:
+  g: {expr: sh.I - hall.I, unit: A}
+datasets:
+  calibration: {path: calibration.csv}
+"""
+
+
+def test_a_calibrated_sensors_term_leads_before_the_references_own_input(tmp_path) -> None:
+    """A shunt (the reference, its resistance's temperature its own input) and a Hall
+    sensor in series; the Hall sensor's offset drifts with the temperature.  A term
+    linear in T on the shunt is the same fit, and it led the group as a term in the
+    shunt's own input: a new user applying it got a Hall model with no temperature
+    compensation.  The calibrated sensor's member leads now."""
+    for name, text in (("shunt.yaml", SHUNT), ("hall.yaml", HALL), ("bench.yaml", BENCH)):
+        (tmp_path / name).write_text(text)
+    rng = np.random.default_rng(11)
+    n = 3000
+    t = np.arange(n, dtype=float)
+    current = 50.0 * np.sin(2 * np.pi * t / 400.0)
+    temp = 32.5 - 12.5 * np.cos(2 * np.pi * t / n)
+    columns = {"t": t, "T": temp + rng.normal(0, 0.05, n),
+               "v_sh": current * (1 + 5e-5 * (temp - 25)) + rng.normal(0, 0.01, n),
+               "v_hall": 2.5 + 0.0398 * current + 4e-4 * (temp - 25)
+               + rng.normal(0, 0.005, n)}
+    data = {"calibration": make_dataset("calibration", "test", columns, [])}
+    diag = symcal.diagnose(symcal.solve(tmp_path / "bench.yaml", data))
+    lead = diag.significant[0]
+    assert lead.label == "hall.I += a term linear in T", lead.label
+    assert "sh.I += a term linear in T" in lead.indistinguishable

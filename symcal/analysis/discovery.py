@@ -496,13 +496,15 @@ def _group(ranked: list[Candidate], local: Callable[[Candidate], bool] | None,
            top: int = 8, reference: Callable[[Candidate], bool] | None = None) -> None:
     """Fill ``indistinguishable`` for the leading candidates (canonical correlation); the
     simplest member of a group that explains as much (:data:`EQUAL`) moves up to lead it:
-    a term in the sensor's own input (``local``) first, then one on a sensor the problem
-    does not trust as its reference (``reference``: a pressure sensor's dependence on
-    the temperature, where both sides of the constraint read it alike, belongs to the
-    sensor being calibrated), then the simpler shape (:attr:`Basis.complexity`)."""
+    a term on a sensor the problem does not trust as its reference first (``reference``:
+    a pressure sensor's dependence on the temperature, where both sides of the
+    constraint read it alike, belongs to the sensor being calibrated; a Hall sensor's
+    offset drifting with the temperature before the same term on a reference shunt whose
+    own input the temperature is), then a term in the sensor's own input (``local``),
+    then the simpler shape (:attr:`Basis.complexity`)."""
     def simplicity(c: Candidate) -> tuple[bool, bool, tuple[int, int]]:
-        return ((local is not None and not local(c)),
-                (reference is not None and reference(c)), c.basis.complexity)
+        return ((reference is not None and reference(c)),
+                (local is not None and not local(c)), c.basis.complexity)
 
     for i in range(min(top, len(ranked))):
         lead = ranked[i]

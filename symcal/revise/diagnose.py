@@ -460,11 +460,10 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
     candidates = [e.candidate for e in entries]
     by_label = {e.candidate.label: e for e in entries}
     gauge_columns = {name: fixed_columns[name] for name in fixes}
-    trusted = references(problem)
     ranked = test_candidates(
         own, candidates, [own_regressor(e.raw) for e in entries], alpha, local,
         [None if e.extra is None else own_regressor(e.extra) for e in entries],
-        gauge_columns, lambda c: c.output.split(".", 1)[0] in trusted)
+        gauge_columns, lambda c: on_reference(c, problem) is not None)
     have = set(problem.parameter_names)
 
     def restates(cand: Candidate) -> bool:
