@@ -149,6 +149,20 @@ def _orthonormal(x: np.ndarray) -> np.ndarray:
     return q @ u[:, keep]
 
 
+def _seen_columns(x: np.ndarray, qn: np.ndarray) -> np.ndarray:
+    """The columns of ``x`` (M × m) with the nuisance's span ``qn`` removed, but only
+    those the nuisance does not absorb (:data:`ABSORBED` of their own norm): what is left
+    of an absorbed column is rounding and, where it is a reading evaluated at its
+    adjusted value, the reading's share of the residual itself, which normalised would
+    explain the residual.  A shunt's linear term in its own reading (its gain absorbed
+    by a Hall sensor's sensitivity), as the simpler term a product is tested beyond,
+    took away the Hall sensor's temperature effect: the product's test was the same on
+    data with and without it."""
+    xp = _project(x, qn)
+    raw = np.linalg.norm(x, axis=0)
+    return xp[:, np.linalg.norm(xp, axis=0) >= ABSORBED * raw]
+
+
 def _project(x: np.ndarray, q: np.ndarray) -> np.ndarray:
     """``x`` with the span of the orthonormal ``q`` removed."""
     return x - q @ (q.T @ x) if q.shape[1] else x
@@ -348,7 +362,7 @@ def test_candidates(
         extra = None if extras is None else extras[i]
         base, rb, m_extra = r, rss0, 0
         if extra is not None:
-            qe = _orthonormal(_project(extra, qn))
+            qe = _orthonormal(_seen_columns(extra, qn))
             m_extra = qe.shape[1]
             base = _project(r, qe)
             rb = float(base @ base)
