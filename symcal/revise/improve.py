@@ -301,8 +301,7 @@ def _best_of_group(
     if not paying:
         return None
     fits = [t[3] for t in paying]
-    paying.sort(key=lambda t: _rank(t[3], t[0], fits, _on_reference(diag, t[1], result),
-                                    _declared_change(t[3], result)))
+    paying.sort(key=lambda t: _rank(diag, t[1], t[3], t[0], fits, result))
     _, label, path, new = paying[0]
     used = {f.resolve() for f in new.problem.source_files()}
     for _, other, _, _ in paying[1:]:
@@ -315,16 +314,22 @@ def _best_of_group(
                  frozenset(written[label] - {path} | {final}))
 
 
-def _rank(new: Result, change: float, paying: Sequence[Result], on_reference: bool,
-          declared: float = 0.0) -> tuple[bool, bool, float, float]:
-    """The order of revisions that pay: those whose BIC is within :data:`CLEAR_BIC` of
-    the lowest first; among them a term on a calibrated sensor before one on the
-    problem's reference (``on_reference``: :func:`_on_reference`); then by their held-out
-    change (``change``, to :data:`SAME_CHANGE`); one fit written two ways, the one that
-    moves a declared value least (``declared``: :func:`_declared_change`), else in the
-    order it was tried, the group's lead first."""
-    return (new.bic > min(r.bic for r in paying) + CLEAR_BIC, on_reference,
-            _level(change), declared)
+def _rank(diag: Diagnosis, label: str, new: Result, change: float,
+          paying: Sequence[Result], old: Result) -> tuple[bool, bool, float, float]:
+    """The order of revisions that pay (``new``, the revision of candidate ``label`` of
+    ``diag``, solved from ``old``): those whose BIC is within :data:`CLEAR_BIC` of the
+    lowest first; among them a term on a calibrated sensor before one on the problem's
+    reference (:func:`_on_reference`); then by their held-out change (``change``, to
+    :data:`SAME_CHANGE`); one fit written two ways, the one that moves a declared value
+    least (:func:`_declared_change`), else in the order it was tried, the group's lead
+    first."""
+    return (new.bic > min(r.bic for r in paying) + CLEAR_BIC,
+            _on_reference(diag, label, old), _level(change), _declared_change(new, old))
+
+
+def _candidate(diag: Diagnosis, label: str) -> Candidate | None:
+    """The diagnosis's candidate ``label`` (None where it has none of that name)."""
+    return next((c for c in diag.candidates if c.label == label), None)
 
 
 def _declared_change(new: Result, old: Result) -> float:
@@ -349,7 +354,7 @@ def _on_reference(diag: Diagnosis, label: str, result: Result) -> bool:
     declared: a term in the reference's own noisy reading scales its noise down and fits
     a drone altimeter's barometer temperature as well (BIC equal), with the laser's
     scale 500 standard errors off."""
-    cand = next((c for c in diag.candidates if c.label == label), None)
+    cand = _candidate(diag, label)
     return cand is not None and on_reference(cand, result.problem) is not None
 
 
@@ -385,7 +390,7 @@ def predicted_change(diag: Diagnosis, label: str) -> float:
 def _predicted_ratios(diag: Diagnosis, label: str, held_out: bool) -> list[float]:
     """The log ratios of the spreads the diagnosis predicts for a candidate, after over
     before, of the constraint residuals held out (or fitted)."""
-    cand = next((c for c in diag.candidates if c.label == label), None)
+    cand = _candidate(diag, label)
     return [] if cand is None else _ratios(diag, cand.reduction, held_out)
 
 
@@ -615,9 +620,8 @@ def _best_lead(
         return kept
     changes = {c.label: held_out_change(c.result, result) for c in contenders}
     fits = [c.result for c in contenders]
-    contenders.sort(key=lambda c: _rank(c.result, changes[c.label], fits,
-                                        _on_reference(diag, c.label, result),
-                                        _declared_change(c.result, result)))
+    contenders.sort(key=lambda c: _rank(diag, c.label, c.result, changes[c.label], fits,
+                                        result))
     best, *others = contenders
     used = {f.resolve() for f in best.result.problem.source_files()}
     for other in others:
@@ -791,7 +795,7 @@ def _reads_ahead(diag: Diagnosis, kept: _Kept, old: Result) -> tuple[str, ...]:
     delay of one sensor is, to first order, the other readings of its constraints lagging
     by as much, written on this one (a flow pair's Coriolis meter, the reference, 0.2 s
     early, where the turbine was 0.2 s late)."""
-    cand = next((c for c in diag.candidates if c.label == kept.label), None)
+    cand = _candidate(diag, kept.label)
     if cand is None or cand.basis.kind != "latency":
         return ()
     out = []
