@@ -49,7 +49,8 @@ class Basis:
     """φ(v): the shape of a candidate term, with what it takes to write it in YAML."""
 
     kind: str                  # harmonic | linear | quadratic | angle_harmonic | drift |
-                               # product | latency | constant | fixed | approximation
+                               # product | gain | latency | constant | fixed |
+                               # approximation
     variable: str              # the variable's name in the problem (column, signal, expr)
     description: str           # e.g. "harmonic 3 of s2.p (period 1.016 mm)"
     columns: tuple[str, ...]   # coefficient names, e.g. ("h3_sin", "h3_cos")
@@ -81,11 +82,11 @@ class Basis:
     @property
     def complexity(self) -> tuple[int, int]:
         """How simple the shape is: linear and drift before harmonics (by number) before
-        quadratic before angle products."""
+        quadratic before an output's gain varying with a variable before products."""
         rank = {"approximation": 0, "constant": 0, "fixed": 0, "linear": 1, "drift": 1,
-                "latency": 1, "harmonic": 2, "quadratic": 3, "product": 4,
-                "angle_harmonic": 4}
-        return rank.get(self.kind, 5), self.order
+                "latency": 1, "harmonic": 2, "quadratic": 3, "gain": 4, "product": 5,
+                "angle_harmonic": 5}
+        return rank.get(self.kind, 6), self.order
 
 
 @dataclass

@@ -173,10 +173,11 @@ def _adjusted(problem: Problem, block: Block, var_specs: list, adjustment: Adjus
     expressions = {q.name: q.sx for q in nv.expressions}
     columns = {c: k for k, c in enumerate(nv.columns)}
     noise = {r.name: r.symbol for r in nv.readings if r.name in adjustment.readings}
+    hp_outputs = set(problem.diagnostic.hooks)
     named: list[tuple[str, ca.SX]] = []
     for name, _, _, _, kind in var_specs:
-        if kind == "derived":
-            continue
+        if kind == "derived" and name not in hp_outputs:
+            continue        # a sensor's own output is one (its gain's candidates use it)
         if name in columns:
             sx = nv.u[columns[name]] * DISPLAY_UNITS[_unit(nv, name)]
             named.append((name, sx + noise[name] if name in noise else sx))

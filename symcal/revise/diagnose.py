@@ -450,8 +450,8 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
             lambda i, d=diff: d[i]))   # type: ignore[misc]
 
     def local(cand: Candidate) -> bool:
-        if cand.output not in problem.diagnostic.hooks:
-            return True
+        if cand.output not in problem.diagnostic.hooks or cand.basis.kind == "gain":
+            return True     # not a sensor's term, or the sensor's own gain
         instance = cand.output.split(".", 1)[0]
         return cand.basis.variable in own_names_of(problem, instance)
 
@@ -592,7 +592,7 @@ def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]
     if v0 == 0.0 and _far_from_zero(regressor(entry.raw)[:, 0], x_lower[:, 0], c):
         return entry        # about the data: zero is no point of the run (0 K, 0 degC)
     d = c - v0
-    if basis.kind == "linear":          # v = (v - c) + c
+    if basis.kind in ("linear", "gain"):    # v = (v - c) + c (times the output)
         def raw(i: int) -> np.ndarray:
             return entry.raw(i) + d * lower(i)
     else:                               # (v - v0)² = (v - c)² + 2d (v - c) + d², d = c - v0

@@ -1,10 +1,12 @@
 """A candidate effect as files that load: a model that ``extends`` the instance's model
 with the missing term and/or a problem overlay (``extends:``) that uses it.
 
-**Terms** (harmonic, linear, quadratic, drift, angle_harmonic, product) go where the
+**Terms** (harmonic, linear, quadratic, drift, angle_harmonic, product, gain) go where the
 physics is: into the model's error expression when the output is ``reading + error`` (so
 that in an implicit model it is inside the fixed-point definition), else onto the output
-itself (``c_y: base.c_y + ...``, which keeps the output's declared unit); a harmonic of
+itself (``c_y: base.c_y + ...``, which keeps the output's declared unit; a gain is
+``I: base.I + gain_T*base.I*(v_T - c_gain_T)``, a dimensionless rate per unit of the
+variable); a harmonic of
 the sensor's own reading is evaluated where the model evaluates its error (``u``: the raw
 reading in the explicit model, the true position in the implicit one).  A new model
 input is bound to what the variable is in the problem (a data column or an expression of
@@ -51,7 +53,7 @@ from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
 
 _TAGS = {"harmonic": "h", "linear": "lin", "quadratic": "quad", "drift": "drift",
-         "angle_harmonic": "ah", "product": "prod"}
+         "angle_harmonic": "ah", "product": "prod", "gain": "gain"}
 #: Kinds written as a term added to one output (a model extension).
 TERMS = tuple(_TAGS)
 #: Names of the constants a term's placeholders stand for, by placeholder.
@@ -114,6 +116,17 @@ def per(numerator: str, *denominators: tuple[str, int]) -> str:
     if len(set(named)) < len(named):
         unit = reg.Quantity(1.0, unit).to_reduced_units().units
     return text_of(unit).replace("µ", "u")
+
+
+def _centre_doc(key: str, basis: Any) -> dict[str, str]:
+    """The doc of a term's centre: where the parameters already there now hold (a
+    sensitivity at the run's mean temperature, where the term is written about it, not
+    at a datasheet's 25 degC)."""
+    if key not in ("centre", "other_centre"):
+        return {}
+    variable = basis.variable if key == "centre" else basis.other
+    return {"doc": f"the other parameters hold at this {variable} where the term is zero "
+                   "(write a datasheet reference point to have them hold there)"}
 
 
 def scale_in(value: float, unit: str) -> float:
@@ -263,7 +276,8 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
             name += "_"
         taken.add(name)
         constants[key] = (name, _short(value / size(unit), digits), unit)
-    terms = [t.format(v=v, a=a, w=w, **{k: n for k, (n, _, _) in constants.items()})
+    terms = [t.format(v=v, a=a, w=w, o=f"base.{output}",
+                      **{k: n for k, (n, _, _) in constants.items()})
              for t in basis.terms]
     signal = next((q for q in problem.signals if q.name == cand.output), None)
     out_unit = (signal.unit if signal is not None else
@@ -275,6 +289,7 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
              "quadratic": [per(out_unit, (var_unit, 1)), per(out_unit, (var_unit, 2))],
              "angle_harmonic": [per(out_unit, (angle_unit, 1))] * 2,
              "product": [per(out_unit, (var_unit, 1), (other_unit, 1))] * len(params),
+             "gain": [per("", (var_unit, 1))],
              }[basis.kind]
     if basis.kind == "quadratic" and len(basis.columns) == 1:   # one part left (the
         units = units[1:] if basis.columns == ("quad",) else units[:1]   # other redundant)
@@ -284,8 +299,8 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
     body: dict[str, Any] = {"doc": f"{model.name} plus {basis.description} on {output} "
                                    "(found by symcal diagnose)"}
     if constants:
-        body["constants"] = {n: {"value": val, **_unit_key(u)}
-                             for n, val, u in constants.values()}
+        body["constants"] = {n: {"value": val, **_unit_key(u), **_centre_doc(key, basis)}
+                             for key, (n, val, u) in constants.items()}
     if new_inputs:
         body["inputs"] = {k: {"doc": f"bound to {val} in the problem",
                               **_unit_key(input_units[k])} for k, val in new_inputs.items()}
@@ -295,7 +310,7 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
         for p, u, s in zip(params, units, scales, strict=True)}
     terms_text = " + ".join(f"{p}*{t}" for p, t in zip(params, terms, strict=True))
     error = model.error_expression(output)
-    if error is not None:
+    if error is not None and "{o}" not in text:   # a gain multiplies the output itself
         body["expressions"] = {error: f"base.{error} + {terms_text}"}
     else:
         body["outputs"] = {output: f"base.{output} + {terms_text}"}

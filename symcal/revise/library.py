@@ -11,7 +11,10 @@ it (``candidates:`` on the instance, the model, or the problem: ``declared``).
 to :data:`HARMONICS`), a term linear in a variable, a quadratic, a drift in time, the
 product of two of the instance's variables (tested beyond the two linear terms it
 contains: it is tried after them), an angle times a harmonic (the orders of the plain
-harmonics).  Besides terms on outputs:
+harmonics), and the output's own gain varying with a variable that is not one of the
+sensor's readings (``O*(w - c)``, tested beyond the term linear in ``w``: a sensitivity
+that changes with the temperature, where the output is not its reading plus a small
+error).  Besides terms on outputs:
 
 - **latency**: an instance's readings stamped late by a constant delay τ, the term
   ``τ·Σ_j ∂r/∂c_j · dc_j/dt`` over the columns it reads, where the rows are time-ordered
@@ -242,6 +245,63 @@ def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shap
     return out
 
 
+#: An output is proportional to one of its sensor's own readings where a line through
+#: the origin in that reading leaves less than this share of it (a position read as
+#: itself plus a small error): a gain of the output that varies with a variable is then
+#: the product of that reading and the variable, already a candidate.
+PROPORTIONAL = 1e-2
+
+
+def _gains(problem: Problem, output: str, groups: list[tuple[Variable, set[str]]],
+           variables: list[Variable], block: Block, space: Space) -> list[_Shape]:
+    """The output's gain varying with each variable of the space that is not one of the
+    sensor's own readings: ``k*O*(w - c)``, ``O`` the output itself (at the adjusted
+    readings), tested beyond the term linear in ``w``.  A Hall sensor's sensitivity that
+    falls with the temperature is ``I*(T - c)``; the product of its raw reading and the
+    temperature is the same term to the test but, written alone, adds an offset drift
+    (its 2.5 V zero times the temperature) that is not there.  Only where the model
+    writes the output itself (no error expression: there the output is its reading plus
+    a small error, and the product of the reading is the gain) and where the output is
+    not proportional to one of the sensor's own readings (:data:`PROPORTIONAL`)."""
+    if space.kinds is not None and "gain" not in space.kinds:
+        return []
+    instance, local = output.split(".", 1)
+    model = problem.instances[instance].model
+    if model.error_expression(local) is not None or output not in {
+            v.name for v in block.variables}:
+        return []
+    o = block.values(output)
+    size = float(np.linalg.norm(o))
+    if not np.all(np.isfinite(o)) or size == 0.0:
+        return []
+    own = own_names(problem, instance)
+    readings = [var.values for var, names in groups if names & own]
+    for r in readings:
+        rr = float(r @ r)
+        if rr > 0 and float(np.linalg.norm(o - (o @ r) / rr * r)) < PROPORTIONAL * size:
+            return []
+    out = []
+    mine = {var.name for var, names in groups if names & own}
+    for v in variables:
+        if v.kind == "angle" or v.name in mine:
+            continue
+        c = 0.0 if v.kind == "drift" else centre_of(block.values(v.name))
+        term = "{o}*({v} - {centre})" if c else "{o}*{v}"
+        out.append(_Shape(Basis(
+            "gain", v.name, f"{output} times {v.name} (a gain that varies with {v.name})",
+            ("gain",), (term,), unit=v.unit, centre=c),
+            _gain(output, v.name, c), (v.name,), lower=_value(output)))
+    return out
+
+
+def _gain(output: str, name: str, centre: float) -> Callable[[Block], np.ndarray]:
+    return lambda b: (b.values(output) * (b.values(name) - centre))[:, None]
+
+
+def _value(output: str) -> Callable[[Block], np.ndarray]:
+    return lambda b: b.values(output)[:, None]
+
+
 def _angle_columns(n: int) -> tuple[tuple[str, str], tuple[str, str]]:
     """The coefficient names and YAML terms of the angle times harmonic ``n`` (order 1
     keeps its first names, ``ah_sin``, ``ah_cos``)."""
@@ -317,7 +377,9 @@ def output_entries(problem: Problem, blocks: list[Block], fit: int
         space = found[instance]
         variables = _in_space(groups, space, never)
         sigma = output_sigma(blocks[fit], h)
-        for shape in _shapes(variables, blocks[fit], space):
+        shapes = _shapes(variables, blocks[fit], space)
+        shapes += _gains(problem, output, groups, variables, blocks[fit], space)
+        for shape in shapes:
             phi = shape.phi
             basis = _with_scales(shape.basis, sigma, phi(blocks[fit]))
 

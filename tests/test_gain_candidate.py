@@ -1,0 +1,87 @@
+"""An output's gain that varies with a variable: ``O*(T - c)``, the output itself times the
+variable.  A new user's Hall current sensor (``I = (v - off)/sens``) whose sensitivity
+falls 600 ppm/degC, in series with a reference shunt: the product of its raw voltage and
+the temperature is the same term to the test, but written alone it adds its 2.5 V zero
+times the temperature, an offset drift that is not there (the diagnosis predicted 0.203
+-> 0.191 A against a floor of 0.127, and the loop kept a term on the reference shunt).
+The gain reaches the floor on the Hall sensor itself."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+import symcal
+from symcal.data.dataset import make_dataset
+from symcal.simulation import load_scenario, simulate_run, truth
+
+HALL = ROOT / "tests" / "data" / "hall"
+GAIN = "hall.I += hall.I times T (a gain that varies with T)"
+
+
+def _data(effect: str | None, seed: int) -> tuple[dict, dict]:
+    scenario = load_scenario(HALL / "scenario.yaml")
+    if effect is not None:
+        scenario = scenario.overlay({"effects": {effect: {"on": True}}})
+    data = {name: make_dataset(name, "simulated", simulate_run(scenario, name, seed), [])
+            for name in ("calibration", "validation")}
+    return data, truth(scenario)
+
+
+def test_a_sensitivity_that_varies_with_the_temperature_leads_as_the_sensors_gain() -> None:
+    data, _ = _data("sensT", 5)
+    diag = symcal.diagnose(symcal.solve(HALL / "problem.yaml", data))
+    lead = diag.significant[0]
+    assert lead.label == GAIN, lead.label
+    assert "hall.I += the product of v_hall and T" in lead.indistinguishable
+    # as written it reaches the floor (the raw product alone did not: 0.191 A)
+    before, after = lead.reduction["calibration/g"]
+    floor = 0.005 / 0.0398          # the Hall reading's noise as a current
+    assert after < 1.02 * floor < before, (before, after, floor)
+    text = diag.yaml[lead.label]
+    assert "I: base.I + gain_T*base.I*(v_T - c_gain_T)" in text
+    assert "gain_T: {value: 0, unit: 1/Δ°C" in text
+
+
+@pytest.mark.slow
+def test_the_loop_keeps_the_gain_with_the_parameters_a_least_squares_fit_predicts(
+        tmp_path) -> None:
+    """The kept gain and sensitivity are those of the least-squares line through the
+    true ratio ``1/(1 + aS*(T - 25))`` over the run (numpy), within 3 standard errors:
+    the sensitivity is the one at the run's centre of T, the term's ``c_gain_T``."""
+    data, true = _data("sensT", 7)
+    out = symcal.improve(HALL / "problem.yaml", tmp_path / "out", data, max_rounds=2)
+    assert [r.added for r in out.rounds[1:]] == [GAIN]
+    kept = out.rounds[1].result
+    model = (tmp_path / "out" / "models" / "hall_I_gain_T.yaml").read_text()
+    centre = float(model.split("c_gain_T: {value: ")[1].split(",")[0])
+    temp = np.asarray(data["calibration"].columns["T"])
+    current = np.asarray(data["calibration"].columns["v_sh"])   # mV over 1 mohm: A
+    ratio = 1.0 / (1.0 + true["parameters"]["hall.aS"] * (temp - 25.0))
+    design = np.column_stack([np.ones_like(temp), temp - centre]) * current[:, None]
+    (a0, a1), *_ = np.linalg.lstsq(design, ratio * current, rcond=None)
+    sens, gain = kept.params["hall.sens"], kept.params["hall.gain_T"]
+    assert abs(sens.value - true["parameters"]["hall.sens"] / a0) < 3 * sens.se
+    assert abs(gain.value - a1 / a0) < 3 * gain.se
+    assert abs(gain.value + true["parameters"]["hall.aS"]) < 0.05 * abs(gain.value)
+    assert out.quiet
+
+
+def test_an_output_proportional_to_its_reading_has_no_gain_of_its_own(tmp_path) -> None:
+    """Where the output is its reading times a factor, the product of the reading and T
+    is the gain: no second candidate for the same term."""
+    (tmp_path / "models").mkdir()
+    for name in ("hall.yaml", "shunt.yaml"):
+        (tmp_path / "models" / name).write_text((HALL / "models" / name).read_text())
+    problem = (HALL / "problem.yaml").read_text().replace(
+        "models/hall.yaml, inputs: {v: v_hall}",
+        "models/hall.yaml, inputs: {v: v_hall}, parameters: {off: {value: 0, fixed: true}}")
+    (tmp_path / "problem.yaml").write_text(problem)
+    data, _ = _data("sensT", 5)
+    for ds in data.values():
+        ds.columns["v_hall"] = np.asarray(ds.columns["v_hall"]) - 2.503
+    diag = symcal.diagnose(symcal.solve(tmp_path / "problem.yaml", data))
+    kinds = {c.basis.kind for c in diag.candidates if c.output == "hall.I"}
+    assert "product" in kinds and "gain" not in kinds, kinds
+    assert diag.significant[0].label == "hall.I += the product of v_hall and T"
