@@ -85,3 +85,27 @@ def test_an_output_proportional_to_its_reading_has_no_gain_of_its_own(tmp_path) 
     kinds = {c.basis.kind for c in diag.candidates if c.output == "hall.I"}
     assert "product" in kinds and "gain" not in kinds, kinds
     assert diag.significant[0].label == "hall.I += the product of v_hall and T"
+
+
+def test_the_member_that_fits_as_written_leads(tmp_path) -> None:
+    """The reverse case: a magnetometer's x gain grows with time on its raw reading
+    (``g*t*mx``, bias included).  The gain of its output, ``Bx*t``, is the same term to
+    the test, but written alone it lacks the bias's share (b_x = 12.4 uT times g*t);
+    the product of the raw reading and time fits as written and leads."""
+    source = ROOT / "tests" / "acceptance" / "magnetometer"
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "magnetometer.yaml").write_text(
+        (source / "models" / "magnetometer.yaml").read_text())
+    for name in ("problem.yaml", "scenario.yaml", "scenario_gain_time.yaml"):
+        (tmp_path / name).write_text((source / name).read_text())
+    (tmp_path / "problem_free.yaml").write_text((source / "problem_free.yaml").read_text()
+                                               .replace("scenario.yaml",
+                                                        "scenario_gain_time.yaml"))
+    diag = symcal.diagnose(symcal.solve(tmp_path / "problem.yaml"))
+    lead = diag.significant[0]
+    gain = "mag.Bx += mag.Bx times t (a gain that varies with t)"
+    assert lead.label == "mag.Bx += the product of mx and t", lead.label
+    assert gain in lead.indistinguishable
+    other = next(c for c in diag.candidates if c.label == gain)
+    assert other.delta_rss > 0.95 * lead.delta_rss          # one term to the test
+    assert other.written_rss < 0.95 * lead.written_rss      # not as written

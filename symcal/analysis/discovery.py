@@ -96,6 +96,9 @@ class Candidate:
     output: str
     basis: Basis
     delta_rss: float = 0.0
+    # what the term removes as written, its columns alone beyond the nuisance (the same as
+    # delta_rss but for a term tested beyond simpler ones it does not write)
+    written_rss: float = 0.0
     share: float = 0.0
     f_stat: float = 0.0
     p_value: float = 1.0
@@ -362,6 +365,8 @@ def test_candidates(
         cand.reach = _reach_bound(x, xp, level)
         extra = None if extras is None else extras[i]
         base, rb, m_extra = r, rss0, 0
+        alone = r @ _orthonormal(xp)
+        cand.written_rss = float(alone @ alone)
         if extra is not None:
             qe = _orthonormal(_seen_columns(extra, qn))
             m_extra = qe.shape[1]
@@ -510,7 +515,12 @@ def _same(a: Candidate, b: Candidate) -> bool:
 def _group(ranked: list[Candidate], local: Callable[[Candidate], bool] | None,
            top: int = 8, reference: Callable[[Candidate], bool] | None = None) -> None:
     """Fill ``indistinguishable`` for the leading candidates (canonical correlation); the
-    simplest member of a group that explains as much (:data:`EQUAL`) moves up to lead it:
+    simplest member of a group that explains as much (:data:`EQUAL`), and as written
+    alone as much as the member that does best so (a term tested beyond simpler ones it
+    does not write: a Hall sensor's gain varying with T, ``I*(T - c)``, before the
+    product of its raw reading, which adds its zero times T; a magnetometer's raw
+    reading times time, its bias drifting with its gain, before the gain of its output),
+    moves up to lead it:
     a term on a sensor the problem does not trust as its reference first (``reference``:
     a pressure sensor's dependence on the temperature, where both sides of the
     constraint read it alike, belongs to the sensor being calibrated; a Hall sensor's
@@ -525,8 +535,12 @@ def _group(ranked: list[Candidate], local: Callable[[Candidate], bool] | None,
         lead = ranked[i]
         members = [j for j in range(i + 1, len(ranked)) if _same(lead, ranked[j])]
         equal = [j for j in members if ranked[j].delta_rss >= EQUAL * lead.delta_rss]
-        best = min(equal, key=lambda j: simplicity(ranked[j]), default=None)
-        if best is not None and simplicity(ranked[best]) < simplicity(lead):
+        # as written, alone, a member must fit (nearly) as well as the best of them does
+        pool = [i, *equal]
+        written = max(ranked[j].written_rss for j in pool)
+        fits = [j for j in pool if ranked[j].written_rss >= EQUAL * written]
+        best = min(fits, key=lambda j: simplicity(ranked[j]))
+        if best != i and (i not in fits or simplicity(ranked[best]) < simplicity(lead)):
             ranked[i], ranked[best] = ranked[best], ranked[i]
             lead = ranked[i]
             members = [j for j in range(i + 1, len(ranked)) if _same(lead, ranked[j])]
