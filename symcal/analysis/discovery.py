@@ -516,11 +516,10 @@ def _group(ranked: list[Candidate], local: Callable[[Candidate], bool] | None,
            top: int = 8, reference: Callable[[Candidate], bool] | None = None) -> None:
     """Fill ``indistinguishable`` for the leading candidates (canonical correlation); the
     simplest member of a group that explains as much (:data:`EQUAL`), and as written
-    alone as much as the member that does best so (a term tested beyond simpler ones it
-    does not write: a Hall sensor's gain varying with T, ``I*(T - c)``, before the
-    product of its raw reading, which adds its zero times T; a magnetometer's raw
-    reading times time, its bias drifting with its gain, before the gain of its output),
-    moves up to lead it:
+    alone what its test found (a term tested beyond simpler ones it does not write: a
+    Hall sensor's gain varying with T, ``I*(T - c)``, before the product of its raw
+    reading, which adds its zero times T; a magnetometer's raw reading times time, its
+    bias drifting with its gain, before the gain of its output), moves up to lead it:
     a term on a sensor the problem does not trust as its reference first (``reference``:
     a pressure sensor's dependence on the temperature, where both sides of the
     constraint read it alike, belongs to the sensor being calibrated; a Hall sensor's
@@ -535,12 +534,12 @@ def _group(ranked: list[Candidate], local: Callable[[Candidate], bool] | None,
         lead = ranked[i]
         members = [j for j in range(i + 1, len(ranked)) if _same(lead, ranked[j])]
         equal = [j for j in members if ranked[j].delta_rss >= EQUAL * lead.delta_rss]
-        # as written, alone, a member must fit (nearly) as well as the best of them does
+        # as written, alone, a member must remove (nearly) what its test found
         pool = [i, *equal]
-        written = max(ranked[j].written_rss for j in pool)
-        fits = [j for j in pool if ranked[j].written_rss >= EQUAL * written]
-        best = min(fits, key=lambda j: simplicity(ranked[j]))
-        if best != i and (i not in fits or simplicity(ranked[best]) < simplicity(lead)):
+        fits = [j for j in pool if ranked[j].written_rss >= EQUAL * ranked[j].delta_rss]
+        best = min(fits or pool, key=lambda j: simplicity(ranked[j]))
+        if best != i and (i not in (fits or pool)
+                          or simplicity(ranked[best]) < simplicity(lead)):
             ranked[i], ranked[best] = ranked[best], ranked[i]
             lead = ranked[i]
             members = [j for j in range(i + 1, len(ranked)) if _same(lead, ranked[j])]

@@ -60,6 +60,10 @@ EQUAL_BIC = 10.0
 #: effect itself (a barometer's reference temperature, one parameter fewer, its BIC
 #: lower by 5): the BIC, of the whitened fit, is not fooled by a scale.
 CLEAR_BIC = 2.0
+#: A BIC lower by more than this is strong evidence (Kass and Raftery's "very strong"):
+#: only then does a revision that leaves a parameter already there undetermined rank
+#: before one that does not (see _rank).
+STRONG_BIC = 10.0
 #: A revision may make an existing parameter's standard error at most this many times
 #: larger (beyond it the new term is nearly aliased with what the model has).
 INFLATION = 5.0
@@ -307,7 +311,7 @@ def _best_of_group(
     for _, other, _, _ in paying[1:]:
         _remove({f for f in written[other] if f.resolve() not in used})
     final = _renamed(path, name)
-    said = (_ambiguity(label, new, other, other_new, physical, final)
+    said = (_ambiguity(label, new, other, other_new, physical, final, result)
             for _, other, _, other_new in paying[1:])
     ambiguous = tuple(text for text in said if text)
     return _Kept(label, final, with_floors(_rebound(new, final)), ambiguous,
@@ -315,16 +319,42 @@ def _best_of_group(
 
 
 def _rank(diag: Diagnosis, label: str, new: Result, change: float,
-          paying: Sequence[Result], old: Result) -> tuple[bool, bool, float, float]:
+          paying: Sequence[Result], old: Result
+          ) -> tuple[bool, bool, bool, bool, float, float]:
     """The order of revisions that pay (``new``, the revision of candidate ``label`` of
-    ``diag``, solved from ``old``): those whose BIC is within :data:`CLEAR_BIC` of the
-    lowest first; among them a term on a calibrated sensor before one on the problem's
-    reference (:func:`_on_reference`); then by their held-out change (``change``, to
-    :data:`SAME_CHANGE`); one fit written two ways, the one that moves a declared value
-    least (:func:`_declared_change`), else in the order it was tried, the group's lead
-    first."""
-    return (new.bic > min(r.bic for r in paying) + CLEAR_BIC,
+    ``diag``, solved from ``old``): those whose BIC is within :data:`STRONG_BIC` of the
+    lowest first, and among them one that leaves the parameters already there determined
+    before one that does not (:func:`_inflates`: its better fit is no strong evidence);
+    then those within :data:`CLEAR_BIC`; then a term on a calibrated sensor before one
+    on the problem's reference (:func:`_on_reference`); then by their
+    held-out change (``change``, to :data:`SAME_CHANGE`); one fit written two ways, the
+    one that moves a declared value least (:func:`_declared_change`), else in the order
+    it was tried, the group's lead first."""
+    best = min(r.bic for r in paying)
+    return (new.bic > best + STRONG_BIC, _inflates(new, old), new.bic > best + CLEAR_BIC,
             _on_reference(diag, label, old), _level(change), _declared_change(new, old))
+
+
+#: A revision leaves a parameter already there undetermined where its standard error
+#: grows more than this many times.
+INFLATED = 10.0
+
+
+def _inflates(new: Result, old: Result) -> bool:
+    """Whether ``new`` makes a parameter free in both more than :data:`INFLATED` times
+    less determined than ``old`` had it: the new term is then nearly that parameter
+    again, and the data barely split them.  A new user's magnetometer whose datasheet
+    gain tempco was off: a term linear in the x reading (correlation +1.0000 with the
+    x scale factor, whose standard error grew 73 times) fitted as well as the tempco
+    made a parameter (BIC within 0.2) and was kept on 3 of 10 seeds, the scale factor
+    36 of its own (grown) standard errors from the truth."""
+    for name, a in old.params.items():
+        b = new.params.get(name)
+        if b is None or a.fixed or b.fixed or not a.se or not b.se:
+            continue
+        if b.se > INFLATED * a.se:
+            return True
+    return False
 
 
 def _candidate(diag: Diagnosis, label: str) -> Candidate | None:
@@ -442,9 +472,10 @@ SAME_WORDS = ("they are one fit written two ways (every residual the same to rou
 
 
 def _ambiguity(label: str, new: Result, other: str, other_new: Result,
-               physical: set[str], path: Path) -> str:
+               physical: set[str], path: Path, old: Result) -> str:
     """A sentence when two revisions fit about equally (BIC within :data:`EQUAL_BIC`) and
-    put a physical parameter more than 3 standard errors apart, else ""."""
+    put a physical parameter more than 3 standard errors apart, else ""; where the other
+    fits better but leaves a parameter undetermined (:func:`_inflates`), it says so."""
     if abs(new.bic - other_new.bic) > EQUAL_BIC:
         return ""
     for name in sorted(physical):
@@ -454,8 +485,14 @@ def _ambiguity(label: str, new: Result, other: str, other_new: Result,
         if abs(a.value - b.value) > 3 * max(a.se, b.se):
             target = (SAME_WORDS if same_fit(new, other_new) else
                       design_hint(new, path, (name, abs(a.value - b.value) / 3)))
+            why = ""
+            if other_new.bic < new.bic and _inflates(other_new, old) and \
+                    not _inflates(new, old):
+                why = ("; the first is kept, the second leaves a parameter already there "
+                       f"undetermined, its standard error more than {INFLATED:g} times "
+                       "the one before")
             return (f"the data cannot tell {label} from {other} (BIC {new.bic:.1f} and "
-                    f"{other_new.bic:.1f}): they give {name} = "
+                    f"{other_new.bic:.1f}{why}): they give {name} = "
                     f"{estimate_text(a.value, a.se)} ± {a.se:.2g} and "
                     f"{estimate_text(b.value, b.se)} ± {b.se:.2g}"
                     f"{' ' + a.unit if a.unit else ''}; {target}")
@@ -638,7 +675,8 @@ def _best_lead(
         final = _renamed(best.path, name)
         best = replace(best, path=final, result=_rebound(best.result, final),
                        written=best.written - {best.path} | {final})
-    said = (_ambiguity(best.label, best.result, other.label, other.result, physical, final)
+    said = (_ambiguity(best.label, best.result, other.label, other.result, physical, final,
+                       result)
             for other in others)
     return replace(best, ambiguous=best.ambiguous + tuple(text for text in said if text))
 
