@@ -778,10 +778,22 @@ def _views(blocks: list[Block], result: Result) -> list[ResidualView]:
             best = max(grams, key=lambda g: float(np.max(g.power)), default=None)
             x = moving.values if moving is not None else np.arange(len(after), dtype=float)
             floor = _floor_variance(result, b.dataset.name, name)
+            along = [v for v in variables if not _contains(b.after[:, k], v.values)]
             left = () if floor is None else tuple(what_is_left(
-                after, [v for v in variables if v.name not in (name,)], floor))
+                after, [v for v in along if v.name not in (name,)], floor))
             views.append(ResidualView(
                 b.dataset.name, name, b.kinds[k], b.units[k], before, after,
                 moving.name if moving is not None else "index", x,
-                tuple(structure(after, variables)), best, left))
+                tuple(structure(after, along)), best, left))
     return views
+
+
+def _contains(residual: np.ndarray, values: np.ndarray) -> bool:
+    """Whether a residual is a variable whole, up to its sign and a constant (``g_n = Bn
+    - B0``, B0 a parameter): binned along it, it "varies with" it trivially (η² 0.96,
+    and 150 % of its excess "along Bn", where a magnetometer's gain varied with T)."""
+    if len(values) != len(residual) or not np.all(np.isfinite(values)) or \
+            np.ptp(values) == 0:
+        return False
+    size = float(np.max(np.abs(residual)) + np.max(np.abs(values)))
+    return any(float(np.ptp(residual - sign * values)) <= 1e-9 * size for sign in (1, -1))
