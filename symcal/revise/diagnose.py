@@ -22,6 +22,7 @@ which effect is missing:
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -483,9 +484,16 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
         space = found.get(cand.output.split(".", 1)[0])
         return space is not None and not space.origin.startswith("default")
 
+    def kept(cand: Candidate) -> frozenset[str]:
+        """The coefficients earlier rounds added to the candidate's sensor (named as the
+        library names a term's coefficients)."""
+        inst = cand.output.split(".", 1)[0] + "."
+        return frozenset(n for n in have if n.startswith(inst)
+                         and COEFFICIENT.match(n[len(inst):]) is not None)
+
     mark_unseen(own, entries, ranked, own_regressor, alpha / max(len(candidates), 1),
                 [n for n, f in zip(problem.parameter_names, free, strict=True) if f],
-                restates, suspected)
+                restates, suspected, kept)
     leads = [c for c in _leads(tuple(ranked)) if c.significant][:TOP]
     members = {label for c in leads for label in c.indistinguishable[:GROUP - 1]}
     for cand in [*leads, *(c for c in ranked if c.label in members)]:
@@ -526,6 +534,10 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
                      tuple(sp.describe() for sp in found.values()), dict(fixes),
                      together)
 
+
+#: How the library names a term's coefficients (``lin_T``, ``h3_sin_u``, ``gain_T``,
+#: ``prod_mx_t``): a parameter so named on a sensor is a term an earlier round added.
+COEFFICIENT = re.compile(r"(lin|quad|drift|prod|gain|h\d+_(sin|cos)|ah\d*_(sin|cos))_")
 
 #: A log kept as shards is diagnosed on at most this many of its rows, spread evenly.
 LOG_ROWS = 100_000

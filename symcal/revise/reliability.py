@@ -41,7 +41,9 @@ def mark_unseen(own: Design, entries: Sequence[Entry], ranked: Sequence[Candidat
                 regressor: Callable[[Raw], np.ndarray], level: float,
                 physical: Sequence[str],
                 restates: Callable[[Candidate], bool] = lambda c: False,
-                suspected: Callable[[Candidate], bool] = lambda c: False) -> None:
+                suspected: Callable[[Candidate], bool] = lambda c: False,
+                kept: Callable[[Candidate], frozenset[str]] = lambda c: frozenset()
+                ) -> None:
     """Fill :attr:`Candidate.unseen` of the tested candidates that are not significant:
     the physical parameters (``physical``: the free ones, not the comparisons' offsets)
     a term of theirs the test at ``level`` misses could move by more than
@@ -52,9 +54,12 @@ def mark_unseen(own: Design, entries: Sequence[Entry], ranked: Sequence[Candidat
     own equivalence, a courier segment's harmonic seen through its neighbour's).  Candidates that
     only restate a parameter (``restates``: a term linear in a sensor's own reading is
     its gain, written again) are left out: that the gain absorbs them is what
-    calibrating it means.  Other absorbed candidates (a model's own harmonics, a
-    constant a gain multiplies) are equivalences of the model's own terms: the report
-    lists them as absorbed, the verdict does not repeat them."""
+    calibrating it means; nor is a coefficient an earlier round added to the candidate's
+    own sensor (``kept``) named for it: once a magnetometer's gain varying with T was
+    kept, the product of its raw reading and T, that gain again but for its small bias
+    times T, "would move mag.gain_T 140 SE".  Other absorbed candidates (a model's own
+    harmonics, a constant a gain multiplies) are equivalences of the model's own terms:
+    the report lists them as absorbed, the verdict does not repeat them."""
     by_label = {e.candidate.label: e for e in entries}
     wanted = set(physical)
     for cand in ranked:
@@ -75,8 +80,9 @@ def mark_unseen(own: Design, entries: Sequence[Entry], ranked: Sequence[Candidat
             if _written_alike(own, x, beyond):
                 reach = np.minimum(reach, unseen_bias(own, beyond, level))
         order = np.argsort(-reach)
+        named = wanted - kept(cand)
         cand.unseen = tuple((own.nuisance_names[k], float(reach[k])) for k in order
-                            if reach[k] > UNSEEN and own.nuisance_names[k] in wanted
+                            if reach[k] > UNSEEN and own.nuisance_names[k] in named
                             )[:NAMED]
 
 
