@@ -199,7 +199,7 @@ def test_the_triad_in_si_units_gets_loadable_candidates(tmp_path: Path) -> None:
     assert "lin_ax: {value: 0, scale: 1.7e-07}" in text                # a ratio
     assert "quad_ax: {value: 0, unit: s^2/m, scale: 3.3e-08}" in text
     # the centre as declared
-    assert "c_quad_ax: {value: 0.12, unit: m/s**2, doc: the other parameters hold" in text
+    assert "c_quad_ax: {value: 0.12, unit: m/s**2, doc: reference" in text
     assert "fx: base.fx + lin_ax*(ax - c_quad_ax) + quad_ax*(ax - c_quad_ax)**2" in text
     revised = effects.revised_problem(problem, cand, tmp_path)
     assert _signal(revised, "acc.fx").unit == "m/s**2"                 # kept as declared
@@ -220,7 +220,7 @@ def test_a_state_column_in_kelvin(tmp_path: Path) -> None:
                                      centre=296.5))
     text = effects.suggestion(problem, cand).model_text("triad.yaml")
     assert "lin_T: {value: 0, unit: m/K/s^2, scale: 2e-06}" in text
-    assert "c_lin_T: {value: 296.5, unit: K, doc: the other parameters hold at this" in text
+    assert "c_lin_T: {value: 296.5, unit: K, doc: reference" in text
     assert "v_T: {doc: bound to T in the problem, unit: K}" in text
     assert symcal.load_problem(effects.write_revision(problem, cand, home / "out"))
 

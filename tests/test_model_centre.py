@@ -76,7 +76,7 @@ def test_a_quadratic_is_written_about_the_models_centre(tmp_path) -> None:
     assert result.quiet and [r.added for r in result.rounds[1:]] == [
         "tc.T += a quadratic dependence on T_tc"]
     model = next((out / "models").glob("*.yaml")).read_text()
-    assert "c_quad_T_tc: {value: 323.15, unit: K, doc: the other parameters hold" in model
+    assert "c_quad_T_tc: {value: 323.15, unit: K, doc: reference" in model
     assert "quad_T_tc*(T_raw - c_quad_T_tc)**2" in model
     final = result.rounds[-1].result
     for name, true in TRUTH.items():

@@ -341,7 +341,7 @@ def test_derived_units_of_candidate_effects_load_and_check(solved, tmp_path: Pat
     # the coefficient: the output's declared unit (m) per the variable's, an angle in rad;
     # its scale (0.01 mm/rad internal) in that unit; the centre in rad
     assert "lin_q: {value: 0, unit: m/rad, scale: 1e-05}" in text
-    assert f"c_lin_q: {{value: {centre:g}, unit: rad, doc: the other parameters hold" in text
+    assert f"c_lin_q: {{value: {centre:g}, unit: rad, doc: reference" in text
     assert "e: base.e + lin_q*(v_q - c_lin_q)" in text
     assert "v_q: {doc: bound to q in the problem, unit: rad}" in text
     assert "drift_t: {value: 0, unit: m/s, scale: 1e-06}" in \

@@ -125,8 +125,8 @@ def _centre_doc(key: str, basis: Any) -> dict[str, str]:
     if key not in ("centre", "other_centre"):
         return {}
     variable = basis.variable if key == "centre" else basis.other
-    return {"doc": f"the other parameters hold at this {variable} where the term is zero "
-                   "(write a datasheet reference point to have them hold there)"}
+    return {"doc": f"reference {variable} of the other parameters (the term is zero there; "
+                   "set a datasheet value to have them hold at it)"}
 
 
 def scale_in(value: float, unit: str) -> float:
