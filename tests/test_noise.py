@@ -570,6 +570,31 @@ def test_at_floor_is_one_decision_for_the_datasets_together() -> None:
     assert family_bands(three)[1] == pytest.approx(chi2_band(400.0, 0.95 ** (1 / 3)))
 
 
+def test_below_its_own_band_but_at_the_floor_with_the_others_is_not_a_failure() -> None:
+    """A validation set just below its own band but inside the family's is at the floor
+    with the calibration: its line said 'below the noise floor ... not a success; at the
+    floor as one of 2 datasets tested together' under a verdict of every dataset at its
+    floor."""
+    from types import SimpleNamespace
+
+    from symcal.analysis.verdicts import DatasetTest, at_floor
+    from symcal.report.text import floor_lines
+
+    own = chi2_band(400.0)
+    family = chi2_band(400.0, 0.95 ** 0.5)
+    just = 0.5 * (own[0] + family[0]) * 400.0
+    tests = (DatasetTest("calibration", ("g",), "propagated", 967.0, 967.0,
+                         chi2_band(967.0)),
+             DatasetTest("validation", ("g",), "propagated", just, 400.0, own))
+    assert tests[1].verdict == "below" and at_floor(tests) is True
+    lines = floor_lines(SimpleNamespace(floor_tests=tests, statistics=()))
+    assert lines[1].startswith("validation: below its own band (χ²/dof "), lines[1]
+    assert "not a success" not in lines[1] and "as one of 2 datasets" in lines[1]
+    far = tests[:1] + (DatasetTest("validation", ("g",), "propagated",
+                                   0.5 * family[0] * 400.0, 400.0, own),)
+    assert "not a success" in floor_lines(SimpleNamespace(floor_tests=far, statistics=()))[1]
+
+
 def test_a_block_of_entries_is_the_same_picked_as_a_run_or_one_by_one() -> None:
     """The joint test's block of constraints: a run of consecutive entries is taken as a
     view, other picks gathered; either gives the values of ``a[:, idx][:, :, idx]``."""

@@ -162,7 +162,10 @@ def floor_lines(result: Result) -> list[str]:
     where the family-wise decision of ``at_floor`` differs from its own band, why)."""
     lines = []
     for i, t in enumerate(result.floor_tests):
-        text = floor_verdict(t) + family_note(result.floor_tests, i)
+        note = family_note(result.floor_tests, i)
+        # below its own band but at the floor with the others: not "not a success"
+        text = (f"below its own band ({_chi2_text(t)})" if note and t.verdict == "below"
+                else floor_verdict(t)) + note
         if t.verdict is None:
             text += f": {how_to_declare(result)}"
         elif t.method == "combined" and any(
