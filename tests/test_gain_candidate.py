@@ -127,3 +127,18 @@ def test_a_kept_gain_is_not_named_by_the_product_that_restates_it(tmp_path) -> N
     named = {name for c in diag.candidates for name, _ in c.unseen}
     assert "mag.gain_T" not in named, [(c.label, c.unseen) for c in diag.candidates
                                        if c.unseen]
+
+
+def test_a_declared_value_that_sets_a_gauge_is_named() -> None:
+    """The shunt's certified resistance, fixed, sets the bench's scale: the Hall
+    sensitivity is only as right as it is, and no data can check it (a magnetometer's
+    field magnitude 200 nT off left its three scale factors 128-274 SE off, quiet, and
+    only the diagnosis's last section listed the fixed value)."""
+    from symcal.report.text import diagnosis_report
+
+    data, _ = _data(None, 5)
+    diag = symcal.diagnose(symcal.solve(HALL / "problem.yaml", data))
+    assert "sh.R0" in diag.gauge_fixes
+    assert ("the estimates are only as right as declared value the data cannot check: "
+            "sh.R0 = 1 mohm (fixed, it sets a gauge: the parameters that share it follow "
+            "its value unseen)") in diagnosis_report(diag)

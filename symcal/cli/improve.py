@@ -37,7 +37,14 @@ def run(args: argparse.Namespace) -> int:
     """Run the loop; write the ladder; print the rounds; exit 0 when the model is quiet."""
     from symcal.base.files import OutputSet, atomic_write_text, check_outputs
     from symcal.report.ladder import ladder_report, save_ladder_plot
-    from symcal.report.text import floor_lines, outcome_text, plain_json, unvouched, unvouched_line
+    from symcal.report.text import (
+        declared_gauges_line,
+        floor_lines,
+        outcome_text,
+        plain_json,
+        unvouched,
+        unvouched_line,
+    )
     from symcal.revise.improve import improve
     from symcal.revise.ladder import compare
 
@@ -77,6 +84,9 @@ def run(args: argparse.Namespace) -> int:
         if reach:
             lines.append("  " + unvouched_line(reach, "symcal diagnose of the final problem "
                                                       "names them"))
+        declared = declared_gauges_line(result.last)
+        if declared:
+            lines.append("  " + declared)
         for r in result.rounds:
             what = r.added or "(the starting problem)"
             lines.append(f"  round {r.index}: {what}  [{r.problem_file}]")

@@ -805,8 +805,32 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     reach = unvouched(diag)
     if reach:
         lines.append(unvouched_line(reach, '"Absorbed" and "Nearly absorbed" below'))
+    declared = declared_gauges_line(diag)
+    if declared:
+        lines.append(declared)
     lines += design_pointer(result)
     return lines
+
+
+def declared_gauges_line(diag: Any) -> str:
+    """The fixed parameters that set a gauge at a declared value other than zero (a
+    field's known magnitude, a shunt's certified resistance), or ``""``: the data cannot
+    check them, and the parameters sharing their gauge are only as right as they are (a
+    magnetometer's three scale factors 128-274 SE off, quiet, where the field's magnitude
+    was 200 nT off; a zero that fixes a frame is a definition, not named)."""
+    result = diag.result
+    named = []
+    for name in sorted(dict(getattr(diag, "gauge_fixes", {}) or {})):
+        p = result.params.get(name)
+        if p is not None and p.value != 0:
+            named.append(f"{name} = {p.value:.6g}{' ' + p.unit if p.unit else ''}")
+    if not named:
+        return ""
+    one = len(named) == 1
+    return ("the estimates are only as right as declared "
+            + ("value" if one else "values") + " the data cannot check: " + ", ".join(named)
+            + (" (fixed, it sets a gauge: " if one else " (fixed, each sets a gauge: ")
+            + "the parameters that share it follow its value unseen)")
 
 
 def design_pointer(result: Result) -> list[str]:
