@@ -249,6 +249,23 @@ def _leads(candidates: tuple[Candidate, ...]) -> tuple[Candidate, ...]:
     return tuple(out)
 
 
+def _read_by_output(problem: Problem) -> dict[str, tuple[str, ...]]:
+    """Each sensor output's own readings: the instance's inputs bound to a column that
+    its expression reads (a magnetometer's Bx reads mx, not mz: a term linear in mz on
+    Bx is a coupling, not a disagreement in gain)."""
+    index = {c: k for k, c in enumerate(problem.columns)}
+    out: dict[str, tuple[str, ...]] = {}
+    for sig in problem.signals:
+        inst, _, local = sig.name.partition(".")
+        instance = problem.instances.get(inst)
+        if instance is None or local not in instance.model.outputs:
+            continue
+        read = [(f"{inst}.{k}", text) for k, text in instance.bindings.items()
+                if text in index and ca.depends_on(sig.sx, problem.u[index[text]])]
+        out[sig.name] = tuple(n for pair in read for n in pair)
+    return out
+
+
 def _falls(cand: Candidate) -> str:
     biggest = sorted(cand.reduction.items(), key=lambda kv: -(kv[1][0] - kv[1][1]))[:3]
     return "; ".join(f"{k.replace('/', ' ')} std {b:.3g} → {a:.3g}" for k, (b, a) in biggest)
@@ -266,7 +283,7 @@ def _group_words(cand: Candidate, own: Mapping[str, tuple[str, ...]]) -> str:
     gains = sorted({m.split(" += ", 1)[0] for m in members
                     if " += a term linear in " in m
                     and m.split(" += a term linear in ", 1)[1]
-                    in own.get(m.split(".", 1)[0], ())})
+                    in own.get(m.split(" += ", 1)[0], own.get(m.split(".", 1)[0], ()))})
     if len(instances) == 1 and len(gains) > 1:
         channels = " and ".join(g.split(".", 1)[1] for g in gains)
         common = (f"the {channels} channels of {instances[0]} disagree in gain (each a term "
@@ -525,6 +542,7 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
             for c in leads}
     own_inputs = {name: (*(f"{name}.{k}" for k in inst.bindings), *inst.bindings.values())
                   for name, inst in problem.instances.items()}
+    own_inputs.update(_read_by_output(problem))
     above = any(s.kind == "comparison" and s.noise is not None and s.noise.verdict == "above"
                 for s in result.statistics)
     return Diagnosis(result, tuple(_views(blocks, result)) if report else (), tuple(ranked),
