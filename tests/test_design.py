@@ -536,6 +536,11 @@ def test_a_printed_design_command_pastes_into_a_shell(tmp_path, monkeypatch) -> 
                                          "nu enc#2/scenario.yaml"]
     assert design_command("p.yaml", None, "-x") == "symcal design p.yaml --scenario " \
                                                    "SCENARIO.yaml -x"
+    assert design_sentence("p.yaml", None, "-x") == (
+        "with the data not simulated, write a scenario of the experiment as SCENARIO.yaml "
+        "(symcal simulate's format, with a run of scattered poses or dwells and a 'design:' "
+        "section naming it and its limits), then: symcal design p.yaml --scenario "
+        "SCENARIO.yaml -x")
     # offered as it is only where the scenario declares what may change
     assert design_sentence("p.yaml", SCENARIO, "-x") == (
         f"symcal design p.yaml --scenario {shlex.quote(str(SCENARIO))} -x")

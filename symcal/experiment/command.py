@@ -41,9 +41,14 @@ def _kinds(scenario: str | Path | None) -> tuple[bool, bool]:
 
 def design_sentence(problem: str | Path, scenario: str | Path | None, options: str) -> str:
     """The command, preceded where the scenario has no ``design`` section by what to
-    declare first, and where none of its runs can be varied (series and lines only) by
-    the run to add."""
+    declare first, where none of its runs can be varied (series and lines only) by the
+    run to add, and where the data were not simulated (no scenario) by the scenario to
+    write (a placeholder, ``SCENARIO.yaml``, alone read as a file that should exist)."""
     command = design_command(problem, scenario, options)
+    if scenario is None:
+        return ("with the data not simulated, write a scenario of the experiment as "
+                "SCENARIO.yaml (symcal simulate's format, with a run of scattered poses or "
+                f"dwells and a 'design:' section naming it and its limits), then: {command}")
     declared, variable = _kinds(scenario)
     if declared:
         return command
