@@ -70,3 +70,19 @@ def write_csv(path: Path, cols: dict[str, np.ndarray]) -> Path:
         fh.write(",".join(cols) + "\n")
         np.savetxt(fh, np.column_stack(list(cols.values())), delimiter=",", fmt="%.15g")
     return path
+
+
+def magnetometer_gain_time(folder: Path) -> Path:
+    """The acceptance's tumbled magnetometer copied into ``folder`` with its data
+    simulated with the x gain growing in time (``scenario_gain_time.yaml``); returns its
+    problem file."""
+    source = ROOT / "tests" / "acceptance" / "magnetometer"
+    (folder / "models").mkdir()
+    (folder / "models" / "magnetometer.yaml").write_text(
+        (source / "models" / "magnetometer.yaml").read_text())
+    for name in ("problem.yaml", "scenario.yaml", "scenario_gain_time.yaml"):
+        (folder / name).write_text((source / name).read_text())
+    (folder / "problem_free.yaml").write_text(
+        (source / "problem_free.yaml").read_text().replace("scenario.yaml",
+                                                           "scenario_gain_time.yaml"))
+    return folder / "problem.yaml"

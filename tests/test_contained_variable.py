@@ -7,23 +7,14 @@ never named."""
 from __future__ import annotations
 
 import numpy as np
-from conftest import ROOT
+from conftest import magnetometer_gain_time
 
 import symcal
 from symcal.revise.diagnose import _contains
 
 
 def test_a_residual_is_not_binned_along_itself(tmp_path) -> None:
-    source = ROOT / "tests" / "acceptance" / "magnetometer"
-    (tmp_path / "models").mkdir()
-    (tmp_path / "models" / "magnetometer.yaml").write_text(
-        (source / "models" / "magnetometer.yaml").read_text())
-    for name in ("problem.yaml", "scenario.yaml", "scenario_gain_time.yaml"):
-        (tmp_path / name).write_text((source / name).read_text())
-    (tmp_path / "problem_free.yaml").write_text((source / "problem_free.yaml").read_text()
-                                               .replace("scenario.yaml",
-                                                        "scenario_gain_time.yaml"))
-    diag = symcal.diagnose(symcal.solve(tmp_path / "problem.yaml"))
+    diag = symcal.diagnose(symcal.solve(magnetometer_gain_time(tmp_path)))
     view = next(v for v in diag.residuals if v.dataset == "calibration")
     assert view.left, "the residual is above its floor: something is left"
     assert all("norm" not in a.variables for a in view.left), view.left

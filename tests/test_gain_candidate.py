@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, magnetometer_gain_time
 
 import symcal
 from symcal.data.dataset import make_dataset
@@ -92,16 +92,7 @@ def test_the_member_that_fits_as_written_leads(tmp_path) -> None:
     (``g*t*mx``, bias included).  The gain of its output, ``Bx*t``, is the same term to
     the test, but written alone it lacks the bias's share (b_x = 12.4 uT times g*t);
     the product of the raw reading and time fits as written and leads."""
-    source = ROOT / "tests" / "acceptance" / "magnetometer"
-    (tmp_path / "models").mkdir()
-    (tmp_path / "models" / "magnetometer.yaml").write_text(
-        (source / "models" / "magnetometer.yaml").read_text())
-    for name in ("problem.yaml", "scenario.yaml", "scenario_gain_time.yaml"):
-        (tmp_path / name).write_text((source / name).read_text())
-    (tmp_path / "problem_free.yaml").write_text((source / "problem_free.yaml").read_text()
-                                               .replace("scenario.yaml",
-                                                        "scenario_gain_time.yaml"))
-    diag = symcal.diagnose(symcal.solve(tmp_path / "problem.yaml"))
+    diag = symcal.diagnose(symcal.solve(magnetometer_gain_time(tmp_path)))
     lead = diag.significant[0]
     gain = "mag.Bx += mag.Bx times t (a gain that varies with t)"
     assert lead.label == "mag.Bx += the product of mx and t", lead.label
