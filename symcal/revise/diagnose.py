@@ -262,7 +262,8 @@ def _read_by_output(problem: Problem) -> dict[str, tuple[str, ...]]:
             continue
         read = [(f"{inst}.{k}", text) for k, text in instance.bindings.items()
                 if text in index and ca.depends_on(sig.sx, problem.u[index[text]])]
-        out[sig.name] = tuple(n for pair in read for n in pair)
+        if read:        # else (inputs bound to expressions) the instance's own stand
+            out[sig.name] = tuple(n for pair in read for n in pair)
     return out
 
 
@@ -554,7 +555,8 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
 
 
 #: How the library names a term's coefficients (``lin_T``, ``h3_sin_u``, ``gain_T``,
-#: ``prod_mx_t``): a parameter so named on a sensor is a term an earlier round added.
+#: ``prod_mx_t``): a parameter so named on a sensor is taken for a term an earlier round
+#: added (a user's own parameter named so, ``drift_x``, is taken for one too).
 COEFFICIENT = re.compile(r"(lin|quad|drift|prod|gain|h\d+_(sin|cos)|ah\d*_(sin|cos))_")
 
 #: A log kept as shards is diagnosed on at most this many of its rows, spread evenly.

@@ -324,37 +324,20 @@ def _rank(diag: Diagnosis, label: str, new: Result, change: float,
     """The order of revisions that pay (``new``, the revision of candidate ``label`` of
     ``diag``, solved from ``old``): those whose BIC is within :data:`STRONG_BIC` of the
     lowest first, and among them one that leaves the parameters already there determined
-    before one that does not (:func:`_inflates`: its better fit is no strong evidence);
+    before one that does not (:func:`_inflated`: its better fit is no strong evidence; a
+    new user's magnetometer whose datasheet gain tempco was off kept a term linear in the
+    x reading, correlation +1.0000 with the x scale factor, whose standard error grew 73
+    times, on 3 of 10 seeds, quiet with the scale factor 36 of those standard errors from
+    the truth, where the tempco made a parameter fitted as well);
     then those within :data:`CLEAR_BIC`; then a term on a calibrated sensor before one
     on the problem's reference (:func:`_on_reference`); then by their
     held-out change (``change``, to :data:`SAME_CHANGE`); one fit written two ways, the
     one that moves a declared value least (:func:`_declared_change`), else in the order
     it was tried, the group's lead first."""
     best = min(r.bic for r in paying)
-    return (new.bic > best + STRONG_BIC, _inflates(new, old), new.bic > best + CLEAR_BIC,
+    return (new.bic > best + STRONG_BIC, _inflated(new, old) is not None,
+            new.bic > best + CLEAR_BIC,
             _on_reference(diag, label, old), _level(change), _declared_change(new, old))
-
-
-#: A revision leaves a parameter already there undetermined where its standard error
-#: grows more than this many times.
-INFLATED = 10.0
-
-
-def _inflates(new: Result, old: Result) -> bool:
-    """Whether ``new`` makes a parameter free in both more than :data:`INFLATED` times
-    less determined than ``old`` had it: the new term is then nearly that parameter
-    again, and the data barely split them.  A new user's magnetometer whose datasheet
-    gain tempco was off: a term linear in the x reading (correlation +1.0000 with the
-    x scale factor, whose standard error grew 73 times) fitted as well as the tempco
-    made a parameter (BIC within 0.2) and was kept on 3 of 10 seeds, the scale factor
-    36 of its own (grown) standard errors from the truth."""
-    for name, a in old.params.items():
-        b = new.params.get(name)
-        if b is None or a.fixed or b.fixed or not a.se or not b.se:
-            continue
-        if b.se > INFLATED * a.se:
-            return True
-    return False
 
 
 def _candidate(diag: Diagnosis, label: str) -> Candidate | None:
@@ -475,7 +458,7 @@ def _ambiguity(label: str, new: Result, other: str, other_new: Result,
                physical: set[str], path: Path, old: Result) -> str:
     """A sentence when two revisions fit about equally (BIC within :data:`EQUAL_BIC`) and
     put a physical parameter more than 3 standard errors apart, else ""; where the other
-    fits better but leaves a parameter undetermined (:func:`_inflates`), it says so."""
+    fits better but leaves a parameter undetermined (:func:`_inflated`), it says so."""
     if abs(new.bic - other_new.bic) > EQUAL_BIC:
         return ""
     for name in sorted(physical):
@@ -486,10 +469,10 @@ def _ambiguity(label: str, new: Result, other: str, other_new: Result,
             target = (SAME_WORDS if same_fit(new, other_new) else
                       design_hint(new, path, (name, abs(a.value - b.value) / 3)))
             why = ""
-            if other_new.bic < new.bic and _inflates(other_new, old) and \
-                    not _inflates(new, old):
+            if other_new.bic < new.bic and _inflated(other_new, old) is not None and \
+                    _inflated(new, old) is None:
                 why = ("; the first is kept, the second leaves a parameter already there "
-                       f"undetermined, its standard error more than {INFLATED:g} times "
+                       f"undetermined, its standard error more than {INFLATION:g} times "
                        "the one before")
             return (f"the data cannot tell {label} from {other} (BIC {new.bic:.1f} and "
                     f"{other_new.bic:.1f}{why}): they give {name} = "
