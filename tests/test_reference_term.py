@@ -7,6 +7,7 @@ errors off."""
 from __future__ import annotations
 
 import numpy as np
+from conftest import ROOT
 
 import symcal
 from symcal.data.dataset import make_dataset
@@ -94,27 +95,6 @@ def test_freeing_the_references_fixed_parameter_says_so(tmp_path) -> None:
     assert "Every parameter of" not in diag.candidate_text(product)
 
 
-SHUNT = """model: shunt
-constants:
-  alpha: {value: 5.0e-5, unit: 1/delta_degC}
-  T25: {value: 25, unit: delta_degC}
-inputs:
-  v: {unit: mV}
-  T: {unit: delta_degC}
-parameters:
-  R0: {value: 1.0, unit: mohm, scale: 1.0, fixed: true}
-outputs:
-  I: {expr: v/(R0*(1 + alpha*(T - T25))), unit: A}
-"""
-HALL = """model: hall
-inputs:
-  v: {unit: V}
-parameters:
-  off: {value: 2.5, unit: V, scale: 0.01}
-  sens: {value: 0.040, unit: V/A, scale: 0.001}
-outputs:
-  I: {expr: (v - off)/sens, unit: A}
-"""
 BENCH = """problem: bench
 columns:
   t: {unit: s, role: time}
@@ -137,8 +117,10 @@ def test_a_calibrated_sensors_term_leads_before_the_references_own_input(tmp_pat
     linear in T on the shunt is the same fit, and it led the group as a term in the
     shunt's own input: a new user applying it got a Hall model with no temperature
     compensation.  The calibrated sensor's member leads now."""
-    for name, text in (("shunt.yaml", SHUNT), ("hall.yaml", HALL), ("bench.yaml", BENCH)):
-        (tmp_path / name).write_text(text)
+    models = ROOT / "tests" / "data" / "hall" / "models"     # the same sensors
+    for name in ("shunt.yaml", "hall.yaml"):
+        (tmp_path / name).write_text((models / name).read_text())
+    (tmp_path / "bench.yaml").write_text(BENCH)
     rng = np.random.default_rng(11)
     n = 3000
     t = np.arange(n, dtype=float)

@@ -365,9 +365,9 @@ def test_candidates(
         cand.reach = _reach_bound(x, xp, level)
         extra = None if extras is None else extras[i]
         base, rb, m_extra = r, rss0, 0
-        alone = r @ _orthonormal(xp)
-        cand.written_rss = float(alone @ alone)
-        if extra is not None:
+        if extra is not None:       # as written: its own columns alone (else delta_rss)
+            alone = r @ _orthonormal(xp)
+            cand.written_rss = float(alone @ alone)
             qe = _orthonormal(_seen_columns(extra, qn))
             m_extra = qe.shape[1]
             base = _project(r, qe)
@@ -382,6 +382,8 @@ def test_candidates(
         delta = float(proj @ proj)
         cand.q = q
         cand.delta_rss = delta
+        if extra is None:
+            cand.written_rss = delta
         cand.share = delta / rss0 if rss0 > 0 else 0.0
         if rss0 > 0 and rss0 - delta <= EXACT_FIT * rss0:
             cand.reopens = _reopens(q, fixes)
