@@ -9,7 +9,7 @@ sensor's temperature effect."""
 from __future__ import annotations
 
 import numpy as np
-from test_reference_term import BENCH, HALL, SHUNT
+from test_reference_term import write_bench
 
 import symcal
 from symcal.data.dataset import make_dataset
@@ -18,8 +18,7 @@ LABEL = "sh.I += the product of v_sh and T"
 
 
 def _product(tmp_path, effect: float):
-    for name, text in (("shunt.yaml", SHUNT), ("hall.yaml", HALL), ("bench.yaml", BENCH)):
-        (tmp_path / name).write_text(text)
+    write_bench(tmp_path)
     rng = np.random.default_rng(5)
     n = 3000
     t = np.arange(n, dtype=float)

@@ -6,6 +6,8 @@ errors off."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from conftest import ROOT
 
@@ -111,16 +113,22 @@ datasets:
 """
 
 
+def write_bench(folder: Path) -> None:
+    """The shunt and Hall sensor of tests/data/hall and ``BENCH`` (one calibration CSV,
+    no held-out data) into ``folder``."""
+    models = ROOT / "tests" / "data" / "hall" / "models"
+    for name in ("shunt.yaml", "hall.yaml"):
+        (folder / name).write_text((models / name).read_text())
+    (folder / "bench.yaml").write_text(BENCH)
+
+
 def test_a_calibrated_sensors_term_leads_before_the_references_own_input(tmp_path) -> None:
     """A shunt (the reference, its resistance's temperature its own input) and a Hall
     sensor in series; the Hall sensor's offset drifts with the temperature.  A term
     linear in T on the shunt is the same fit, and it led the group as a term in the
     shunt's own input: a new user applying it got a Hall model with no temperature
     compensation.  The calibrated sensor's member leads now."""
-    models = ROOT / "tests" / "data" / "hall" / "models"     # the same sensors
-    for name in ("shunt.yaml", "hall.yaml"):
-        (tmp_path / name).write_text((models / name).read_text())
-    (tmp_path / "bench.yaml").write_text(BENCH)
+    write_bench(tmp_path)
     rng = np.random.default_rng(11)
     n = 3000
     t = np.arange(n, dtype=float)
