@@ -81,12 +81,14 @@ class Basis:
 
     @property
     def complexity(self) -> tuple[int, int]:
-        """How simple the shape is: linear and drift before harmonics (by number) before
-        quadratic before an output's gain varying with a variable before products."""
-        rank = {"approximation": 0, "constant": 0, "fixed": 0, "linear": 1, "drift": 1,
-                "latency": 1, "harmonic": 2, "quadratic": 3, "gain": 4, "product": 5,
-                "angle_harmonic": 5}
-        return rank.get(self.kind, 6), self.order
+        """How simple the shape is: a share of another output (the same fit as the term
+        linear in the reading it is made of, but zero where that output is) before linear
+        and drift, before harmonics (by number), before quadratic, before an output's gain
+        varying with a variable, before products."""
+        rank = {"approximation": 0, "constant": 0, "fixed": 0, "coupling": 1, "linear": 2,
+                "drift": 2, "latency": 2, "harmonic": 3, "quadratic": 4, "gain": 5,
+                "product": 6, "angle_harmonic": 6}
+        return rank.get(self.kind, 7), self.order
 
 
 @dataclass

@@ -469,8 +469,9 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
             lambda i, d=diff: d[i]))   # type: ignore[misc]
 
     def local(cand: Candidate) -> bool:
-        if cand.output not in problem.diagnostic.hooks or cand.basis.kind == "gain":
-            return True     # not a sensor's term, or the sensor's own gain
+        if cand.output not in problem.diagnostic.hooks or cand.basis.kind in ("gain",
+                                                                              "coupling"):
+            return True     # not a sensor's term, its own gain or a share of its output
         instance = cand.output.split(".", 1)[0]
         return cand.basis.variable in own_names_of(problem, instance)
 
@@ -557,7 +558,7 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
 #: How the library names a term's coefficients (``lin_T``, ``h3_sin_u``, ``gain_T``,
 #: ``prod_mx_t``): a parameter so named on a sensor is taken for a term an earlier round
 #: added (a user's own parameter named so, ``drift_x``, is taken for one too).
-COEFFICIENT = re.compile(r"(lin|quad|drift|prod|gain|h\d+_(sin|cos)|ah\d*_(sin|cos))_")
+COEFFICIENT = re.compile(r"(lin|quad|drift|prod|gain|cpl|h\d+_(sin|cos)|ah\d*_(sin|cos))_")
 
 #: A log kept as shards is diagnosed on at most this many of its rows, spread evenly.
 LOG_ROWS = 100_000

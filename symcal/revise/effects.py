@@ -1,12 +1,13 @@
 """A candidate effect as files that load: a model that ``extends`` the instance's model
 with the missing term and/or a problem overlay (``extends:``) that uses it.
 
-**Terms** (harmonic, linear, quadratic, drift, angle_harmonic, product, gain) go where the
-physics is: into the model's error expression when the output is ``reading + error`` (so
-that in an implicit model it is inside the fixed-point definition), else onto the output
-itself (``c_y: base.c_y + ...``, which keeps the output's declared unit; a gain is
-``I: base.I + gain_T*base.I*(v_T - c_gain_T)``, a dimensionless rate per unit of the
-variable); a harmonic of
+**Terms** (harmonic, linear, quadratic, drift, angle_harmonic, product, gain, coupling)
+go where the physics is: into the model's error expression when the output is
+``reading + error`` (so that in an implicit model it is inside the fixed-point
+definition), else onto the output itself (``c_y: base.c_y + ...``, which keeps the
+output's declared unit; a gain is ``I: base.I + gain_T*base.I*(v_T - c_gain_T)``, a
+dimensionless rate per unit of the variable; a coupling ``Bx: base.Bx + cpl_By*By``,
+another output of the same model by name); a harmonic of
 the sensor's own reading is evaluated where the model evaluates its error (``u``: the raw
 reading in the explicit model, the true position in the implicit one).  A new model
 input is bound to what the variable is in the problem (a data column or an expression of
@@ -53,7 +54,8 @@ from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
 
 _TAGS = {"harmonic": "h", "linear": "lin", "quadratic": "quad", "drift": "drift",
-         "angle_harmonic": "ah", "product": "prod", "gain": "gain"}
+         "angle_harmonic": "ah", "product": "prod", "gain": "gain",
+         "coupling": "cpl"}
 #: Kinds written as a term added to one output (a model extension).
 TERMS = tuple(_TAGS)
 #: Names of the constants a term's placeholders stand for, by placeholder.
@@ -290,6 +292,7 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
              "angle_harmonic": [per(out_unit, (angle_unit, 1))] * 2,
              "product": [per(out_unit, (var_unit, 1), (other_unit, 1))] * len(params),
              "gain": [per("", (var_unit, 1))],
+             "coupling": [per(out_unit, (var_unit, 1))],
              }[basis.kind]
     if basis.kind == "quadratic" and len(basis.columns) == 1:   # one part left (the
         units = units[1:] if basis.columns == ("quad",) else units[:1]   # other redundant)

@@ -11,10 +11,12 @@ it (``candidates:`` on the instance, the model, or the problem: ``declared``).
 to :data:`HARMONICS`), a term linear in a variable, a quadratic, a drift in time, the
 product of two of the instance's variables (tested beyond the two linear terms it
 contains: it is tried after them), an angle times a harmonic (the orders of the plain
-harmonics), and the output's own gain varying with a variable that is not one of the
+harmonics), the output's own gain varying with a variable that is not one of the
 sensor's readings (``O*(w - c)``, tested beyond the term linear in ``w``: a sensitivity
 that changes with the temperature, where the output is not its reading plus a small
-error).  Besides terms on outputs:
+error), and a share of another of the sensor's outputs (``Bx += k*By``: a triad's
+cross-axis sensitivity, zero where that output is, where the output is not its reading
+plus a small error).  Besides terms on outputs:
 
 - **latency**: an instance's readings stamped late by a constant delay τ, the term
   ``τ·Σ_j ∂r/∂c_j · dc_j/dt`` over the columns it reads, where the rows are time-ordered
@@ -40,6 +42,8 @@ from symcal.analysis.discovery import Basis, Candidate
 from symcal.analysis.residuals import Variable
 from symcal.base.units import DISPLAY_UNITS
 from symcal.data.derived import rate_and_noise
+from symcal.language import expr
+from symcal.language.model_file import ModelSpec
 from symcal.problem.symbolic import Problem
 from symcal.revise.blocks import Block, distinct_groups, references
 
@@ -294,6 +298,55 @@ def _gains(problem: Problem, output: str, groups: list[tuple[Variable, set[str]]
     return out
 
 
+def _couplings(problem: Problem, output: str, block: Block, space: Space) -> list[_Shape]:
+    """A share of each other output of the same sensor added to ``output``: ``k*O2``, a
+    triad's cross-axis sensitivity (``Bx += k*By``).  The same fit as a term linear in
+    the reading ``O2`` is made of, but zero where ``O2`` is (zero field along y), not
+    where that raw reading is: written on the raw reading, the term moves the output's
+    own offset by ``k`` times the other axis's (``ox`` becomes ``ox - k*oy``).  Only
+    where the model writes ``output`` itself (no error expression: there the output is
+    its reading plus a small error, and its zero the reading's), and never on an output
+    that ``O2`` itself reads (no cycle)."""
+    if space.kinds is not None and "coupling" not in space.kinds:
+        return []
+    instance, local = output.split(".", 1)
+    model = problem.instances[instance].model
+    if model.error_expression(local) is not None:
+        return []
+    have = {v.name: v for v in block.variables}
+    out = []
+    for other in model.outputs:
+        name = f"{instance}.{other}"
+        if other == local or name not in have or reads(model, other, local):
+            continue
+        o2 = block.values(name)
+        if not np.all(np.isfinite(o2)) or np.ptp(o2) <= 0:
+            continue
+        out.append(_Shape(Basis(
+            "coupling", name, f"a share of {name} (the outputs couple)", ("cpl",),
+            ("{v}",), unit=have[name].unit), _value(name)))
+    return out
+
+
+def reads(model: ModelSpec, name: str, target: str) -> bool:
+    """Whether the model's definition ``name`` (an output or expression) reads
+    ``target``, directly or through other definitions."""
+    defs = {**{k: v.node for k, v in model.expressions.items()},
+            **{k: o.expr.node for k, o in model.outputs.items()}}
+    seen, todo = set(), [name]
+    while todo:
+        node = defs.get(todo.pop())
+        if node is None:
+            continue
+        for n in expr.names(node):
+            if n.name == target:
+                return True
+            if n.name not in seen:
+                seen.add(n.name)
+                todo.append(n.name)
+    return False
+
+
 def _gain(output: str, name: str, centre: float) -> Callable[[Block], np.ndarray]:
     return lambda b: (b.values(output) * (b.values(name) - centre))[:, None]
 
@@ -379,6 +432,7 @@ def output_entries(problem: Problem, blocks: list[Block], fit: int
         sigma = output_sigma(blocks[fit], h)
         shapes = _shapes(variables, blocks[fit], space)
         shapes += _gains(problem, output, groups, variables, blocks[fit], space)
+        shapes += _couplings(problem, output, blocks[fit], space)
         for shape in shapes:
             phi = shape.phi
             basis = _with_scales(shape.basis, sigma, phi(blocks[fit]))
