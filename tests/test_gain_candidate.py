@@ -66,6 +66,13 @@ def test_the_loop_keeps_the_gain_with_the_parameters_a_least_squares_fit_predict
     assert abs(gain.value - a1 / a0) < 3 * gain.se
     assert abs(gain.value + true["parameters"]["hall.aS"]) < 0.05 * abs(gain.value)
     assert out.quiet
+    # the console says where sens now holds (the term's centre, not the datasheet's 25)
+    assert f"the term is zero at T = {centre:g} delta_degC (hall.c_gain_T): the " \
+           "parameters already there now hold at that T" \
+        in " ".join(out.rounds[1].notes()), out.rounds[1].notes()
+    assert out.rounds[1].to_dict()["parameters"]["centres"] == [
+        {"constant": "hall.c_gain_T", "variable": "T", "value": centre,
+         "unit": "delta_degC"}]
 
 
 def test_an_output_proportional_to_its_reading_has_no_gain_of_its_own(tmp_path) -> None:

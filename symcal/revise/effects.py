@@ -120,6 +120,11 @@ def per(numerator: str, *denominators: tuple[str, int]) -> str:
     return text_of(unit).replace("µ", "u")
 
 
+#: The doc of a term's centre (:func:`_centre_doc`; :func:`centre_variable` reads it).
+CENTRE_DOC = ("reference {} of the other parameters (the term is zero there; set a "
+              "datasheet value to have them hold at it)")
+
+
 def _centre_doc(key: str, basis: Any) -> dict[str, str]:
     """The doc of a term's centre: where the parameters already there now hold (a
     sensitivity at the run's mean temperature, where the term is written about it, not
@@ -127,8 +132,16 @@ def _centre_doc(key: str, basis: Any) -> dict[str, str]:
     if key not in ("centre", "other_centre"):
         return {}
     variable = basis.variable if key == "centre" else basis.other
-    return {"doc": f"reference {variable} of the other parameters (the term is zero there; "
-                   "set a datasheet value to have them hold at it)"}
+    return {"doc": CENTRE_DOC.format(variable)}
+
+
+def centre_variable(doc: str) -> str | None:
+    """The variable a constant is the centre of, where its doc is a term's centre as
+    :func:`suggestion` writes it (:data:`CENTRE_DOC`), else None."""
+    head, tail = CENTRE_DOC.split("{}")
+    if doc.startswith(head) and doc.endswith(tail) and len(doc) > len(head) + len(tail):
+        return doc[len(head):len(doc) - len(tail)]
+    return None
 
 
 def scale_in(value: float, unit: str) -> float:

@@ -26,6 +26,7 @@ import scipy.stats
 from symcal.base.digits import estimate_text
 from symcal.calibrate.result import Result
 from symcal.experiment.command import design_sentence
+from symcal.revise.effects import centre_variable
 
 #: A parameter moved by more than this many of its old standard errors is reported.
 MOVED = 3.0
@@ -97,6 +98,9 @@ class Watch:
     settled: bool = False
     largest_growth: tuple[str, float] | None = None          # (existing, se ratio)
     largest_correlation: tuple[str, str, float] | None = None  # (new, existing, corr)
+    # the new term's centres: (constant, variable, value, unit), where the parameters
+    # already there now hold (a sensitivity at the run's mean temperature)
+    centres: tuple[tuple[str, str, float, str], ...] = ()
 
     def words(self, added: str) -> list[str]:
         """The verdict's sentences: the term's effect on the parameters already there,
@@ -113,6 +117,11 @@ class Watch:
                          f"({new} with {existing})")
         if parts:
             out.append(f"with {added}: " + "; ".join(parts))
+        for key, variable, value, unit in self.centres:
+            out.append(f"the term is zero at {variable} = {value:g} {unit} ({key}): the "
+                       f"parameters already there now hold at that {variable}, not at a "
+                       f"datasheet's reference; set {key} to one in the model file to have "
+                       "them hold there")
         if self.moved:
             ranked = sorted(self.moved, key=lambda m: -m.shift)
             shown = "; ".join(
@@ -153,6 +162,8 @@ class Watch:
                 "grown": [{"name": n, "se_before": b, "se_after": a}
                           for n, b, a in self.grown],
                 "design": self.design, "settled": self.settled,
+                "centres": [{"constant": k, "variable": v, "value": x, "unit": u}
+                            for k, v, x, u in self.centres],
                 "largest_growth": None if self.largest_growth is None else {
                     "name": self.largest_growth[0], "ratio": self.largest_growth[1]},
                 "largest_correlation": None if self.largest_correlation is None else {
@@ -192,7 +203,19 @@ def watch(new: Result, old: Result, physical: set[str], problem_file: Path) -> W
     settled = new.at_floor is True and old.at_floor is False
     return Watch(tuple(moved), tuple(correlated), tuple(grown),
                  design_hint(new, problem_file, worst) if worst else "", settled, growth,
-                 largest)
+                 largest, _centres(new, old))
+
+
+def _centres(new: Result, old: Result) -> tuple[tuple[str, str, float, str], ...]:
+    """The centres of the terms ``new`` has and ``old`` has not (constants documented
+    as :func:`~symcal.revise.effects.centre_variable` reads them)."""
+    before = {c.key for c in old.problem.constants}
+    out = []
+    for c in new.problem.constants:
+        variable = centre_variable(c.doc)
+        if c.key not in before and variable is not None:
+            out.append((c.key, variable, float(c.value), c.unit))
+    return tuple(out)
 
 
 def _worst(moved: list[Moved], grown: list[tuple[str, float, float]],
