@@ -34,7 +34,7 @@ from symcal.revise.diagnose import GROUP as DIAGNOSED
 from symcal.revise.diagnose import Diagnosis, diagnose, on_reference
 from symcal.revise.effects import write_revision
 from symcal.revise.previous import clear_previous
-from symcal.revise.watch import Watch, design_hint, new_parameters, same_fit, wald, watch
+from symcal.revise.watch import Watch, new_parameters, same_fit, wald, watch
 
 #: A candidate is not solved when the diagnosis predicts its held-out constraint
 #: residuals grow by more than this (a mean log ratio of spreads, +0.1 %): the solve
@@ -311,7 +311,7 @@ def _best_of_group(
     for _, other, _, _ in paying[1:]:
         _remove({f for f in written[other] if f.resolve() not in used})
     final = _renamed(path, name)
-    said = (_ambiguity(label, new, other, other_new, physical, final, result)
+    said = (_ambiguity(label, new, other, other_new, physical, result)
             for _, other, _, other_new in paying[1:])
     ambiguous = tuple(text for text in said if text)
     return _Kept(label, final, with_floors(_rebound(new, final)), ambiguous,
@@ -454,8 +454,18 @@ SAME_WORDS = ("they are one fit written two ways (every residual the same to rou
               "each; keep the one whose parameters mean what you know")
 
 
+#: Why no ``symcal design`` target separates two revisions that fit about equally and
+#: put a parameter more than 3 standard errors apart: each already determines it better
+#: than they differ (a target of a third of the difference, once printed here, is met by
+#: the data as they are, and designing for it changed nothing).
+APART_WORDS = ("each determines it more precisely than the two differ: the parameter means "
+               "something else in each, and a more precise run of the same kind does not "
+               "tell which is right; a run in other conditions, where the two predict "
+               "different readings, or knowing which effect is physical, does")
+
+
 def _ambiguity(label: str, new: Result, other: str, other_new: Result,
-               physical: set[str], path: Path, old: Result) -> str:
+               physical: set[str], old: Result) -> str:
     """A sentence when two revisions fit about equally (BIC within :data:`EQUAL_BIC`) and
     put a physical parameter more than 3 standard errors apart, else ""; where the other
     fits better but leaves a parameter undetermined (:func:`_inflated`), it says so."""
@@ -466,8 +476,7 @@ def _ambiguity(label: str, new: Result, other: str, other_new: Result,
         if a is None or b is None or not a.se or not b.se:
             continue
         if abs(a.value - b.value) > 3 * max(a.se, b.se):
-            target = (SAME_WORDS if same_fit(new, other_new) else
-                      design_hint(new, path, (name, abs(a.value - b.value) / 3)))
+            target = SAME_WORDS if same_fit(new, other_new) else APART_WORDS
             why = ""
             if other_new.bic < new.bic and _inflated(other_new, old) is not None and \
                     _inflated(new, old) is None:
@@ -658,8 +667,7 @@ def _best_lead(
         final = _renamed(best.path, name)
         best = replace(best, path=final, result=_rebound(best.result, final),
                        written=best.written - {best.path} | {final})
-    said = (_ambiguity(best.label, best.result, other.label, other.result, physical, final,
-                       result)
+    said = (_ambiguity(best.label, best.result, other.label, other.result, physical, result)
             for other in others)
     return replace(best, ambiguous=best.ambiguous + tuple(text for text in said if text))
 
