@@ -84,6 +84,7 @@ class Space:
     kinds: tuple[str, ...] | None
     harmonics: tuple[int, ...]
     origin: str
+    declared: bool = False       # whether ``variables`` is the instance's own list
 
     def describe(self) -> str:
         """The space in words."""
@@ -127,7 +128,7 @@ def spaces(problem: Problem) -> dict[str, Space]:
             name, default if declared.variables is None else tuple(declared.variables),
             declared.kinds,
             tuple(range(1, HARMONICS + 1)) if declared.harmonics is None
-            else tuple(declared.harmonics), declared.origin)
+            else tuple(declared.harmonics), declared.origin, declared.variables is not None)
     return out
 
 
@@ -305,8 +306,11 @@ def _couplings(problem: Problem, output: str, block: Block, space: Space) -> lis
     where that raw reading is: written on the raw reading, the term moves the output's
     own offset by ``k`` times the other axis's (``ox`` becomes ``ox - k*oy``).  Only
     where the model writes ``output`` itself (no error expression: there the output is
-    its reading plus a small error, and its zero the reading's), and never on an output
-    that ``O2`` itself reads (no cycle)."""
+    its reading plus a small error, and its zero the reading's), of an output of the same
+    unit (a field's share of a field: a temperature output is no axis, and the term
+    linear in the temperature, about the run's centre, is that effect), never on an
+    output that ``O2`` itself reads (no cycle), and where the instance declares its
+    variables (``candidates: variables``), of the outputs it names only."""
     if space.kinds is not None and "coupling" not in space.kinds:
         return []
     instance, local = output.split(".", 1)
@@ -317,7 +321,9 @@ def _couplings(problem: Problem, output: str, block: Block, space: Space) -> lis
     out = []
     for other in model.outputs:
         name = f"{instance}.{other}"
-        if other == local or name not in have or reads(model, other, local):
+        if other == local or name not in have or output not in have or \
+                have[name].unit != have[output].unit or reads(model, other, local) or \
+                (space.declared and name not in space.variables):
             continue
         o2 = block.values(name)
         if not np.all(np.isfinite(o2)) or np.ptp(o2) <= 0:

@@ -118,10 +118,11 @@ class Watch:
         if parts:
             out.append(f"with {added}: " + "; ".join(parts))
         for key, variable, value, unit in self.centres:
+            local = key.split(".", 1)[-1]
             out.append(f"the term is zero at {variable} = {value:g} {unit} ({key}): the "
                        f"parameters already there now hold at that {variable}, not at a "
-                       f"datasheet's reference; set {key} to one in the model file to have "
-                       "them hold there")
+                       f"datasheet's reference; to have them hold at one (25 degC, say), "
+                       f"write its value as {local}'s in the model file and solve again")
         if self.moved:
             ranked = sorted(self.moved, key=lambda m: -m.shift)
             shown = "; ".join(
