@@ -146,3 +146,26 @@ def test_a_declared_value_that_sets_a_gauge_is_named() -> None:
     assert ("the estimates are only as right as declared value the data cannot check: "
             "sh.R0 = 1 mohm (fixed, it sets a gauge: the parameters that share it follow "
             "its value unseen)") in diagnosis_report(diag)
+
+
+def test_a_declared_variable_no_term_can_use_is_said(tmp_path) -> None:
+    """The Hall sensor's space names the shunt's current (another sensor's output): no
+    term uses it (it would feed one sensor's output into another's model), and the
+    searched space says so instead of listing it as searched (a new user's power bench
+    declared ``ich.I`` and read it as tested)."""
+    (tmp_path / "models").mkdir()
+    for name in ("hall.yaml", "shunt.yaml"):
+        (tmp_path / "models" / name).write_text((HALL / "models" / name).read_text())
+    (tmp_path / "problem.yaml").write_text((HALL / "problem.yaml").read_text().replace(
+        "models/hall.yaml, inputs: {v: v_hall}",
+        "models/hall.yaml, inputs: {v: v_hall}, candidates: {variables: [v_hall, T, sh.I]}"))
+    data, _ = _data(None, 3)
+    diag = symcal.diagnose(symcal.solve(tmp_path / "problem.yaml", data))
+    assert not any("sh.I" in c.basis.variable or "sh.I" in (c.basis.other or "")
+                   for c in diag.candidates if c.output == "hall.I")
+    hall = next(s for s in diag.spaces if s.startswith("hall:"))
+    assert hall.endswith("; not used: sh.I, computed from another sensor's outputs (a term "
+                         "in it would feed one sensor's output into another's model): name "
+                         "the readings it is made of instead"), hall
+    shunt = next(s for s in diag.spaces if s.startswith("sh:"))
+    assert "not used" not in shunt

@@ -85,12 +85,19 @@ class Space:
     harmonics: tuple[int, ...]
     origin: str
     declared: bool = False       # whether ``variables`` is the instance's own list
+    # declared variables no term uses: computed from another sensor's outputs
+    unused: tuple[str, ...] = ()
 
     def describe(self) -> str:
         """The space in words."""
         kinds = "every kind" if self.kinds is None else ", ".join(self.kinds) or "nothing"
-        return (f"{self.instance}: {', '.join(self.variables) or 'no variable'} "
+        text = (f"{self.instance}: {', '.join(self.variables) or 'no variable'} "
                 f"({kinds}; {self.origin})")
+        if self.unused:
+            text += (f"; not used: {', '.join(self.unused)}, computed from another "
+                     "sensor's outputs (a term in it would feed one sensor's output into "
+                     "another's model): name the readings it is made of instead")
+        return text
 
 
 def own_names(problem: Problem, instance: str) -> set[str]:
@@ -419,6 +426,15 @@ def _in_space(groups: list[tuple[Variable, set[str]]], space: Space, never: set[
     return out
 
 
+def _unused(problem: Problem, groups: list[tuple[Variable, set[str]]], space: Space
+            ) -> tuple[str, ...]:
+    """The declared variables of ``space`` that are computed from another sensor's
+    outputs: no term uses them (:func:`_in_space`)."""
+    own = {f"{space.instance}.{o}" for o in problem.instances[space.instance].model.outputs}
+    derived = {n for var, names in groups if var.kind == "derived" for n in names}
+    return tuple(n for n in space.variables if n in derived and n not in own)
+
+
 def output_entries(problem: Problem, blocks: list[Block], fit: int
                    ) -> tuple[list[Entry], dict[str, Space]]:
     """Every (output × shape) candidate of every instance's space, with its regressor."""
@@ -435,6 +451,8 @@ def output_entries(problem: Problem, blocks: list[Block], fit: int
             continue
         space = found[instance]
         variables = _in_space(groups, space, never)
+        if space.declared and not space.unused:
+            found[instance] = space = replace(space, unused=_unused(problem, groups, space))
         sigma = output_sigma(blocks[fit], h)
         shapes = _shapes(variables, blocks[fit], space)
         shapes += _gains(problem, output, groups, variables, blocks[fit], space)
