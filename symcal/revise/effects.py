@@ -82,7 +82,7 @@ def coefficient_names(cand: Candidate) -> tuple[tuple[str, ...], ...]:
                  for order in orders)
 
 
-def _unused(name: str, output: str, model: Any) -> str:
+def _coefficient_name(name: str, output: str, model: Any) -> str:
     """A coefficient's name, ``name`` where the model has no such name yet, else named
     after its output too (``cpl_By_Bz`` where an earlier round gave ``Bx`` its
     ``cpl_By``: one name would make the two terms share one coefficient)."""
@@ -288,7 +288,7 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
     if basis.angle:
         tag += "_" + _ident(basis.angle.replace(f"{instance}.", ""))
     tag += "_" + local
-    params = [_unused(f"{col}_{local}", _ident(output), model) for col in basis.columns]
+    params = [_coefficient_name(f"{col}_{local}", _ident(output), model) for col in basis.columns]
     text = "".join(basis.terms)
     var_unit, other_unit = written_unit(basis.unit), written_unit(basis.other_unit)
     # numbers with a unit (a period, centres) are constants in their variable's unit
