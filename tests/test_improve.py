@@ -612,8 +612,10 @@ def test_improve_says_what_is_left_where_it_ends_above_the_floor(tmp_path) -> No
     outcome = improve(hidden, tmp_path / "again", max_rounds=0)
     last = outcome.rounds[-1].result
     assert not outcome.quiet and last.at_floor is False
-    left = _left(outcome, 0.01)
-    assert left and left == left_lines(diagnose(last, 0.01))
+    left, hints = _left(outcome, 0.01)
+    diag = diagnose(last, 0.01)
+    assert left and left == left_lines(diag)
+    assert hints == diag.unsearched
     assert left[0].startswith("calibration g_p: ") and " along " in left[0]
 
 

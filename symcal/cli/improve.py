@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
             atomic_write_text(stage / "ladder.txt", ladder_report(rungs))
             atomic_write_text(stage / "ladder.json", plain_json([r.to_dict() for r in rungs]))
             save_ladder_plot(rungs, stage)
-    left = _left(result, args.alpha)
+    left, hints = _left(result, args.alpha)
     reach = unvouched(result.last)
     if args.json:
         sys.stdout.write(plain_json({**result.to_dict(), "left": left, "unvouched": [
@@ -81,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
                  + outcome_text(result), ""]
         lines += [f"  {line}" for line in floor_lines(result.rounds[-1].result)]
         lines += [f"  what is left above the floor: {line}" for line in left[:3]]
+        lines += [f"  {line}" for line in hints]
         if reach:
             lines.append("  " + unvouched_line(reach, "symcal diagnose of the final problem "
                                                       "names them"))
@@ -102,14 +103,16 @@ def run(args: argparse.Namespace) -> int:
     return 0 if result.quiet and all(r.result.success for r in result.rounds) else 1
 
 
-def _left(result: Any, alpha: float) -> list[str]:
+def _left(result: Any, alpha: float) -> tuple[list[str], tuple[str, ...]]:
     """Where the loop ends above the noise floor, what is left there (the last model's
     residuals along the variables their excess lies along, as ``symcal diagnose`` says
-    it); else nothing."""
+    it) and how to test a coupling it points at that no search space holds; else
+    nothing."""
     from symcal.report.text import left_lines
     from symcal.revise.diagnose import diagnose
 
     last = result.rounds[-1].result
     if result.quiet or not last.success or last.at_floor is not False:
-        return []
-    return left_lines(diagnose(last, alpha))
+        return [], ()
+    diag = diagnose(last, alpha)
+    return left_lines(diag), diag.unsearched

@@ -885,6 +885,7 @@ def diagnosis_report(diag: Diagnosis) -> str:
                   "chance, as a share of its excess over the floor; shown whether or not a "
                   "candidate explains it)"]
         lines += [f"  {ln}" for ln in left]
+        lines += [f"  {ln}" for ln in getattr(diag, "unsearched", ())]
     if result.regressions:
         lines += ["", "Worse after calibration (above its noise floor, χ²/dof grown from the "
                   "initial parameters by more than noise moves it; where the floor is "
@@ -1072,6 +1073,7 @@ def diagnosis_document(diag: Diagnosis, series: bool = False) -> dict[str, Any]:
     doc.setdefault("at_floor", result.at_floor)
     doc.setdefault("references_apart", references_apart(diag))
     doc.setdefault("left", left_lines(diag))
+    doc.setdefault("unsearched", list(getattr(diag, "unsearched", ())))
     tests = {(s.dataset, s.name): s.chi2_dof for s in result.statistics}
     for row in doc.get("residuals") or []:
         name = str(row.get("name"))

@@ -63,6 +63,7 @@ from symcal.revise.effects import coefficient_names, effect_yaml
 from symcal.revise.library import (
     Entry,
     Raw,
+    Space,
     constant_entries,
     fixed_entries,
     latency_entries,
@@ -154,6 +155,8 @@ class Diagnosis:
     gauge_fixes: dict[str, str] = field(default_factory=dict)
     together: Callable[[Sequence[str]], dict[str, tuple[float, float]]] | None = field(
         default=None, repr=False)
+    # how to test a coupling what is left points at but no search space holds
+    unsearched: tuple[str, ...] = ()
 
     @property
     def reopened(self) -> tuple[Candidate, ...]:
@@ -547,12 +550,51 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
     own_inputs.update(_read_by_output(problem))
     above = any(s.kind == "comparison" and s.noise is not None and s.noise.verdict == "above"
                 for s in result.statistics)
-    return Diagnosis(result, tuple(_views(blocks, result)) if report else (), tuple(ranked),
+    views = tuple(_views(blocks, result)) if report else ()
+    return Diagnosis(result, views, tuple(ranked),
                      yaml, alpha,
                      len(candidates), tuple(uncal), needs, variant, own_inputs,
                      _better_problem(problem) if above else "",
                      tuple(sp.describe() for sp in found.values()), dict(fixes),
-                     together)
+                     together, unsearched(problem, found, views))
+
+
+def unsearched(problem: Problem, found: Mapping[str, Space],
+               views: Sequence[ResidualView]) -> tuple[str, ...]:
+    """Where what is left of a residual lies most along a sensor's own reading that no
+    other sensor's search space holds: a coupling of that reading into another sensor
+    (crosstalk from a current channel into a voltage channel) is never tested; the
+    sentence says how to test it."""
+    readers: dict[str, list[str]] = {}
+    for name, inst in problem.instances.items():
+        for key, text in inst.bindings.items():
+            for alias in (text, f"{name}.{key}"):
+                if text in problem.column_specs:
+                    readers.setdefault(alias, [])
+                    if name not in readers[alias]:
+                        readers[alias].append(name)
+    found_in: dict[tuple[str, tuple[str, ...], tuple[str, ...]], list[str]] = {}
+    for v in views:
+        left = getattr(v, "left", ())
+        for var in left[0].variables if left else ():
+            who = readers.get(var)
+            if not who:
+                continue
+            column = next(t for k, t in problem.instances[who[0]].bindings.items()
+                          if var in (t, f"{who[0]}.{k}"))
+            others = tuple(n for n, sp in found.items() if n not in who and sp.kinds != ()
+                           and column not in sp.variables)
+            if others:
+                names = found_in.setdefault((column, tuple(who), others), [])
+                if v.name not in names:
+                    names.append(v.name)
+    return tuple(
+        f"{column}, along which what is left of {', '.join(names)} lies most, is read by "
+        f"{', '.join(who)} and is in no search space of {', '.join(others)}: a coupling of "
+        f"it into {'that sensor' if len(others) == 1 else 'them'} is not tested; to test "
+        f"one, name {column} in {others[0]}'s `candidates: variables` beside its own "
+        "readings (the list replaces the default)"
+        for (column, who, others), names in found_in.items())
 
 
 #: How the library names a term's coefficients (``lin_T``, ``h3_sin_u``, ``gain_T``,
