@@ -29,6 +29,17 @@ def _data(effect: str | None, seed: int) -> tuple[dict, dict]:
     return data, truth(scenario)
 
 
+def _hall_with(folder, entry: str) -> None:
+    """The Hall bench copied into ``folder`` with ``entry`` added to the Hall sensor's
+    instance (``key: value`` as in the problem file)."""
+    (folder / "models").mkdir()
+    for name in ("hall.yaml", "shunt.yaml"):
+        (folder / "models" / name).write_text((HALL / "models" / name).read_text())
+    (folder / "problem.yaml").write_text((HALL / "problem.yaml").read_text().replace(
+        "models/hall.yaml, inputs: {v: v_hall}",
+        f"models/hall.yaml, inputs: {{v: v_hall}}, {entry}"))
+
+
 def test_a_sensitivity_that_varies_with_the_temperature_leads_as_the_sensors_gain() -> None:
     data, _ = _data("sensT", 5)
     diag = symcal.diagnose(symcal.solve(HALL / "problem.yaml", data))
@@ -84,13 +95,7 @@ def test_the_loop_keeps_the_gain_with_the_parameters_a_least_squares_fit_predict
 def test_an_output_proportional_to_its_reading_has_no_gain_of_its_own(tmp_path) -> None:
     """Where the output is its reading times a factor, the product of the reading and T
     is the gain: no second candidate for the same term."""
-    (tmp_path / "models").mkdir()
-    for name in ("hall.yaml", "shunt.yaml"):
-        (tmp_path / "models" / name).write_text((HALL / "models" / name).read_text())
-    problem = (HALL / "problem.yaml").read_text().replace(
-        "models/hall.yaml, inputs: {v: v_hall}",
-        "models/hall.yaml, inputs: {v: v_hall}, parameters: {off: {value: 0, fixed: true}}")
-    (tmp_path / "problem.yaml").write_text(problem)
+    _hall_with(tmp_path, "parameters: {off: {value: 0, fixed: true}}")
     data, _ = _data("sensT", 5)
     for ds in data.values():
         ds.columns["v_hall"] = np.asarray(ds.columns["v_hall"]) - 2.503
@@ -153,12 +158,7 @@ def test_a_declared_variable_no_term_can_use_is_said(tmp_path) -> None:
     term uses it (it would feed one sensor's output into another's model), and the
     searched space says so instead of listing it as searched (a new user's power bench
     declared ``ich.I`` and read it as tested)."""
-    (tmp_path / "models").mkdir()
-    for name in ("hall.yaml", "shunt.yaml"):
-        (tmp_path / "models" / name).write_text((HALL / "models" / name).read_text())
-    (tmp_path / "problem.yaml").write_text((HALL / "problem.yaml").read_text().replace(
-        "models/hall.yaml, inputs: {v: v_hall}",
-        "models/hall.yaml, inputs: {v: v_hall}, candidates: {variables: [v_hall, T, sh.I]}"))
+    _hall_with(tmp_path, "candidates: {variables: [v_hall, T, sh.I]}")
     data, _ = _data(None, 3)
     diag = symcal.diagnose(symcal.solve(tmp_path / "problem.yaml", data))
     assert not any("sh.I" in c.basis.variable or "sh.I" in (c.basis.other or "")

@@ -565,23 +565,22 @@ def unsearched(problem: Problem, found: Mapping[str, Space],
     other sensor's search space holds: a coupling of that reading into another sensor
     (crosstalk from a current channel into a voltage channel) is never tested; the
     sentence says how to test it."""
-    readers: dict[str, list[str]] = {}
+    column_of: dict[str, str] = {}      # a column an instance reads, by either name
+    readers: dict[str, list[str]] = {}  # the instances that read each column
     for name, inst in problem.instances.items():
         for key, text in inst.bindings.items():
-            for alias in (text, f"{name}.{key}"):
-                if text in problem.column_specs:
-                    readers.setdefault(alias, [])
-                    if name not in readers[alias]:
-                        readers[alias].append(name)
+            if text in problem.column_specs:
+                column_of[text] = column_of[f"{name}.{key}"] = text
+                if name not in readers.setdefault(text, []):
+                    readers[text].append(name)
     found_in: dict[tuple[str, tuple[str, ...], tuple[str, ...]], list[str]] = {}
     for v in views:
         left = getattr(v, "left", ())
         for var in left[0].variables if left else ():
-            who = readers.get(var)
-            if not who:
+            if var not in column_of:
                 continue
-            column = next(t for k, t in problem.instances[who[0]].bindings.items()
-                          if var in (t, f"{who[0]}.{k}"))
+            column = column_of[var]
+            who = readers[column]
             others = tuple(n for n, sp in found.items() if n not in who and sp.kinds != ()
                            and column not in sp.variables)
             if others:

@@ -82,12 +82,10 @@ def coefficient_names(cand: Candidate) -> tuple[tuple[str, ...], ...]:
                  for order in orders)
 
 
-def _coefficient_name(name: str, output: str, model: Any) -> str:
-    """A coefficient's name, ``name`` where the model has no such name yet, else named
-    after its output too (``cpl_By_Bz`` where an earlier round gave ``Bx`` its
+def _coefficient_name(name: str, output: str, taken: set[str]) -> str:
+    """A coefficient's name, ``name`` where the model has no such name yet (``taken``),
+    else named after its output too (``cpl_By_Bz`` where an earlier round gave ``Bx`` its
     ``cpl_By``: one name would make the two terms share one coefficient)."""
-    taken = {*model.constants, *model.inputs, *model.parameters, *model.expressions,
-             *model.outputs}
     if name not in taken:
         return name
     name = f"{name}_{output}"
@@ -288,15 +286,17 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
     if basis.angle:
         tag += "_" + _ident(basis.angle.replace(f"{instance}.", ""))
     tag += "_" + local
-    params = [_coefficient_name(f"{col}_{local}", _ident(output), model) for col in basis.columns]
+    taken = {*model.constants, *model.inputs, *model.parameters, *model.expressions,
+             *model.outputs}
+    params = [_coefficient_name(f"{col}_{local}", _ident(output), taken)
+              for col in basis.columns]
     text = "".join(basis.terms)
     var_unit, other_unit = written_unit(basis.unit), written_unit(basis.other_unit)
     # numbers with a unit (a period, centres) are constants in their variable's unit
     numbers = {"period": (basis.period, var_unit, 12), "centre": (basis.centre, var_unit, 6),
                "other_centre": (basis.other_centre, other_unit, 6)}
     constants: dict[str, tuple[str, float, str]] = {}
-    taken = {*model.constants, *model.inputs, *model.parameters, *model.expressions,
-             *model.outputs, *new_inputs, *params}
+    taken |= {*new_inputs, *params}
     for key, (value, unit, digits) in numbers.items():
         if "{" + key + "}" not in text:
             continue

@@ -441,7 +441,8 @@ def output_entries(problem: Problem, blocks: list[Block], fit: int
     hp = problem.diagnostic
     never = excluded(problem)
     groups = distinct_groups(blocks[fit].variables)
-    found = spaces(problem)
+    found = {name: replace(sp, unused=_unused(problem, groups, sp)) if sp.declared else sp
+             for name, sp in spaces(problem).items()}
     out: list[Entry] = []
     for h, output in enumerate(hp.hooks):
         if all(not np.any(b.hooks[:, :, h]) for b in blocks):
@@ -451,8 +452,6 @@ def output_entries(problem: Problem, blocks: list[Block], fit: int
             continue
         space = found[instance]
         variables = _in_space(groups, space, never)
-        if space.declared and not space.unused:
-            found[instance] = space = replace(space, unused=_unused(problem, groups, space))
         sigma = output_sigma(blocks[fit], h)
         shapes = _shapes(variables, blocks[fit], space)
         shapes += _gains(problem, output, groups, variables, blocks[fit], space)
