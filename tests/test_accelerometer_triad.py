@@ -23,7 +23,12 @@ from symcal.cli import main
 from symcal.data.dataset import make_dataset
 from symcal.experiment.optimize import design, parse_target
 from symcal.experiment.predict import noise_floors
-from symcal.report.text import diagnosis_verdict, outcome_text, verdict_lines
+from symcal.report.text import (
+    design_report,
+    diagnosis_verdict,
+    outcome_text,
+    verdict_lines,
+)
 from symcal.revise.improve import UNCHECKED
 from symcal.simulation import load_scenario, simulate_run, truth
 
@@ -117,6 +122,33 @@ def test_design_improves_the_x_scale_factor() -> None:
     assert out.final.se["acc.k_x"] <= 30e-6 < 0.3 * out.baseline.se["acc.k_x"]
     assert out.after["pitch"] == (-90.0, 90.0)
     assert out.after["n"] % 50 == 0                  # whole orientations of 50 samples
+
+
+def test_the_design_says_what_it_trades_and_hold_keeps_the_others() -> None:
+    """For acc.k_x alone the design pitches through +-90 deg with 13 orientations: the
+    other parameters lose precision (measured: acc.k_y 11x, acc.b_y 6.5x), which the report
+    says with how to keep them.  With ``hold`` every other parameter is a target at its
+    standard error on the given motion: the design meets acc.k_x and all of them, with
+    more orientations (measured: 32, pitch about -64..53 deg)."""
+    problem = symcal.load_problem(FIXED)
+    scenario = load_scenario(SCENARIO)
+    target = (parse_target("acc.k_x=30e-6", problem),)
+    alone = design(problem, scenario, targets=target)
+    base = alone.baseline.se
+    growth = {name: alone.final.se[name] / base[name] for name in base if name != "acc.k_x"}
+    assert {n: f for n, f in growth.items() if f > 1.1} == pytest.approx(alone.worse)
+    assert alone.worse["acc.k_y"] > 3
+    text = design_report(alone)
+    assert "less precise than on the given motion: " in text
+    assert "to keep them, design with --hold (or give one a --target of its own)" in text
+    held = design(problem, scenario, targets=target, hold=True)
+    assert held.met == {"acc.k_x": True} and held.worse == {}
+    assert [t.name for t in held.held] == [n for n in base if n != "acc.k_x"]
+    for name, se in base.items():
+        assert held.final.se[name] <= (30e-6 if name == "acc.k_x" else se)
+    assert held.after["n"] > alone.after["n"]
+    assert "held (--hold): every other parameter at most its standard error on the given " \
+           "motion: all held" in design_report(held)
 
 
 @pytest.mark.slow

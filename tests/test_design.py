@@ -146,8 +146,9 @@ def test_cli_prediction_json_shape(capsys):
     code = main(["design", str(PROBLEM), "--scenario", str(SCENARIO), "--json"])
     doc = json.loads(capsys.readouterr().out)
     assert code == 0
-    assert set(doc) == {"parameters", "binding", "scenario"}
+    assert set(doc) == {"parameters", "binding", "held", "worse", "scenario"}
     assert doc["binding"] == [] and doc["scenario"] is None
+    assert doc["held"] == [] and doc["worse"] == {}
     assert set(doc["parameters"]["l_x"]) == {"predicted_se", "baseline_se"}
     assert doc["parameters"]["l_x"]["predicted_se"] == doc["parameters"]["l_x"]["baseline_se"]
     assert 0.01 < doc["parameters"]["l_x"]["baseline_se"] < 0.05      # mm: 10-50 um
@@ -158,6 +159,8 @@ def test_cli_prediction_json_shape(capsys):
     (["--target", "l_x=5um"], "--target and --criterion choose a motion: they need "
                               "--optimize"),
     (["--out", "x"], "--out x writes the optimised scenario: it needs --optimize"),
+    (["--optimize", "--hold"], "--hold keeps the other parameters while meeting targets: "
+                               "it needs --target"),
 ])
 def test_cli_option_errors(capsys, argv, message):
     code = main(["design", str(PROBLEM), "--scenario", str(SCENARIO), *argv])
@@ -563,3 +566,22 @@ def test_a_printed_design_command_pastes_into_a_shell(tmp_path, monkeypatch) -> 
         "vary: add a run of scattered poses or dwells (a 'scatter:' or 'dwells:' motion) "
         "and declare it and its limits in a 'design:' section, then: symcal design p.yaml "
         "--scenario 'nu enc#2/series.yaml' -x")
+
+
+def test_the_loops_design_command_holds_the_other_parameters() -> None:
+    """The command improve's notes print ("an experiment that separates them") holds the
+    other parameters: for one parameter alone a design pinned a power bench's voltage to
+    59.8-60 V and made its offset 240x less precise (a new user's case)."""
+    import shlex
+    from types import SimpleNamespace
+
+    from symcal.experiment.command import design_command
+    from symcal.revise.watch import design_hint
+
+    spec = SimpleNamespace(scenario=SCENARIO)
+    result = SimpleNamespace(params={"l_y": SimpleNamespace(unit="mm")},
+                             problem=SimpleNamespace(datasets={"calibration": spec}))
+    hint = design_hint(result, PROBLEM, ("l_y", 0.31))  # type: ignore[arg-type]
+    command = design_command(PROBLEM, SCENARIO, "--optimize --target l_y=0.31mm --hold")
+    assert hint == f"an experiment that separates them: {command}"
+    assert shlex.split(command)[-4:] == ["--optimize", "--target", "l_y=0.31mm", "--hold"]

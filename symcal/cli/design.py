@@ -37,6 +37,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                           "s1.p)=1um' (a candidate as symcal diagnose names it, or the "
                           "coefficients of a term in the problem: 'mde(s1.h5_sin, "
                           "s1.h5_cos)=1um'); repeatable, met with the fewest observations")
+    cmd.add_argument("--hold", action="store_true",
+                     help="with --target: hold every other parameter at its standard error "
+                          "on the given motion (each is a further target), so that the "
+                          "design makes none less precise")
     cmd.add_argument("--alpha", type=float, default=0.01,
                      help="with an mde(...) target: the family-wise level of the "
                           "diagnosis that is to detect the term, as symcal diagnose's "
@@ -68,6 +72,9 @@ def run(args: argparse.Namespace) -> int:
 
     if (args.target or args.criterion) and not args.optimize:
         raise SymcalError("--target and --criterion choose a motion: they need --optimize")
+    if args.hold and not args.target:
+        raise SymcalError("--hold keeps the other parameters while meeting targets: it "
+                          "needs --target")
     if not 0 < args.alpha < 1:
         raise SymcalError(f"--alpha {args.alpha}: must lie between 0 and 1")
     if args.out and not args.optimize:
@@ -98,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
                   if terms else None)
         if args.optimize:
             outcome = design(problem, scenario, criterion=args.criterion, targets=targets,
-                             seed=args.seed, detect=detect)
+                             seed=args.seed, detect=detect, hold=args.hold)
         else:
             base = predict(problem, scenario, seed=args.seed)
             outcome = Design(base, None, scenario, None, (), {}, {}, (), {}, "not optimised")

@@ -65,6 +65,9 @@ E_POWER = 16
 #: A limit binds when the design ends within this fraction of its range from it (and
 #: its multiplier is not zero).
 BOUND_TOL = 1e-3
+#: A parameter is reported less precise on the designed motion when its predicted
+#: standard error grows by more than this factor.
+WORSE = 1.1
 
 
 @dataclass(frozen=True)
@@ -108,6 +111,9 @@ class Design:
     mde_before, mde_after
         Its minimal detectable effect on the given and the designed motion (internal
         units; None where its coefficients are determined only in a combination).
+    held
+        With ``hold``: the other parameters the given motion determines, as targets at
+        their standard errors there.
     """
 
     baseline: Prediction
@@ -123,6 +129,25 @@ class Design:
     detect: Detectable | None = None
     mde_before: float | None = None
     mde_after: float | None = None
+    held: tuple[Target, ...] = ()
+
+    @property
+    def worse(self) -> dict[str, float | None]:
+        """The parameters less precise on the designed motion than on the given one: the
+        factor by which their predicted standard error grows (more than :data:`WORSE`;
+        None: the designed motion determines them only in a combination).  Empty when
+        nothing was optimised."""
+        if self.designed is None or self.designed is self.baseline:
+            return {}
+        out: dict[str, float | None] = {}
+        for name, se in self.baseline.se.items():
+            new = self.designed.se.get(name)
+            if se is None or se <= 0:
+                continue
+            factor = None if new is None else float(new) / float(se)
+            if factor is None or factor > WORSE:
+                out[name] = factor
+        return out
 
     @property
     def final(self) -> Prediction:
@@ -136,7 +161,9 @@ class Design:
         if not self.targets and self.detect is None:
             return None
         se = self.final.se
-        ratios = [float(se[t.name]) / t.value for t in self.targets]  # type: ignore[arg-type]
+        ratios = [float(se[t.name]) / t.value  # type: ignore[arg-type]
+                  if se.get(t.name) is not None else math.inf
+                  for t in self.targets + self.held]
         if self.detect is not None:
             mde = self.mde_after if self.designed is not None else self.mde_before
             ratios.append(math.inf if mde is None else mde / self.detect.value)
@@ -180,6 +207,8 @@ class Design:
                 "targets " + ", ".join(t.text for t in self.targets) if self.detect is None
                 else "targets " + ", ".join([t.text for t in self.targets]
                                             + [self.detect.text]))
+        if self.held:
+            goal += ", every other parameter held at its given standard error"
         doc = {
             "scenario": f"{self.baseline.scenario.name}_designed",
             "extends": rel,
@@ -602,7 +631,8 @@ class _Plan:
     def ratio(self, targets: tuple[Target, ...], detect: Detectable | None) -> float:
         """How many times its target the worst target is (1: just met)."""
         se = self.prediction.se
-        ratios = [float(se[t.name]) / t.value for t in targets]  # type: ignore[arg-type]
+        ratios = [float(se[t.name]) / t.value  # type: ignore[arg-type]
+                  if se.get(t.name) is not None else math.inf for t in targets]
         if detect is not None:
             ratios.append(math.inf if self.mde is None else self.mde / detect.value)
         return max(ratios, default=0.0)
@@ -626,8 +656,8 @@ def _plan(problem: Problem, scenario: Scenario, run: str, seed: int,
 
 def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None,
            targets: tuple[Target, ...] = (), seed: int = 0,
-           detect: Detectable | None = None, progress: Progress | None = None,
-           bars: Bars | None = None) -> Design:
+           detect: Detectable | None = None, hold: bool = False,
+           progress: Progress | None = None, bars: Bars | None = None) -> Design:
     """Optimise the motion of the scenario's ``design`` run within its limits.
 
     Parameters
@@ -647,6 +677,10 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
         A term to make detectable at an amplitude
         (:class:`~symcal.experiment.detectable.Detectable`), with the standard-error
         targets or alone: its minimal detectable effect at most that amplitude.
+    hold
+        With targets: hold every other parameter the given motion determines at its
+        standard error there (further targets, :attr:`Design.held`), so that the design
+        meets the targets without making another parameter less precise.
     progress
         Called with each line of progress (:mod:`symcal.base.progress`): the baseline's
         prediction, each optimisation round's outcome (None: no lines).
@@ -674,6 +708,9 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
                           "{run: NAME, limits: {KEY: [lo, hi], ...}}, KEY a ranged state of "
                           "the run, dwell or n)")
     goal = bool(targets) or detect is not None
+    if hold and not goal:
+        raise SymcalError("--hold keeps the other parameters while meeting targets: it "
+                          "needs --target")
     if goal and criterion is not None:
         raise SymcalError("--criterion and --target: give one goal, a criterion or targets")
     criterion = None if goal else (criterion or "D")
@@ -681,12 +718,12 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
         raise SymcalError(f"--criterion {criterion}: expected one of {', '.join(CRITERIA)}"
                           f"{did_you_mean(criterion, CRITERIA)}")
     with reporting(progress, bars, "design", total=2, unit="round") as report:
-        return _design(problem, scenario, criterion, targets, seed, report, detect)
+        return _design(problem, scenario, criterion, targets, seed, report, detect, hold)
 
 
 def _design(problem: Problem, scenario: Scenario, criterion: str | None,
             targets: tuple[Target, ...], seed: int, report: Report,
-            detect: Detectable | None) -> Design:
+            detect: Detectable | None, hold: bool) -> Design:
     space = scenario.design
     assert space is not None
     run = space.run
@@ -704,6 +741,11 @@ def _design(problem: Problem, scenario: Scenario, criterion: str | None,
                           f"cannot tell {detect.label} from the parameters it has (its "
                           f"coefficients {', '.join(detect.names)} are determined only in a "
                           "combination); widen the motion in the scenario first")
+    aimed = {t.name for t in targets}
+    held = tuple(Target(name, float(se), f"{name}<={se:.4g}")
+                 for name, se in baseline.se.items()
+                 if hold and se is not None and se > 0 and name not in aimed)
+    given, targets = targets, targets + held
     motion = motion_of(scenario, run)
     start = motion_values(scenario, motion)
     limits = space.bounds
@@ -755,5 +797,6 @@ def _design(problem: Problem, scenario: Scenario, criterion: str | None,
             criterion is not None or not all(met.values())):
         binding.append(f"n <= {n_hi}")
     return Design(baseline, plan.prediction, with_motion(scenario, run, values), criterion,
-                  targets, start, values, tuple(dict.fromkeys(binding)), met, message,
-                  detect, first.mde, plan.mde)
+                  given, start, values, tuple(dict.fromkeys(binding)),
+                  {k: v for k, v in met.items() if k not in {t.name for t in held}}, message,
+                  detect, first.mde, plan.mde, held)

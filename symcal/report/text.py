@@ -1154,12 +1154,26 @@ def design_report(design: Design, result: Result | None = None) -> str:
                          f"{_mde_text(design.mde_before, detect.unit)}; "
                          f"{detect.describe()}) "
                          f"({'met' if ok else 'NOT met: the best reachable within the limits'})")
-        if (design.targets or detect is not None) and not all(design.met.values()):
+        worse = design.worse
+        if design.held:
+            lines.append("  held (--hold): every other parameter at most its standard error "
+                         "on the given motion" + (": all held" if not worse else ""))
+        if (design.targets or detect is not None) and (
+                not all(design.met.values()) or (design.held and worse)):
             lines.append(f"  meeting every target on the designed motion would need about "
                          f"{design.needed_n} observations")
+        if worse:
+            trade = ("" if design.held or not (design.targets or detect is not None) else
+                     "; to keep them, design with --hold (or give one a --target of its own)")
+            lines.append("  less precise than on the given motion: " + ", ".join(
+                f"{name} (no longer determined on its own)" if f is None
+                else f"{name} ({f:.3g}× the standard error)" for name, f in worse.items())
+                + trade)
     ident0, ident1 = base.identifiability, final.identifiability
-    lines.append(f"  rank {ident1.rank} of {ident1.n_free} free parameters; condition number "
-                 f"of the identifiable part {ident0.condition_number:.4g}"
+    lost = (f" (the given motion's: {ident0.rank}; the designed motion loses "
+            f"{ident0.rank - ident1.rank})" if optimised and ident1.rank < ident0.rank else "")
+    lines.append(f"  rank {ident1.rank} of {ident1.n_free} free parameters{lost}; condition "
+                 f"number of the identifiable part {ident0.condition_number:.4g}"
                  + (f" -> {ident1.condition_number:.4g}" if optimised else ""))
     for combo in ident1.null_space:
         lines.append(f"    cannot be determined: {combo.text}")
@@ -1199,7 +1213,10 @@ def _mde_text(value: float | None, unit: str) -> str:
 def design_document(design: Design, scenario_path: str | None) -> dict[str, Any]:
     """The ``--json`` document of ``symcal design``: ``{"parameters": {NAME:
     {"predicted_se": ..., "baseline_se": ...}}, "binding": [...], "scenario": PATH}``, with
-    standard errors in each parameter's unit (null: determined only in combination); with
+    standard errors in each parameter's unit (null: determined only in combination),
+    ``"held"`` (the parameters ``--hold`` held at their given standard errors) and
+    ``"worse"`` (``{NAME: factor}``: the growth of a standard error on the designed motion
+    beyond 1.1×; null: no longer determined on its own); with
     a term to make detectable also ``"detectable": {"term", "target", "parameters",
     "amplitude", "unit", "alpha", "tested", "level", "power", "baseline_mde",
     "predicted_mde", "met"}`` (amplitudes in ``unit``; an MDE null where the term's
@@ -1209,6 +1226,8 @@ def design_document(design: Design, scenario_path: str | None) -> dict[str, Any]
         "parameters": {name: {"predicted_se": final.se.get(name), "baseline_se": se}
                        for name, se in design.baseline.se.items()},
         "binding": list(design.binding),
+        "held": [t.name for t in design.held],
+        "worse": design.worse,
         "scenario": scenario_path,
     }
     detect = design.detect

@@ -258,13 +258,16 @@ def same_fit(a: Result, b: Result) -> bool:
 
 def design_hint(result: Result, problem_file: Path, target: tuple[str, float]) -> str:
     """The ``symcal design`` command that asks for an experiment determining ``target``'s
-    parameter to the given standard error (in its unit)."""
+    parameter to the given standard error (in its unit), holding every other parameter at
+    its standard error on the given motion (``--hold``: a design for one parameter alone
+    can make the others many times less precise, measured 240× on a power bench's
+    voltage offset)."""
     name, se = target
     unit = result.params[name].unit
     scenario = next((spec.scenario for spec in result.problem.datasets.values()
                      if spec.scenario is not None), None)
     return "an experiment that separates them: " + design_sentence(
-        problem_file, scenario, f"--optimize --target {target_arg(name, se, unit)}")
+        problem_file, scenario, f"--optimize --target {target_arg(name, se, unit)} --hold")
 
 
 def target_arg(name: str, value: float, unit: str) -> str:
