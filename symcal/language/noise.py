@@ -67,7 +67,16 @@ def parse_noise(value: Any, where: Where, reading_unit: str | None = None) -> No
         if match is None:
             raise SpecError(where, f"'{excerpt(value)}' is not a noise: write a standard "
                                    "deviation with its unit, e.g. 'noise: 0.5 um'")
-        number, unit = float(match.group(1)), display_unit(match.group(2), where)
+        rest = match.group(2)
+        if "+" in rest or rest[:1] in ("*", "/"):     # never a unit: an expression
+            raise SpecError(where, f"'{excerpt(value)}' is not one standard deviation: a "
+                                   "noise that depends on the reading (a share of it, or a "
+                                   "sum of terms) cannot be declared; a noise is one number "
+                                   "with its unit for every row (e.g. 'noise: 0.5 um'): "
+                                   "write its value at the readings' typical size (the "
+                                   "floor test then holds on average over the rows, not "
+                                   "row by row)")
+        number, unit = float(match.group(1)), display_unit(rest, where)
     else:
         number, unit = float(value), ""
     if not math.isfinite(number) or number < 0:
