@@ -1,41 +1,102 @@
-"""What is left points at another sensor's reading that no search space holds: a
-crosstalk from a current channel's reading into a voltage channel's (a new user's DC
-power bench: ``v_raw += 0.2 mV/A * I``).  The loop ended honestly not quiet, but only
-named ``i_raw`` under "what is left"; nothing said that a coupling into the voltage
-channel is never tested by default, nor how to test it.  Now it says so, and the
-sentence applied literally ends at the floor with every parameter within 3 SE."""
+"""A coupling of another sensor's reading that no search space holds: a crosstalk from a
+current channel's reading into a voltage channel's (a new user's DC power bench:
+``v_raw += c * I``).  By default a sensor's candidates use its own readings, so the
+coupling was never tested: at 0.2 mV/A the loop ended honestly not quiet, but only named
+``i_raw`` under "what is left"; at 0.002 mV/A it ended quiet at the floor on 2 of 6
+seeds with the voltage offset 7.8-8.8 SE off.  The couplings outside every search space
+are now tested as a family of their own where nothing in the spaces is significant: the
+diagnosis and the loop name the term and the exact ``candidates:`` line that tests it,
+and that line applied literally ends at the floor with every parameter within 3 SE.
+Where the user declared the sensor's variables (so the family does not test them), what
+is left still says how to test a coupling it points at."""
 
 from __future__ import annotations
+
+import re
 
 import pytest
 from conftest import ROOT
 
 import symcal
 from symcal.data.dataset import make_dataset
-from symcal.report.text import diagnosis_report
+from symcal.report.text import diagnosis_report, outcome_text
 from symcal.simulation import load_scenario, simulate_run, truth
 
 BENCH = ROOT / "tests" / "data" / "power_bench"
+LABEL = "vch.V += a term linear in i_raw"
+LINE = "candidates: {variables: [v_raw, t, T, i_raw]}"
 SAID = ("i_raw, along which what is left of g_P, g_V lies most, is read by ich and is in "
         "no search space of vch: a coupling of it into that sensor is not tested; to test "
         "one, name i_raw in vch's `candidates: variables` beside its own readings (the "
         "list replaces the default)")
+PHYSICAL = ("vch.off_v", "vch.k_v", "ich.off_i", "ich.g_i")
 
 
-def _data(seed: int) -> tuple[dict, dict]:
+def _data(seed: int, coupling: float = 0.2) -> tuple[dict, dict]:
     scenario = load_scenario(BENCH / "scenario.yaml").overlay(
-        {"effects": {"crosstalk": {"on": True}}})
+        {"effects": {"crosstalk": {"on": True, "values": {
+            "xt.c": {"value": coupling, "unit": "mV/A"}}}}})
     data = {name: make_dataset(name, "simulated", simulate_run(scenario, name, seed), [])
             for name in ("calibration", "validation")}
     return data, truth(scenario)["parameters"]
 
 
-def test_the_diagnosis_says_how_to_test_a_coupling_no_space_holds() -> None:
+def test_the_diagnosis_tests_a_coupling_no_space_holds() -> None:
     data, _ = _data(2)
     diag = symcal.diagnose(symcal.solve(BENCH / "problem.yaml", data))
     assert not diag.significant
+    assert [c.label for c in diag.outside] == [LABEL]
+    assert diag.outside[0].p_value < diag.alpha / 4     # at most four couplings tested
+    assert diag.unsearched == ()        # tested, so not called untested
+    text = diagnosis_report(diag)
+    assert "what to add: nothing of the search spaces; outside them: " + LABEL in text
+    assert f"add `{LINE}` to the instance vch in the problem file" in text
+
+
+def test_a_declared_space_still_says_how_to_test_what_is_left(tmp_path) -> None:
+    """The user declared vch's variables without i_raw: the outside family leaves that
+    sensor to its declaration, and what is left names the coupling as before."""
+    data, _ = _data(2)
+    (tmp_path / "declared.yaml").write_text(
+        "problem: power_bench_declared\n"
+        f"extends: {BENCH / 'problem.yaml'}\n"
+        "instances:\n"
+        "  vch:\n"
+        "    candidates: {variables: [v_raw, T, t]}\n")
+    diag = symcal.diagnose(symcal.solve(tmp_path / "declared.yaml", data))
+    assert diag.outside == ()
     assert diag.unsearched == (SAID,), diag.unsearched
-    assert SAID in diagnosis_report(diag)
+
+
+@pytest.mark.slow
+def test_a_weak_coupling_is_not_called_quiet_and_the_printed_line_fixes_it(tmp_path) -> None:
+    """0.002 mV/A, seed 2: the loop used to end quiet at the floor with vch.off_v 8.8 SE
+    off.  Now it is not quiet and prints the line; written into the problem as printed,
+    the loop keeps the coupling and ends quiet at the floor, every parameter within 3 SE
+    (vch.off_v measured 2.4 SE)."""
+    data, true = _data(2, 0.002)
+    out = symcal.improve(BENCH / "problem.yaml", tmp_path / "before", data, max_rounds=2)
+    assert out.at_floor and not out.quiet
+    assert [c.label for c in out.last.outside] == [LABEL]
+    said = outcome_text(out)
+    assert said.startswith("the diagnosis is not quiet: no candidate of the search spaces "
+                           "is significant, but a coupling outside them is: " + LABEL)
+    assert out.to_dict()["outside"][0]["label"] == LABEL
+    line = re.search(r"add `(candidates: \{[^`]*\})` to the instance vch", said)
+    assert line is not None and line.group(1) == LINE
+    (tmp_path / "problem_xt.yaml").write_text(
+        "problem: power_bench_xt\n"
+        f"extends: {BENCH / 'problem.yaml'}\n"
+        "instances:\n"
+        f"  vch: {{{line.group(1)}}}\n")
+    after = symcal.improve(tmp_path / "problem_xt.yaml", tmp_path / "after", data,
+                           max_rounds=2)
+    assert after.quiet and after.at_floor
+    assert [r.added for r in after.rounds[1:]] == [LABEL]
+    final = after.rounds[-1].result
+    for name in PHYSICAL:
+        p = final.params[name]
+        assert abs(p.value - true[name]) < 3 * p.se, (name, p.value, p.se, true[name])
 
 
 @pytest.mark.slow
@@ -46,11 +107,24 @@ def test_applied_literally_the_loop_reaches_the_floor(tmp_path) -> None:
         f"extends: {BENCH / 'problem.yaml'}\n"
         "instances:\n"
         "  vch:\n"
-        "    candidates: {variables: [v_raw, i_raw, T, t]}\n")
+        f"    {LINE}\n")
     out = symcal.improve(tmp_path / "problem_xt.yaml", tmp_path / "out", data, max_rounds=2)
     assert out.quiet and out.at_floor
-    assert [r.added for r in out.rounds[1:]] == ["vch.V += a term linear in i_raw"]
+    assert [r.added for r in out.rounds[1:]] == [LABEL]
     final = out.rounds[-1].result
-    for name in ("vch.off_v", "vch.k_v", "ich.off_i", "ich.g_i"):
+    for name in PHYSICAL:
         p = final.params[name]
         assert abs(p.value - true[name]) < 3 * p.se, (name, p.value, p.se, true[name])
+
+
+def test_clean_data_raise_no_outside_coupling() -> None:
+    """False alarms of the outside family on clean data: none on seeds 100-159 (measured;
+    the level is 1 % family-wise); here ten seeds."""
+    scenario = load_scenario(BENCH / "scenario.yaml")
+    alarms = 0
+    for seed in range(100, 110):
+        data = {k: make_dataset(k, "simulated", simulate_run(scenario, k, seed), [])
+                for k in ("calibration", "validation")}
+        diag = symcal.diagnose(symcal.solve(BENCH / "problem.yaml", data), report=False)
+        alarms += bool(diag.outside)
+    assert alarms <= 1

@@ -127,6 +127,11 @@ def outcome_text(improvement: Any) -> str:
     if not result.success:
         return (f"the starting problem's solve failed, so no revision was tried: "
                 f"{result.failure}; fix it first (symcal solve shows the failure)")
+    outside = getattr(improvement.last, "outside", ())
+    if outside and not improvement.candidates_left:
+        return ("the diagnosis is not quiet: no candidate of the search spaces is "
+                "significant, but a coupling outside them is: "
+                + "; ".join(improvement.last.outside_words[c.label] for c in outside))
     if improvement.quiet and improvement.at_floor:
         return "the diagnosis is quiet: every dataset is at its noise floor" + aliased
     if improvement.quiet:
@@ -780,6 +785,9 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
         more = (f" (and {len(significant) - 1} more significant, below)"
                 if len(significant) > 1 else "")
         lines.append(f"what to add: {significant[0].label}{more}")
+    elif getattr(diag, "outside", ()):
+        lines.append("what to add: nothing of the search spaces; outside them: "
+                     + "; ".join(diag.outside_words[c.label] for c in diag.outside))
     elif "above" in family:
         lines.append("what to add: no candidate effect passes the test, yet the residuals are "
                      "above the noise floor: structure remains that no candidate explains "
@@ -1074,6 +1082,10 @@ def diagnosis_document(diag: Diagnosis, series: bool = False) -> dict[str, Any]:
     doc.setdefault("references_apart", references_apart(diag))
     doc.setdefault("left", left_lines(diag))
     doc.setdefault("unsearched", list(getattr(diag, "unsearched", ())))
+    doc.setdefault("outside", [
+        {"label": c.label, "output": c.output, "variable": c.basis.variable,
+         "f_stat": c.f_stat, "p_value": c.p_value, "text": diag.outside_words[c.label]}
+        for c in getattr(diag, "outside", ())])
     tests = {(s.dataset, s.name): s.chi2_dof for s in result.statistics}
     for row in doc.get("residuals") or []:
         name = str(row.get("name"))

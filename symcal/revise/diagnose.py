@@ -68,6 +68,7 @@ from symcal.revise.library import (
     fixed_entries,
     latency_entries,
     output_entries,
+    outside_entries,
 )
 from symcal.revise.library import (
     own_names as own_names_of,
@@ -157,6 +158,10 @@ class Diagnosis:
         default=None, repr=False)
     # how to test a coupling what is left points at but no search space holds
     unsearched: tuple[str, ...] = ()
+    # where no candidate of the search spaces is significant: the couplings outside them
+    # that are (:func:`symcal.revise.library.outside_entries`), and how to test each
+    outside: tuple[Candidate, ...] = ()
+    outside_words: dict[str, str] = field(default_factory=dict)
 
     @property
     def reopened(self) -> tuple[Candidate, ...]:
@@ -517,6 +522,11 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
                 [n for n, f in zip(problem.parameter_names, free, strict=True) if f],
                 restates, suspected, kept)
     leads = [c for c in _leads(tuple(ranked)) if c.significant][:TOP]
+    outside: tuple[Candidate, ...] = ()
+    tested_outside: set[tuple[str, str]] = set()
+    if not leads:
+        outside, tested_outside = _outside(problem, blocks, fit, found, own, own_regressor,
+                                           alpha, gauge_columns)
     members = {label for c in leads for label in c.indistinguishable[:GROUP - 1]}
     for cand in [*leads, *(c for c in ranked if c.label in members)]:
         predict(cand, own, own_regressor(by_label[cand.label].raw), blocks, free,
@@ -556,15 +566,52 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
                      len(candidates), tuple(uncal), needs, variant, own_inputs,
                      _better_problem(problem) if above else "",
                      tuple(sp.describe() for sp in found.values()), dict(fixes),
-                     together, unsearched(problem, found, views))
+                     together, unsearched(problem, found, views, tested_outside), outside,
+                     {c.label: outside_words(problem, found, c) for c in outside})
+
+
+def _outside(problem: Problem, blocks: list[Block], fit: int, found: Mapping[str, Space],
+             own: Design, own_regressor: Callable[[Raw], np.ndarray], alpha: float,
+             gauges: Mapping[str, np.ndarray]
+             ) -> tuple[tuple[Candidate, ...], set[tuple[str, str]]]:
+    """The couplings outside every search space, tested as a family of their own at
+    ``alpha`` (Bonferroni over them): the significant ones (group leads), and the
+    (instance, column) pairs tested."""
+    entries = [_without_redundant(e, own, own_regressor)
+               for e in outside_entries(problem, blocks, fit, found)]
+    tested = {(e.candidate.output.split(".", 1)[0], e.candidate.basis.variable)
+              for e in entries}
+    if not entries:
+        return (), tested
+    ranked = test_candidates(own, [e.candidate for e in entries],
+                             [own_regressor(e.raw) for e in entries], alpha, None,
+                             [None] * len(entries), gauges)
+    return tuple(c for c in _leads(tuple(ranked)) if c.significant), tested
+
+
+def outside_words(problem: Problem, found: Mapping[str, Space], cand: Candidate) -> str:
+    """How to test an outside coupling in the loop: the instance's ``candidates:
+    variables`` with the column beside the readings its default space holds."""
+    instance = cand.output.split(".", 1)[0]
+    column = cand.basis.variable
+    space = found[instance]
+    names = [n for n in space.variables if n in problem.column_specs] + [column]
+    return (f"{cand.label} is significant (p = {cand.p_value:.2g}; the couplings no "
+            "search space holds are tested apart, at the same level) but is in no search "
+            f"space: {column} is read by another sensor; to test it in the loop, add "
+            f"`candidates: {{variables: [{', '.join(names)}]}}` to the instance {instance} "
+            f"in the problem file (its own readings, time and state columns, and {column}) "
+            "and run again")
 
 
 def unsearched(problem: Problem, found: Mapping[str, Space],
-               views: Sequence[ResidualView]) -> tuple[str, ...]:
+               views: Sequence[ResidualView],
+               tested: set[tuple[str, str]] | None = None) -> tuple[str, ...]:
     """Where what is left of a residual lies most along a sensor's own reading that no
     other sensor's search space holds: a coupling of that reading into another sensor
-    (crosstalk from a current channel into a voltage channel) is never tested; the
-    sentence says how to test it."""
+    (crosstalk from a current channel into a voltage channel) is not tested, unless the
+    outside family tested it (``tested``: instance, column); the sentence says how to
+    test it."""
     column_of: dict[str, str] = {}      # a column an instance reads, by either name
     readers: dict[str, list[str]] = {}  # the instances that read each column
     for name, inst in problem.instances.items():
@@ -582,7 +629,8 @@ def unsearched(problem: Problem, found: Mapping[str, Space],
             column = column_of[var]
             who = readers[column]
             others = tuple(n for n, sp in found.items() if n not in who and sp.kinds != ()
-                           and column not in sp.variables)
+                           and column not in sp.variables
+                           and (n, column) not in (tested or set()))
             if others:
                 names = found_in.setdefault((column, tuple(who), others), [])
                 if v.name not in names:

@@ -154,7 +154,10 @@ class Improvement:
                 "rejected": [{"label": label, "reason": why, "round": k}
                              for (label, why), k in zip(self.rejected, self.tried_in(),
                                                         strict=True)],
-                "aliased": [{"label": label, "reason": why} for label, why in self.aliased]}
+                "aliased": [{"label": label, "reason": why} for label, why in self.aliased],
+                "outside": [{"label": c.label, "p_value": c.p_value,
+                             "text": self.last.outside_words.get(c.label, "")}
+                            for c in self.last.outside]}
 
 
 def held_out_change(new: Result, old: Result, kind: str | None = None) -> float:
@@ -812,7 +815,8 @@ def _improve(problem: Problem | str | Path, out: str | Path,
         **({"datasets": given} if given else {})}))
     aliased = _aliased(diag, rejected[last_try:])
     left = [c for c in diag.significant if c.label not in dict(aliased)]
-    quiet = result.success and not left and result.at_floor is not False
+    quiet = (result.success and not left and result.at_floor is not False
+             and not diag.outside)
     tried_in += [ran] * (len(rejected) - len(tried_in))
     return Improvement(tuple(rounds), quiet, final, tuple(rejected), diag, aliased,
                        tuple(tried_in))

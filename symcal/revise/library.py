@@ -5,7 +5,10 @@ the columns they are bound to, where it evaluates its error), the problem's decl
 column (``role: time``) and state columns (``role: state``): never a reference column
 (one a comparison reads as its reference, or ``role: reference``), never a label or an
 index (``role: label|index``), never another sensor's reading, unless the problem declares
-it (``candidates:`` on the instance, the model, or the problem: ``declared``).
+it (``candidates:`` on the instance, the model, or the problem: ``declared``).  A term
+linear in another sensor's reading on an output of a sensor with the default variables
+(crosstalk) is a family of its own (:func:`outside_entries`), tested apart where nothing
+in the spaces is significant.
 
 **The shapes** on each output of the instance: a harmonic of a periodic variable (orders 1
 to :data:`HARMONICS`), a term linear in a variable, a quadratic, a drift in time, the
@@ -452,32 +455,70 @@ def output_entries(problem: Problem, blocks: list[Block], fit: int
             continue
         space = found[instance]
         variables = _in_space(groups, space, never)
-        sigma = output_sigma(blocks[fit], h)
         shapes = _shapes(variables, blocks[fit], space)
         shapes += _gains(problem, output, groups, variables, blocks[fit], space)
         shapes += _couplings(problem, output, blocks[fit], space)
-        for shape in shapes:
-            phi = shape.phi
-            basis = _with_scales(shape.basis, sigma, phi(blocks[fit]))
-
-            def raw(i: int, h: int = h, phi: Callable = phi) -> np.ndarray:
-                b = blocks[i]
-                return b.hooks[:, :, h][:, :, None] * phi(b)[:, None, :]
-
-            extra = None
-            if shape.contains:
-                parts = [_linear(n, 0.0 if v.kind == "drift" else centre_of(blocks[fit].values(n)))
-                         for n in shape.contains
-                         for v in variables if v.name == n]
-
-                def extra(i: int, h: int = h, parts: list = parts) -> np.ndarray:
-                    b = blocks[i]
-                    f = np.column_stack([p(b) for p in parts])
-                    return b.hooks[:, :, h][:, :, None] * f[:, None, :]
-
-            lower = None if shape.lower is None else _on_output(blocks, h, shape.lower)
-            out.append(Entry(Candidate(output, basis), raw, extra, lower))
+        out += _entries(blocks, fit, h, output, shapes, variables)
     return out, found
+
+
+def _entries(blocks: list[Block], fit: int, h: int, output: str, shapes: list[_Shape],
+             variables: list[Variable]) -> list[Entry]:
+    """The candidates of ``shapes`` on output ``h``, with their regressors."""
+    sigma = output_sigma(blocks[fit], h)
+    out: list[Entry] = []
+    for shape in shapes:
+        phi = shape.phi
+        basis = _with_scales(shape.basis, sigma, phi(blocks[fit]))
+
+        def raw(i: int, phi: Callable = phi) -> np.ndarray:
+            b = blocks[i]
+            return b.hooks[:, :, h][:, :, None] * phi(b)[:, None, :]
+
+        extra = None
+        if shape.contains:
+            parts = [_linear(n, 0.0 if v.kind == "drift" else centre_of(blocks[fit].values(n)))
+                     for n in shape.contains
+                     for v in variables if v.name == n]
+
+            def extra(i: int, parts: list = parts) -> np.ndarray:
+                b = blocks[i]
+                f = np.column_stack([p(b) for p in parts])
+                return b.hooks[:, :, h][:, :, None] * f[:, None, :]
+
+        lower = None if shape.lower is None else _on_output(blocks, h, shape.lower)
+        out.append(Entry(Candidate(output, basis), raw, extra, lower))
+    return out
+
+
+def outside_entries(problem: Problem, blocks: list[Block], fit: int,
+                    found: Mapping[str, Space]) -> list[Entry]:
+    """The couplings no search space holds, tested as a family of their own: on each
+    output of an instance whose variables are the default (not declared) and whose kinds
+    allow a linear term, a term linear in a reading of another instance (a column it is
+    bound to) that is not in the instance's space (crosstalk from a current channel into
+    a voltage channel).  None where the problem has one instance."""
+    hp = problem.diagnostic
+    never = excluded(problem)
+    groups = distinct_groups(blocks[fit].variables)
+    out: list[Entry] = []
+    for h, output in enumerate(hp.hooks):
+        instance = output.split(".", 1)[0]
+        space = found.get(instance)
+        if space is None or space.declared or (space.kinds is not None
+                                                and "linear" not in space.kinds):
+            continue
+        if all(not np.any(b.hooks[:, :, h]) for b in blocks):
+            continue
+        others = sorted({text for name, inst in problem.instances.items() if name != instance
+                         for text in inst.bindings.values() if text in problem.column_specs}
+                        - set(space.variables))
+        mine = {id(v) for v in _in_space(groups, space, never)}
+        outside = Space(instance, tuple(others), ("linear",), (), "outside")
+        variables = [v for v in _in_space(groups, outside, never) if id(v) not in mine]
+        out += _entries(blocks, fit, h, output, _shapes(variables, blocks[fit], outside),
+                        variables)
+    return out
 
 
 def _with_scales(basis: Basis, sigma: float, phi: np.ndarray) -> Basis:
