@@ -526,7 +526,7 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
     tested_outside: set[tuple[str, str]] = set()
     if not leads:
         outside, tested_outside = _outside(problem, blocks, fit, found, own, own_regressor,
-                                           alpha, gauge_columns)
+                                           alpha, len(candidates), gauge_columns)
     members = {label for c in leads for label in c.indistinguishable[:GROUP - 1]}
     for cand in [*leads, *(c for c in ranked if c.label in members)]:
         predict(cand, own, own_regressor(by_label[cand.label].raw), blocks, free,
@@ -572,10 +572,12 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
 
 def _outside(problem: Problem, blocks: list[Block], fit: int, found: Mapping[str, Space],
              own: Design, own_regressor: Callable[[Raw], np.ndarray], alpha: float,
-             gauges: Mapping[str, np.ndarray]
+             tested_in: int, gauges: Mapping[str, np.ndarray]
              ) -> tuple[tuple[Candidate, ...], set[tuple[str, str]]]:
-    """The couplings outside every search space, tested as a family of their own at
-    ``alpha`` (Bonferroni over them): the significant ones (group leads), and the
+    """The couplings outside every search space, tested apart from the spaces' candidates
+    (which they may not lead) at the level each would have among them: ``alpha`` over
+    the ``tested_in`` candidates and these (Bonferroni), so that clean data raise an
+    alarm of either kind at about ``alpha``.  The significant ones (group leads), and the
     (instance, column) pairs tested."""
     entries = [_without_redundant(e, own, own_regressor)
                for e in outside_entries(problem, blocks, fit, found)]
@@ -583,8 +585,9 @@ def _outside(problem: Problem, blocks: list[Block], fit: int, found: Mapping[str
               for e in entries}
     if not entries:
         return (), tested
+    share = alpha * len(entries) / (tested_in + len(entries))
     ranked = test_candidates(own, [e.candidate for e in entries],
-                             [own_regressor(e.raw) for e in entries], alpha, None,
+                             [own_regressor(e.raw) for e in entries], share, None,
                              [None] * len(entries), gauges)
     return tuple(c for c in _leads(tuple(ranked)) if c.significant), tested
 
@@ -594,10 +597,13 @@ def outside_words(problem: Problem, found: Mapping[str, Space], cand: Candidate)
     variables`` with the column beside the readings its default space holds."""
     instance = cand.output.split(".", 1)[0]
     column = cand.basis.variable
-    space = found[instance]
-    names = [n for n in space.variables if n in problem.column_specs] + [column]
+    inst = problem.instances[instance]
+    twice = {f"{instance}.{k}" for k, text in inst.bindings.items()
+             if text in problem.column_specs}       # the column's name says it
+    names = [n for n in found[instance].variables if n not in twice] + [column]
     return (f"{cand.label} is significant (p = {cand.p_value:.2g}; the couplings no "
-            "search space holds are tested apart, at the same level) but is in no search "
+            "search space holds are tested apart, each at the level of a candidate among "
+            "the spaces') but is in no search "
             f"space: {column} is read by another sensor; to test it in the loop, add "
             f"`candidates: {{variables: [{', '.join(names)}]}}` to the instance {instance} "
             f"in the problem file (its own readings, time and state columns, and {column}) "
