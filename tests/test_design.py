@@ -21,6 +21,7 @@ from symcal.data.loading import needed_columns
 from symcal.experiment.optimize import design, parse_target, with_motion
 from symcal.experiment.predict import predict
 from symcal.problem.build import load_problem
+from symcal.report.text import design_document, design_report
 from symcal.simulation import load_scenario, quiet, run_states, simulate_run
 from symcal.simulation.graph import graph
 
@@ -146,9 +147,9 @@ def test_cli_prediction_json_shape(capsys):
     code = main(["design", str(PROBLEM), "--scenario", str(SCENARIO), "--json"])
     doc = json.loads(capsys.readouterr().out)
     assert code == 0
-    assert set(doc) == {"parameters", "binding", "held", "worse", "scenario"}
+    assert set(doc) == {"parameters", "binding", "held", "blind", "worse", "scenario"}
     assert doc["binding"] == [] and doc["scenario"] is None
-    assert doc["held"] == [] and doc["worse"] == {}
+    assert doc["held"] == [] and doc["worse"] == {} and doc["blind"] == {}
     assert set(doc["parameters"]["l_x"]) == {"predicted_se", "baseline_se"}
     assert doc["parameters"]["l_x"]["predicted_se"] == doc["parameters"]["l_x"]["baseline_se"]
     assert 0.01 < doc["parameters"]["l_x"]["baseline_se"] < 0.05      # mm: 10-50 um
@@ -585,3 +586,48 @@ def test_the_loops_design_command_holds_the_other_parameters() -> None:
     command = design_command(PROBLEM, SCENARIO, "--optimize --target l_y=0.31mm --hold")
     assert hint == f"an experiment that separates them: {command}"
     assert shlex.split(command)[-4:] == ["--optimize", "--target", "l_y=0.31mm", "--hold"]
+
+
+def test_the_report_says_what_the_designed_motion_cannot_show(problem, scenario) -> None:
+    """For l_x alone the design puts every pose at theta = +-1.5 deg (dwell 1): no term
+    curved in theta can be seen on it (a new user's pressure manifold, designed so for a
+    gain, ended quiet with another transducer's gain 130 SE off under a quadratic the two
+    levels absorb).  The report says so, and a state the design narrows to a sliver of
+    its range is named with the share it keeps."""
+    out = design(problem, scenario, targets=(parse_target("l_x=20um", problem),))
+    assert out.after["dwell"] == 1.0
+    assert out.blind == {"theta": 0.0}
+    text = design_report(out)
+    assert ("what the designed motion cannot show: theta only at the two ends of its range "
+            "(every draw dwells there): no term curved in it (a quadratic) can be told from "
+            "an offset and a gain.") in text
+    assert design_document(out, None)["blind"] == {"theta": 0.0}
+    lo, hi = out.after["x"]
+    narrowed = dataclasses.replace(out, after={**out.after, "x": (lo, lo + 0.01 * (hi - lo))})
+    assert narrowed.blind == pytest.approx({"theta": 0.0, "x": 0.01 * (hi - lo) / 2.032})
+    assert "x (over 1.00% of its given range) barely varies" in design_report(narrowed)
+
+
+def test_a_design_that_meets_its_targets_is_usable_though_ipopt_stopped_early(
+        problem, scenario, monkeypatch, capsys) -> None:
+    """A new user's design reported "(met)" on IPOPT's Maximum_Iterations_Exceeded and
+    exited 1: a design that meets every target on its exact prediction exits 0, and the
+    report says that fewer observations may do; one that does not still exits 1."""
+    import symcal.experiment.optimize as optimize
+
+    out = design(problem, scenario, targets=(parse_target("l_x=20um", problem),))
+    early = dataclasses.replace(out, message="IPOPT: Maximum_Iterations_Exceeded")
+    assert early.all_met
+    assert ("IPOPT: Maximum_Iterations_Exceeded (stopped before converging: the targets "
+            "are met on the exact prediction, but fewer observations may do)"
+            in design_report(early))
+    argv = ["design", str(PROBLEM), "--scenario", str(SCENARIO), "--optimize",
+            "--target", "l_x=20um"]
+    monkeypatch.setattr(optimize, "design", lambda *a, **k: early)
+    assert main(argv) == 0
+    assert "stopped before converging" in capsys.readouterr().out
+    unmet = dataclasses.replace(early, met={"l_x": False})
+    assert not unmet.all_met
+    monkeypatch.setattr(optimize, "design", lambda *a, **k: unmet)
+    assert main(argv) == 1
+    assert "stopped before converging" not in capsys.readouterr().out

@@ -148,7 +148,7 @@ def test_a_declared_value_that_sets_a_gauge_is_named() -> None:
     data, _ = _data(None, 5)
     diag = symcal.diagnose(symcal.solve(HALL / "problem.yaml", data))
     assert "sh.R0" in diag.gauge_fixes
-    assert ("the estimates are only as right as declared value the data cannot check: "
+    assert ("the estimates are only as right as the declared value the data cannot check: "
             "sh.R0 = 1 mohm (fixed, it sets a gauge: the parameters that share it follow "
             "its value unseen)") in diagnosis_report(diag)
 

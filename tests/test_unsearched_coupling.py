@@ -128,3 +128,28 @@ def test_clean_data_raise_no_outside_coupling() -> None:
         diag = symcal.diagnose(symcal.solve(BENCH / "problem.yaml", data), report=False)
         alarms += bool(diag.outside)
     assert alarms <= 1
+
+
+def test_a_coupling_is_offered_only_into_a_sensor_the_residual_reads(tmp_path) -> None:
+    """A new user's manifold: what was left of g_B (B against the reference) lay along B's
+    own reading, and the diagnosis asked to name it in A's candidates, a sensor g_B does
+    not read (applied, nothing changed).  A coupling is now offered only into a sensor
+    whose outputs the residual reads."""
+    from types import SimpleNamespace
+
+    from symcal.revise.diagnose import unsearched
+    from symcal.revise.library import spaces
+
+    (tmp_path / "declared.yaml").write_text(
+        "problem: power_bench_declared\n"
+        f"extends: {BENCH / 'problem.yaml'}\n"
+        "instances:\n"
+        "  vch:\n"
+        "    candidates: {variables: [v_raw, T, t]}\n")
+    problem = symcal.load_problem(tmp_path / "declared.yaml")
+    found = spaces(problem)
+    view = SimpleNamespace(dataset="calibration", name="g_P",
+                           left=(SimpleNamespace(variables=("i_raw",)),))
+    said = unsearched(problem, found, [view], set(), {("calibration", "g_P"): {"vch", "ich"}})
+    assert len(said) == 1 and said[0].startswith("i_raw, along which what is left of g_P")
+    assert unsearched(problem, found, [view], set(), {("calibration", "g_P"): {"ich"}}) == ()

@@ -68,6 +68,12 @@ BOUND_TOL = 1e-3
 #: A parameter is reported less precise on the designed motion when its predicted
 #: standard error grows by more than this factor.
 WORSE = 1.1
+#: A state whose designed range is below this share of its given range is reported as
+#: narrowed: a term in it can hardly be seen on the designed motion.
+NARROWED = 0.05
+#: A scatter whose share of draws at the ends of their ranges is at least this holds
+#: the dwelling states at two values: no term curved in them can be seen.
+TWO_LEVELS = 0.999
 
 
 @dataclass(frozen=True)
@@ -147,6 +153,37 @@ class Design:
             factor = None if new is None else float(new) / float(se)
             if factor is None or factor > WORSE:
                 out[name] = factor
+        return out
+
+    @property
+    def all_met(self) -> bool:
+        """With targets: whether the design meets every one, and every hold, on its exact
+        prediction (False without targets)."""
+        return bool(self.met) and all(self.met.values()) and all(
+            self.final.se.get(t.name) is not None
+            and float(self.final.se[t.name]) <= t.value for t in self.held)  # type: ignore[arg-type]
+
+    @property
+    def blind(self) -> dict[str, float]:
+        """What the designed motion can no longer show, by state: 0 for a state held at
+        the two ends of its range (every draw dwelling: a term curved in it, a
+        quadratic, cannot be told from an offset and a gain), else the share of its
+        given range it still spans (below :data:`NARROWED`: hardly any term in it can be
+        seen).  Empty when nothing was optimised or nothing was lost."""
+        if self.designed is None or self.designed is self.baseline:
+            return {}
+        out: dict[str, float] = {}
+        motion = motion_of(self.scenario, self.baseline.run)
+        if isinstance(motion, Scatter) and motion.dwell >= TWO_LEVELS:
+            out.update({name: 0.0 for name in motion.dwell_at})
+        for key, before in self.before.items():
+            after = self.after.get(key)
+            if not isinstance(before, tuple) or not isinstance(after, tuple) or key in out:
+                continue
+            given = float(before[1]) - float(before[0])
+            kept = (float(after[1]) - float(after[0])) / given if given > 0 else 1.0
+            if kept < NARROWED:
+                out[key] = kept
         return out
 
     @property

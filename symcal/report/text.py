@@ -835,7 +835,7 @@ def declared_gauges_line(diag: Any) -> str:
     if not named:
         return ""
     one = len(named) == 1
-    return ("the estimates are only as right as declared "
+    return ("the estimates are only as right as the declared "
             + ("value" if one else "values") + " the data cannot check: " + ", ".join(named)
             + (" (fixed, it sets a gauge: " if one else " (fixed, each sets a gauge: ")
             + "the parameters that share it follow its value unseen)")
@@ -1140,7 +1140,11 @@ def design_report(design: Design, result: Result | None = None) -> str:
         goal = (f"criterion {design.criterion} with the most observations the limits allow"
                 if design.criterion else "targets " + ", ".join(texts)
                 + " with the fewest observations")
-        lines.append(f"  goal: {goal}; {design.message}")
+        early = (design.message.startswith("IPOPT") and not design.message.endswith(
+            ("Solve_Succeeded", "Solved_To_Acceptable_Level")) and design.all_met)
+        lines.append(f"  goal: {goal}; {design.message}"
+                     + (" (stopped before converging: the targets are met on the exact "
+                        "prediction, but fewer observations may do)" if early else ""))
         space = base.scenario.design
         limits = {} if space is None else space.bounds
         rows = [["motion", "given", "designed", "limits"]]
@@ -1181,6 +1185,27 @@ def design_report(design: Design, result: Result | None = None) -> str:
                 f"{name} (no longer determined on its own)" if f is None
                 else f"{name} ({f:.3g}× the standard error)" for name, f in worse.items())
                 + trade)
+        blind = design.blind
+        if blind:
+            two = [k for k, v in blind.items() if v == 0.0]
+            narrow = [f"{k} (over {v:.2%} of its given range)" for k, v in blind.items()
+                      if v > 0.0]
+            said = []
+            if two:
+                one = len(two) == 1
+                said.append(f"{', '.join(two)} only at the two ends of "
+                            f"{'its' if one else 'their'} range (every draw dwells there): "
+                            f"no term curved in {'it' if one else 'them'} (a quadratic) can "
+                            "be told from an offset and a gain")
+            if narrow:
+                said.append(f"{', '.join(narrow)} barely varies: hardly any term in "
+                            f"{'it' if len(narrow) == 1 else 'them'} can be seen")
+            lines.append("  what the designed motion cannot show: " + "; ".join(said)
+                         + ". A calibration on it alone can end at the floor with such "
+                         "an effect absorbed into the parameters; to keep it testable, "
+                         "limit dwell below 1 (or the state's range) in the design "
+                         "section, or add the term you fear as a target "
+                         "(--target 'mde(TERM)=AMPLITUDE')")
     ident0, ident1 = base.identifiability, final.identifiability
     lost = (f" (the given motion's: {ident0.rank}; the designed motion loses "
             f"{ident0.rank - ident1.rank})" if optimised and ident1.rank < ident0.rank else "")
@@ -1226,7 +1251,9 @@ def design_document(design: Design, scenario_path: str | None) -> dict[str, Any]
     """The ``--json`` document of ``symcal design``: ``{"parameters": {NAME:
     {"predicted_se": ..., "baseline_se": ...}}, "binding": [...], "scenario": PATH}``, with
     standard errors in each parameter's unit (null: determined only in combination),
-    ``"held"`` (the parameters ``--hold`` held at their given standard errors) and
+    ``"held"`` (the parameters ``--hold`` held at their given standard errors),
+    ``"blind"`` (``{STATE: share}``: 0 for a state the designed motion holds at the two
+    ends of its range, else the share of its given range it still spans, below 5 %) and
     ``"worse"`` (``{NAME: factor}``: the growth of a standard error on the designed motion
     beyond 1.1×; null: no longer determined on its own); with
     a term to make detectable also ``"detectable": {"term", "target", "parameters",
@@ -1239,6 +1266,7 @@ def design_document(design: Design, scenario_path: str | None) -> dict[str, Any]
                        for name, se in design.baseline.se.items()},
         "binding": list(design.binding),
         "held": [t.name for t in design.held],
+        "blind": design.blind,
         "worse": design.worse,
         "scenario": scenario_path,
     }

@@ -566,7 +566,8 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
                      len(candidates), tuple(uncal), needs, variant, own_inputs,
                      _better_problem(problem) if above else "",
                      tuple(sp.describe() for sp in found.values()), dict(fixes),
-                     together, unsearched(problem, found, views, tested_outside), outside,
+                     together, unsearched(problem, found, views, tested_outside,
+                                          _reached(problem, blocks)), outside,
                      {c.label: outside_words(problem, found, c) for c in outside})
 
 
@@ -610,14 +611,30 @@ def outside_words(problem: Problem, found: Mapping[str, Space], cand: Candidate)
             "and run again")
 
 
+def _reached(problem: Problem, blocks: list[Block]) -> dict[tuple[str, str], set[str]]:
+    """Per (dataset, residual), the instances a term on one of their outputs changes."""
+    hooks = list(problem.diagnostic.hooks)      # in the order of the blocks' hooks
+    out: dict[tuple[str, str], set[str]] = {}
+    for b in blocks:
+        for k, name in enumerate(b.names):
+            out[(b.dataset.name, name)] = {
+                output.split(".", 1)[0] for h, output in enumerate(hooks)
+                if np.any(b.hooks[:, k, h])}
+    return out
+
+
 def unsearched(problem: Problem, found: Mapping[str, Space],
                views: Sequence[ResidualView],
-               tested: set[tuple[str, str]] | None = None) -> tuple[str, ...]:
+               tested: set[tuple[str, str]] | None = None,
+               reached: Mapping[tuple[str, str], set[str]] | None = None
+               ) -> tuple[str, ...]:
     """Where what is left of a residual lies most along a sensor's own reading that no
     other sensor's search space holds: a coupling of that reading into another sensor
     (crosstalk from a current channel into a voltage channel) is not tested, unless the
-    outside family tested it (``tested``: instance, column); the sentence says how to
-    test it."""
+    outside family tested it (``tested``: instance, column), and only into a sensor
+    whose outputs that residual reads (``reached``: :func:`_reached`; a coupling into a
+    sensor the residual does not read cannot explain it); the sentence says how to test
+    it."""
     column_of: dict[str, str] = {}      # a column an instance reads, by either name
     readers: dict[str, list[str]] = {}  # the instances that read each column
     for name, inst in problem.instances.items():
@@ -634,9 +651,11 @@ def unsearched(problem: Problem, found: Mapping[str, Space],
                 continue
             column = column_of[var]
             who = readers[column]
+            into = None if reached is None else reached.get((v.dataset, v.name))
             others = tuple(n for n, sp in found.items() if n not in who and sp.kinds != ()
                            and column not in sp.variables
-                           and (n, column) not in (tested or set()))
+                           and (n, column) not in (tested or set())
+                           and (into is None or n in into))
             if others:
                 names = found_in.setdefault((column, tuple(who), others), [])
                 if v.name not in names:
