@@ -32,6 +32,15 @@ SAID = ("i_raw, along which what is left of g_P, g_V lies most, is read by ich a
 PHYSICAL = ("vch.off_v", "vch.k_v", "ich.off_i", "ich.g_i")
 
 
+def _overlay(folder, name: str, line: str):
+    """A problem that extends the bench's with ``line`` on the instance vch."""
+    path = folder / f"{name}.yaml"
+    path.write_text(f"problem: power_bench_{name}\n"
+                    f"extends: {BENCH / 'problem.yaml'}\n"
+                    f"instances:\n  vch: {{{line}}}\n")
+    return path
+
+
 def _data(seed: int, coupling: float = 0.2) -> tuple[dict, dict]:
     scenario = load_scenario(BENCH / "scenario.yaml").overlay(
         {"effects": {"crosstalk": {"on": True, "values": {
@@ -57,13 +66,8 @@ def test_a_declared_space_still_says_how_to_test_what_is_left(tmp_path) -> None:
     """The user declared vch's variables without i_raw: the outside family leaves that
     sensor to its declaration, and what is left names the coupling as before."""
     data, _ = _data(2)
-    (tmp_path / "declared.yaml").write_text(
-        "problem: power_bench_declared\n"
-        f"extends: {BENCH / 'problem.yaml'}\n"
-        "instances:\n"
-        "  vch:\n"
-        "    candidates: {variables: [v_raw, T, t]}\n")
-    diag = symcal.diagnose(symcal.solve(tmp_path / "declared.yaml", data))
+    declared = _overlay(tmp_path, "declared", "candidates: {variables: [v_raw, T, t]}")
+    diag = symcal.diagnose(symcal.solve(declared, data))
     assert diag.outside == ()
     assert diag.unsearched == (SAID,), diag.unsearched
 
@@ -84,16 +88,17 @@ def test_a_weak_coupling_is_not_called_quiet_and_the_printed_line_fixes_it(tmp_p
     assert out.to_dict()["outside"][0]["label"] == LABEL
     line = re.search(r"add `(candidates: \{[^`]*\})` to the instance vch", said)
     assert line is not None and line.group(1) == LINE
-    (tmp_path / "problem_xt.yaml").write_text(
-        "problem: power_bench_xt\n"
-        f"extends: {BENCH / 'problem.yaml'}\n"
-        "instances:\n"
-        f"  vch: {{{line.group(1)}}}\n")
-    after = symcal.improve(tmp_path / "problem_xt.yaml", tmp_path / "after", data,
-                           max_rounds=2)
-    assert after.quiet and after.at_floor
-    assert [r.added for r in after.rounds[1:]] == [LABEL]
-    final = after.rounds[-1].result
+    _reaches_the_floor(_overlay(tmp_path, "xt", line.group(1)), tmp_path / "after", data,
+                       true)
+
+
+def _reaches_the_floor(problem, out, data: dict, true: dict) -> None:
+    """The loop on ``problem`` keeps the coupling and ends quiet at the floor with every
+    physical parameter within 3 SE of the truth."""
+    done = symcal.improve(problem, out, data, max_rounds=2)
+    assert done.quiet and done.at_floor
+    assert [r.added for r in done.rounds[1:]] == [LABEL]
+    final = done.rounds[-1].result
     for name in PHYSICAL:
         p = final.params[name]
         assert abs(p.value - true[name]) < 3 * p.se, (name, p.value, p.se, true[name])
@@ -102,19 +107,7 @@ def test_a_weak_coupling_is_not_called_quiet_and_the_printed_line_fixes_it(tmp_p
 @pytest.mark.slow
 def test_applied_literally_the_loop_reaches_the_floor(tmp_path) -> None:
     data, true = _data(5)
-    (tmp_path / "problem_xt.yaml").write_text(
-        "problem: power_bench_xt\n"
-        f"extends: {BENCH / 'problem.yaml'}\n"
-        "instances:\n"
-        "  vch:\n"
-        f"    {LINE}\n")
-    out = symcal.improve(tmp_path / "problem_xt.yaml", tmp_path / "out", data, max_rounds=2)
-    assert out.quiet and out.at_floor
-    assert [r.added for r in out.rounds[1:]] == [LABEL]
-    final = out.rounds[-1].result
-    for name in PHYSICAL:
-        p = final.params[name]
-        assert abs(p.value - true[name]) < 3 * p.se, (name, p.value, p.se, true[name])
+    _reaches_the_floor(_overlay(tmp_path, "xt", LINE), tmp_path / "out", data, true)
 
 
 def test_clean_data_raise_no_outside_coupling() -> None:
@@ -140,13 +133,8 @@ def test_a_coupling_is_offered_only_into_a_sensor_the_residual_reads(tmp_path) -
     from symcal.revise.diagnose import unsearched
     from symcal.revise.library import spaces
 
-    (tmp_path / "declared.yaml").write_text(
-        "problem: power_bench_declared\n"
-        f"extends: {BENCH / 'problem.yaml'}\n"
-        "instances:\n"
-        "  vch:\n"
-        "    candidates: {variables: [v_raw, T, t]}\n")
-    problem = symcal.load_problem(tmp_path / "declared.yaml")
+    problem = symcal.load_problem(
+        _overlay(tmp_path, "declared", "candidates: {variables: [v_raw, T, t]}"))
     found = spaces(problem)
     view = SimpleNamespace(dataset="calibration", name="g_P",
                            left=(SimpleNamespace(variables=("i_raw",)),))
