@@ -311,8 +311,12 @@ def _best_of_group(
     paying.sort(key=lambda t: _rank(diag, t[1], t[3], t[0], fits, result))
     _, label, path, new = paying[0]
     used = {f.resolve() for f in new.problem.source_files()}
-    for _, other, _, _ in paying[1:]:
+    for change, other, _, other_new in paying[1:]:
         _remove({f for f in written[other] if f.resolve() not in used})
+        why = _not_kept(diag, label, new, paying[0][0], other, other_new, change, fits,
+                        result)
+        rejected.append((other, why))
+        say(f"tried {other}: it pays, but not kept: {why}")
     final = _renamed(path, name)
     said = (_ambiguity(label, new, other, other_new, physical, result)
             for _, other, _, other_new in paying[1:])
@@ -658,10 +662,8 @@ def _best_lead(
     used = {f.resolve() for f in best.result.problem.source_files()}
     for other in others:
         _remove({f for f in other.written if f.resolve() not in used})
-        why = (f"{best.label} fits these data better (BIC {best.result.bic:.1f} against "
-               f"{other.result.bic:.1f})" if best.result.bic < other.result.bic else
-               f"{best.label} fits about as well (BIC {best.result.bic:.1f} against "
-               f"{other.result.bic:.1f}) and predicts the held-out data better")
+        why = _not_kept(diag, best.label, best.result, changes[best.label], other.label,
+                        other.result, changes[other.label], fits, result)
         rejected.append((other.label, why))
         say(f"tried {other.label}: it pays, but not kept: {why}")
     if best is kept:
@@ -673,6 +675,33 @@ def _best_lead(
     said = (_ambiguity(best.label, best.result, other.label, other.result, physical, result)
             for other in others)
     return replace(best, ambiguous=best.ambiguous + tuple(text for text in said if text))
+
+
+def _not_kept(diag: Diagnosis, label: str, kept: Result, kept_change: float,
+              other_label: str, other: Result, change: float,
+              fits: Sequence[Result], old: Result) -> str:
+    """Why a revision that pays (``other_label``'s fit ``other``) was not kept beside
+    ``label``'s (``kept``): the first rule of :func:`_rank` that orders them."""
+    mine = _rank(diag, label, kept, kept_change, fits, old)
+    theirs = _rank(diag, other_label, other, change, fits, old)
+    bics = f"BIC {kept.bic:.1f} against {other.bic:.1f}"
+    rule = next((k for k, (a, b) in enumerate(zip(mine, theirs, strict=True)) if a != b),
+                None)
+    if rule in (0, 2) or (rule is None and kept.bic < other.bic - EQUAL_BIC):
+        return f"{label} fits these data better ({bics})"
+    if rule == 1:
+        return (f"{label} fits about as well ({bics}) and leaves the parameters already "
+                f"there determined; with the other, {_inflated(other, old)}")
+    if rule == 3:
+        return (f"{label} fits about as well ({bics}) on a sensor the problem calibrates; "
+                "the other revises its reference")
+    if rule == 4:
+        return (f"{label} fits about as well ({bics}) and predicts the held-out data "
+                "better")
+    if rule == 5:
+        return f"{label} fits about as well ({bics}) and moves a declared value less"
+    return (f"{label} fits as well ({bics}) and the data cannot choose: it was tried "
+            "first")
 
 
 def _revision(diag: Diagnosis, cand_label: str, directory: Path, name: str) -> Path:
