@@ -73,7 +73,7 @@ from symcal.revise.library import (
 from symcal.revise.library import (
     own_names as own_names_of,
 )
-from symcal.revise.reliability import mark_unseen
+from symcal.revise.reliability import mark_two_level, mark_unseen
 from symcal.revise.variants import Variant, implicit_variant
 from symcal.revise.whitened import design, predict, predicted_spreads, whiten
 
@@ -518,9 +518,10 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
         return frozenset(n for n in have if n.startswith(inst)
                          and COEFFICIENT.match(n[len(inst):]) is not None)
 
+    physical = [n for n, f in zip(problem.parameter_names, free, strict=True) if f]
     mark_unseen(own, entries, ranked, own_regressor, alpha / max(len(candidates), 1),
-                [n for n, f in zip(problem.parameter_names, free, strict=True) if f],
-                restates, suspected, kept)
+                physical, restates, suspected, kept)
+    mark_two_level(ranked, physical, blocks[fit].values)
     leads = [c for c in _leads(tuple(ranked)) if c.significant][:TOP]
     outside: tuple[Candidate, ...] = ()
     tested_outside: set[tuple[str, str]] = set()

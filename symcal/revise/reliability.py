@@ -109,3 +109,42 @@ def _beyond(x: np.ndarray, lower: np.ndarray) -> np.ndarray:
     """``x`` without its least-squares part in the ``lower`` columns (whitened alike)."""
     coef, *_ = np.linalg.lstsq(lower, x, rcond=None)
     return x - lower @ coef
+
+
+#: A variable takes two values in a dataset where splitting its sorted values in two
+#: leaves at most this share of its variance within the halves.
+TWO_LEVELS = 1e-3
+
+
+def two_levels(values: np.ndarray) -> bool:
+    """Whether ``values`` cluster at two levels (every draw of a design at the two ends of
+    its range): a quadratic in it is then an offset and a gain on these data."""
+    x = np.sort(np.asarray(values, dtype=float).ravel())
+    n = x.size
+    total = float(np.sum((x - x.mean()) ** 2)) if n else 0.0
+    if n < 4 or total <= 0.0:
+        return False
+    s1, s2 = np.cumsum(x), np.cumsum(x * x)
+    k = np.arange(1, n)                                   # the first k values, the rest
+    left = s2[:-1] - s1[:-1] ** 2 / k
+    right = (s2[-1] - s2[:-1]) - (s1[-1] - s1[:-1]) ** 2 / (n - k)
+    return float(np.min(left + right)) <= TWO_LEVELS * total
+
+
+def mark_two_level(ranked: Sequence[Candidate], physical: Sequence[str],
+                   values: Callable[[str], np.ndarray]) -> None:
+    """Name, in :attr:`Candidate.unseen`, the parameters of its own sensor that a
+    quadratic absorbed only because its variable takes two values in the fitted data
+    would bias, by any amount: no model's own terms make a quadratic an offset and a gain,
+    these data do.  A new user's pressure transducer designed at 100 and 700 kPa alone
+    ended quiet with its gain 130 SE off under a quadratic the two levels absorbed; the
+    verdict named the offsets only."""
+    wanted = set(physical)
+    for cand in ranked:
+        if not (cand.absorbed and cand.biases and not cand.unseen
+                and cand.basis.kind == "quadratic" and two_levels(values(cand.basis.variable))):
+            continue
+        mine = cand.output.split(".", 1)[0] + "."
+        cand.unseen = tuple((name, float("inf")) for name in cand.biases
+                            if name in wanted and name.startswith(mine))[:NAMED]
+
