@@ -631,3 +631,29 @@ def test_a_design_that_meets_its_targets_is_usable_though_ipopt_stopped_early(
     monkeypatch.setattr(optimize, "design", lambda *a, **k: unmet)
     assert main(argv) == 1
     assert "stopped before converging" not in capsys.readouterr().out
+
+
+def test_an_inherited_design_section_that_no_longer_applies_stays_out_of_the_way(
+        tmp_path, problem) -> None:
+    """A new user's overlay made the base scenario's designed run a series: it could not
+    even be simulated ("only a scatter or dwells run can be designed") until it wrote
+    ``design: ~``.  The inherited section is set aside; ``design`` says why it does not
+    apply; the file's own section is still checked as written."""
+    overlay = tmp_path / "series.yaml"
+    overlay.write_text(f"scenario: courier_series\nextends: {SCENARIO}\n"
+                       "runs:\n  calibration:\n    scatter: ~\n"
+                       "    series: {n: 50, x: 1.0, y: 0.5, theta: 0}\n")
+    scenario = load_scenario(overlay)
+    assert scenario.design is None
+    assert "run 'calibration' is a series; only a scatter or dwells run can be designed" \
+        in scenario.inherited_design
+    assert simulate_run(scenario, "calibration", seed=1)["p1"].shape == (50,)
+    with pytest.raises(SymcalError) as err:
+        design(problem, scenario, criterion="D")
+    assert str(err.value).startswith(
+        f"scenario 'courier_series' ({overlay}) inherits a 'design' section that does not "
+        "apply to it: ")
+    own = tmp_path / "own.yaml"
+    own.write_text(overlay.read_text() + "design: {run: calibration, limits: {n: [1, 9]}}\n")
+    with pytest.raises(SpecError, match="only a scatter or dwells run can be designed"):
+        load_scenario(own)

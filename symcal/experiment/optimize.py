@@ -739,6 +739,11 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
         determines only in a combination).
     """
     space = scenario.design
+    if space is None and scenario.inherited_design:
+        raise SymcalError(f"scenario '{scenario.name}' ({scenario.source}) inherits a "
+                          "'design' section that does not apply to it: "
+                          f"{scenario.inherited_design}; declare its own 'design:' section "
+                          "for the run that may change")
     if space is None:
         raise SymcalError(f"scenario '{scenario.name}' ({scenario.source}) has no 'design' "
                           "section: declare which run may change and its limits (design: "

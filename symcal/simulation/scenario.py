@@ -320,6 +320,9 @@ class Scenario:
     design: DesignSpace | None = None
     doc: str = ""
     source: str = "<scenario>"
+    # why a ``design`` section inherited from a file this one extends does not apply to
+    # it (its run is no longer a scatter or dwells run, say): simulating needs no design
+    inherited_design: str = ""
     runs_where: Where = field(default=Where("<scenario>"), compare=False)
     document: YMap | None = field(default=None, repr=False)
     where: Where = field(default=Where("<scenario>"), compare=False)
@@ -962,9 +965,15 @@ def parse_scenario(doc: YMap, where: Where) -> Scenario:
     columns = _columns(doc["columns"], child_where(doc, where, "columns"), numbers)
     runs_where = child_where(doc, where, "runs")
     runs = _runs(doc["runs"], runs_where, states)
-    design = None
+    design, inherited = None, ""
     if doc.get("design") is not None:
-        design = _design(doc["design"], child_where(doc, where, "design"), runs, states)
+        design_where = child_where(doc, where, "design")
+        try:
+            design = _design(doc["design"], design_where, runs, states)
+        except SpecError as err:
+            if design_where.via is None:
+                raise       # the file's own section: wrong as written
+            inherited = str(err)
     text = doc.get("doc")
     scenario = Scenario(
         name=name,
@@ -978,6 +987,7 @@ def parse_scenario(doc: YMap, where: Where) -> Scenario:
         effects=_effects(doc.get("effects"), child_where(doc, where, "effects"), columns,
                          numbers),
         design=design,
+        inherited_design=inherited,
         doc="" if text is None else " ".join(expect_str(text, child_where(doc, where,
                                                                            "doc")).split()),
         source=where.file,
