@@ -14,6 +14,7 @@ from conftest import ROOT, magnetometer_gain_time
 
 import symcal
 from symcal.data.dataset import make_dataset
+from symcal.report.text import centre_line, verdict_lines
 from symcal.simulation import load_scenario, simulate_run, truth
 
 HALL = ROOT / "tests" / "data" / "hall"
@@ -90,6 +91,14 @@ def test_the_loop_keeps_the_gain_with_the_parameters_a_least_squares_fit_predict
     assert out.rounds[1].to_dict()["parameters"]["centres"] == [
         {"constant": "hall.c_gain_T", "variable": "T", "value": centre,
          "unit": "delta_degC"}]
+    # and a later solve of the final problem says it too (a new user's did not)
+    again = symcal.solve(out.final_problem, data)
+    assert centre_line(again) == (
+        "the parameters hold where the terms written about a centre are zero: T = "
+        f"{centre:.6g} delta_degC (hall.c_gain_T); to have them hold at a datasheet's "
+        "reference, write it as that constant's value in the model file and solve again")
+    assert centre_line(again) in verdict_lines(again)
+    assert centre_line(symcal.solve(HALL / "problem.yaml", data)) == ""
 
 
 def test_an_output_proportional_to_its_reading_has_no_gain_of_its_own(tmp_path) -> None:

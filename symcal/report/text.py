@@ -422,7 +422,31 @@ def verdict_lines(result: Result,
         kinds = "; ".join(f"{g.kind} of {', '.join(g.parameters)}" for _, g in gauges)
         lines.append(f"{len(gauges)} gauge(s) found before the solve, which no data can "
                      f"determine ({kinds}); see Gauges for the fix")
+    held = centre_line(result)
+    if held:
+        lines.append(held)
     return lines
+
+
+def centre_line(result: Result) -> str:
+    """Where the parameters hold when the model has terms written about a centre (a
+    constant ``symcal improve`` documented as one: the term is zero there), or ``""``:
+    an offset or a gain is then its value at that centre, not at a datasheet's
+    reference (``symcal improve`` says so when it adds the term; a later solve of the
+    final problem said nothing)."""
+    from symcal.revise.effects import centre_variable
+
+    found = []
+    for c in result.problem.constants:
+        variable = centre_variable(c.doc)
+        if variable is not None:
+            unit = f" {c.unit}" if c.unit else ""
+            found.append(f"{variable} = {float(c.value):.6g}{unit} ({c.key})")
+    if not found:
+        return ""
+    return ("the parameters hold where the terms written about a centre are zero: "
+            + ", ".join(found) + "; to have them hold at a datasheet's reference, write it "
+            "as that constant's value in the model file and solve again")
 
 
 def _gauges(result: Result) -> list[tuple[str, Any]]:
