@@ -74,6 +74,11 @@ NARROWED = 0.05
 #: A scatter whose share of draws at the ends of their ranges is at least this holds
 #: the dwelling states at two values: no term curved in them can be seen.
 TWO_LEVELS = 0.999
+#: IPOPT statuses that count as a solved design.
+SOLVED = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+#: ``hold`` without a target.
+HOLD_NEEDS_TARGET = ("--hold keeps the other parameters while meeting targets: it needs "
+                     "--target")
 
 
 @dataclass(frozen=True)
@@ -156,12 +161,21 @@ class Design:
         return out
 
     @property
+    def holds_met(self) -> bool:
+        """Whether every held parameter is at most its given standard error on the
+        design's exact prediction (True without ``hold``)."""
+        return all(_met(self.final, self.held).values())
+
+    @property
     def all_met(self) -> bool:
         """With targets: whether the design meets every one, and every hold, on its exact
         prediction (False without targets)."""
-        return bool(self.met) and all(self.met.values()) and all(
-            self.final.se.get(t.name) is not None
-            and float(self.final.se[t.name]) <= t.value for t in self.held)  # type: ignore[arg-type]
+        return bool(self.met) and all(self.met.values()) and self.holds_met
+
+    @property
+    def converged(self) -> bool:
+        """Whether IPOPT solved the design (or nothing was left to optimise)."""
+        return not self.message.startswith("IPOPT") or self.message.endswith(SOLVED)
 
     @property
     def blind(self) -> dict[str, float]:
@@ -197,10 +211,7 @@ class Design:
         all (the prediction scaled as 1/n); None without targets."""
         if not self.targets and self.detect is None:
             return None
-        se = self.final.se
-        ratios = [float(se[t.name]) / t.value  # type: ignore[arg-type]
-                  if se.get(t.name) is not None else math.inf
-                  for t in self.targets + self.held]
+        ratios = _ratios(self.final, self.targets + self.held)
         if self.detect is not None:
             mde = self.mde_after if self.designed is not None else self.mde_before
             ratios.append(math.inf if mde is None else mde / self.detect.value)
@@ -652,6 +663,14 @@ def _whole(motion: Scatter | Dwells, n: int, n_hi: int) -> int:
                                            (n_hi // motion.samples) * motion.samples)
 
 
+def _ratios(prediction: Prediction, targets: tuple[Target, ...]) -> list[float]:
+    """How many times its target each target's predicted standard error is (inf where
+    the motion determines the parameter only in a combination)."""
+    se = prediction.se
+    return [math.inf if se.get(t.name) is None else float(se[t.name]) / t.value  # type: ignore[arg-type]
+            for t in targets]
+
+
 def _met(prediction: Prediction, targets: tuple[Target, ...]) -> dict[str, bool]:
     se = prediction.se
     return {t.name: se.get(t.name) is not None and float(se[t.name]) <= t.value  # type: ignore[arg-type]
@@ -667,9 +686,7 @@ class _Plan:
 
     def ratio(self, targets: tuple[Target, ...], detect: Detectable | None) -> float:
         """How many times its target the worst target is (1: just met)."""
-        se = self.prediction.se
-        ratios = [float(se[t.name]) / t.value  # type: ignore[arg-type]
-                  if se.get(t.name) is not None else math.inf for t in targets]
+        ratios = _ratios(self.prediction, targets)
         if detect is not None:
             ratios.append(math.inf if self.mde is None else self.mde / detect.value)
         return max(ratios, default=0.0)
@@ -751,8 +768,7 @@ def design(problem: Problem, scenario: Scenario, *, criterion: str | None = None
                           "the run, dwell or n)")
     goal = bool(targets) or detect is not None
     if hold and not goal:
-        raise SymcalError("--hold keeps the other parameters while meeting targets: it "
-                          "needs --target")
+        raise SymcalError(HOLD_NEEDS_TARGET)
     if goal and criterion is not None:
         raise SymcalError("--criterion and --target: give one goal, a criterion or targets")
     criterion = None if goal else (criterion or "D")

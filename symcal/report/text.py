@@ -1164,8 +1164,7 @@ def design_report(design: Design, result: Result | None = None) -> str:
         goal = (f"criterion {design.criterion} with the most observations the limits allow"
                 if design.criterion else "targets " + ", ".join(texts)
                 + " with the fewest observations")
-        early = (design.message.startswith("IPOPT") and not design.message.endswith(
-            ("Solve_Succeeded", "Solved_To_Acceptable_Level")) and design.all_met)
+        early = not design.converged and design.all_met
         lines.append(f"  goal: {goal}; {design.message}"
                      + (" (stopped before converging: the targets are met on the exact "
                         "prediction, but fewer observations may do)" if early else ""))
@@ -1197,9 +1196,9 @@ def design_report(design: Design, result: Result | None = None) -> str:
         worse = design.worse
         if design.held:
             lines.append("  held (--hold): every other parameter at most its standard error "
-                         "on the given motion" + (": all held" if not worse else ""))
+                         "on the given motion" + (": all held" if design.holds_met else ""))
         if (design.targets or detect is not None) and (
-                not all(design.met.values()) or (design.held and worse)):
+                not all(design.met.values()) or not design.holds_met):
             lines.append(f"  meeting every target on the designed motion would need about "
                          f"{design.needed_n} observations")
         if worse:

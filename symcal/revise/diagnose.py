@@ -568,7 +568,8 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
                      _better_problem(problem) if above else "",
                      tuple(sp.describe() for sp in found.values()), dict(fixes),
                      together, unsearched(problem, found, views, tested_outside,
-                                          _reached(problem, blocks)), outside,
+                                          _reached(problem, blocks) if views else None),
+                     outside,
                      {c.label: outside_words(problem, found, c) for c in outside})
 
 
