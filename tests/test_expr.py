@@ -214,6 +214,14 @@ ERRORS = [
     (" \t\n", "empty expression", None, None),
     ("(1 + 2))", "unexpected ')' at column 8", 7, None),
     ("1 2", "unexpected '2' at column 3", 2, None),
+    # a quantity with its unit (a new user's series: 25*t/(400 s))
+    ("25*t/(400 s)", "'400 s' at column 7: a number cannot carry a unit inside an "
+     "expression; declare the quantity under constants with its unit (NAME: {value: 400, "
+     "unit: s}) and write NAME here (to multiply, write 400*s)", 6, None),
+    ("2.5e3 mV/A", "'2.5e3 mV' at column 1: a number cannot carry a unit inside an "
+     "expression; declare the quantity under constants with its unit (NAME: {value: "
+     "2.5e3, unit: mV}) and write NAME here (to multiply, write 2.5e3*mV)", 0, None),
+    ("pi x", "unexpected 'x' at column 4", 3, None),
     ("1e", "malformed number '1e' at column 1", 0, None),
     ("x + 1.2.3", "malformed number '1.2.3' at column 5", 4, None),
     ("1e+", "malformed number '1e+' at column 1", 0, None),

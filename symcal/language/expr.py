@@ -221,10 +221,19 @@ class _Parser:
     def peek(self) -> _Tok:
         return self.toks[self.pos]
 
-    @staticmethod
-    def unexpected(tok: _Tok) -> ExprError:
+    def unexpected(self, tok: _Tok) -> ExprError:
         if tok.kind == "end":
             return ExprError("unexpected end of expression", tok.col)
+        at = next(i for i, t in enumerate(self.toks) if t is tok)
+        before = self.toks[at - 1] if at > 0 else None
+        if before is not None and before.kind == "num" and before.text != "pi" \
+                and tok.kind == "name":
+            # a quantity written with its unit (25*t/(400 s)): expressions have no units
+            return ExprError(
+                f"'{before.text} {tok.text}' at column {before.col + 1}: a number cannot "
+                "carry a unit inside an expression; declare the quantity under constants "
+                f"with its unit (NAME: {{value: {before.text}, unit: {tok.text}}}) and write "
+                f"NAME here (to multiply, write {before.text}*{tok.text})", before.col)
         return ExprError(f"unexpected '{tok.text}' at column {tok.col + 1}", tok.col)
 
     def expect(self, text: str) -> None:
