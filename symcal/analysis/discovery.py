@@ -48,7 +48,8 @@ STANDALONE = ("approximation", "constant", "fixed", "latency")
 class Basis:
     """φ(v): the shape of a candidate term, with what it takes to write it in YAML."""
 
-    kind: str                  # harmonic | linear | quadratic | angle_harmonic | drift |
+    kind: str                  # harmonic | linear | quadratic | cubic | angle_harmonic |
+                               # drift |
                                # product | gain | latency | constant | fixed |
                                # approximation
     variable: str              # the variable's name in the problem (column, signal, expr)
@@ -83,12 +84,12 @@ class Basis:
     def complexity(self) -> tuple[int, int]:
         """How simple the shape is: a share of another output (the same fit as the term
         linear in the reading it is made of, but zero where that output is) before linear
-        and drift, before harmonics (by number), before quadratic, before an output's gain
-        varying with a variable, before products."""
+        and drift, before harmonics (by number), before quadratic, before cubic, before an
+        output's gain varying with a variable, before products."""
         rank = {"approximation": 0, "constant": 0, "fixed": 0, "coupling": 1, "linear": 2,
-                "drift": 2, "latency": 2, "harmonic": 3, "quadratic": 4, "gain": 5,
-                "product": 6, "angle_harmonic": 6}
-        return rank.get(self.kind, 7), self.order
+                "drift": 2, "latency": 2, "harmonic": 3, "quadratic": 4, "cubic": 5,
+                "gain": 6, "product": 7, "angle_harmonic": 7}
+        return rank.get(self.kind, 8), self.order
 
 
 @dataclass

@@ -43,7 +43,7 @@ from symcal.language.fields import (
 )
 
 #: The kinds of candidate effect a space may name.
-KINDS = ("linear", "quadratic", "harmonic", "drift", "product", "gain", "coupling",
+KINDS = ("linear", "quadratic", "cubic", "harmonic", "drift", "product", "gain", "coupling",
          "angle_harmonic", "latency", "constant")
 #: The highest harmonic order a space may name.
 MAX_HARMONIC = 64

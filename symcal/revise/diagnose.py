@@ -730,8 +730,8 @@ def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]
     its meaning there, not its extrapolation to 0 K."""
     basis = entry.candidate.basis
     lower = entry.lower
-    if lower is None or basis.centre == 0.0:
-        return entry
+    if lower is None or basis.centre == 0.0 or basis.kind == "cubic":
+        return entry        # a cubic stays about its centre: uncentred, it has a quadratic
     x_lower = regressor(lower)
     if not absorbed(own, x_lower) and not all(
             unexplained_share(own, x_lower[:, j]) < NEARLY for j in range(x_lower.shape[1])):

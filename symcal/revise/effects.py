@@ -53,7 +53,8 @@ from symcal.language.yamlio import dump_yaml
 from symcal.problem.build import load_problem
 from symcal.problem.symbolic import Problem
 
-_TAGS = {"harmonic": "h", "linear": "lin", "quadratic": "quad", "drift": "drift",
+_TAGS = {"harmonic": "h", "linear": "lin", "quadratic": "quad", "cubic": "cub",
+         "drift": "drift",
          "angle_harmonic": "ah", "product": "prod", "gain": "gain",
          "coupling": "cpl"}
 #: Kinds written as a term added to one output (a model extension).
@@ -316,6 +317,7 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
              "linear": [per(out_unit, (var_unit, 1))],
              "drift": [per(out_unit, (var_unit, 1))],
              "quadratic": [per(out_unit, (var_unit, 1)), per(out_unit, (var_unit, 2))],
+             "cubic": [per(out_unit, (var_unit, 3))],
              "angle_harmonic": [per(out_unit, (angle_unit, 1))] * 2,
              "product": [per(out_unit, (var_unit, 1), (other_unit, 1))] * len(params),
              "gain": [per("", (var_unit, 1))],

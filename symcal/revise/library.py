@@ -11,8 +11,9 @@ linear in another sensor's reading on an output of a sensor with the default var
 in the spaces is significant.
 
 **The shapes** on each output of the instance: a harmonic of a periodic variable (orders 1
-to :data:`HARMONICS`), a term linear in a variable, a quadratic, a drift in time, the
-product of two of the instance's variables (tested beyond the two linear terms it
+to :data:`HARMONICS`), a term linear in a variable, a quadratic, a cubic (odd about the
+data's centre, ``(v - c)**3``, tested beyond the linear term it contains), a drift in
+time, the product of two of the instance's variables (tested beyond the two linear terms it
 contains: it is tried after them), an angle times a harmonic (the orders of the plain
 harmonics), the output's own gain varying with a variable that is not one of the
 sensor's readings (``O*(w - c)``, tested beyond the term linear in ``w``: a sensitivity
@@ -234,6 +235,16 @@ def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shap
                                     ("lin", "quad"), ("({v} - {centre})", "({v} - {centre})**2"),
                                     unit=v.unit, centre=c),
                               _quadratic(v.name, c), lower=_affine(v.name, c)))
+        if allowed("cubic"):
+            # odd about the data's centre (an amplifier's S-curve about mid-scale), tested
+            # beyond the linear term it contains (tried after it, as a product is) and
+            # beside the quadratic, a candidate of its own: a curve both odd and even is
+            # found in two rounds; written about its centre (uncentred, it would hold a
+            # quadratic part too)
+            out.append(_Shape(Basis("cubic", v.name, f"a cubic dependence on {v.name}",
+                                    ("cub",), ("({v} - {centre})**3",), unit=v.unit,
+                                    centre=c),
+                              _cubic(v.name, c), (v.name,), lower=_affine(v.name, c)))
     if allowed("product"):
         # uncentred: a gain growing with time is exactly c·v·t (centring would leave a
         # drift c·v̄·t behind); the linear terms it contains are allowed for in its test
@@ -399,6 +410,10 @@ def _affine(name: str, centre: float) -> Callable[[Block], np.ndarray]:
 
 def _quadratic(name: str, centre: float) -> Callable[[Block], np.ndarray]:
     return lambda b: np.column_stack([b.values(name) - centre, (b.values(name) - centre) ** 2])
+
+
+def _cubic(name: str, centre: float) -> Callable[[Block], np.ndarray]:
+    return lambda b: ((b.values(name) - centre) ** 3)[:, None]
 
 
 def _product(v: str, cv: float, w: str, cw: float) -> Callable[[Block], np.ndarray]:

@@ -142,7 +142,8 @@ def mark_two_level(ranked: Sequence[Candidate], physical: Sequence[str],
     wanted = set(physical)
     for cand in ranked:
         if not (cand.absorbed and cand.biases and not cand.unseen
-                and cand.basis.kind == "quadratic" and two_levels(values(cand.basis.variable))):
+                and cand.basis.kind in ("quadratic", "cubic")
+                and two_levels(values(cand.basis.variable))):
             continue
         mine = cand.output.split(".", 1)[0] + "."
         cand.unseen = tuple((name, float("inf")) for name in cand.biases
