@@ -76,3 +76,23 @@ def test_the_loop_keeps_the_cubic_and_ends_at_the_floor(tmp_path, seed: int) -> 
     # I = (i_raw - off)/g: the S-curve on i_raw is -c3/g on I, to its standard error
     cub = final.params["ich.cub_i_raw"]
     assert abs(cub.value - (-1.0e-9 / 99.2)) < 3 * cub.se, (cub.value, cub.se)
+
+
+def test_a_cube_is_tested_beyond_both_lower_terms_whatever_their_scales(tmp_path) -> None:
+    """A crosstalk linear in the current channel's reading (0.002 mV/A, in vch's declared
+    space).  The reading is in nV internally: its linear term's column is 10⁹ times
+    smaller than its square's, and the basis of the simpler terms dropped it as rounding,
+    so the cube was tested beyond the square alone, stood for the linear term (F 93
+    against 90) and was kept in its place.  Each simpler column is now normalised first."""
+    scenario = load_scenario(BENCH / "scenario.yaml").overlay(
+        {"effects": {"crosstalk": {"on": True, "values": {
+            "xt.c": {"value": 0.002, "unit": "mV/A"}}}}})
+    data = {k: make_dataset(k, "simulated", simulate_run(scenario, k, 2), [])
+            for k in ("calibration", "validation")}
+    path = tmp_path / "xt.yaml"
+    path.write_text(f"problem: power_bench_xt\nextends: {BENCH / 'problem.yaml'}\n"
+                    "instances:\n  vch: {candidates: {variables: [v_raw, t, T, i_raw]}}\n")
+    diag = symcal.diagnose(symcal.solve(path, data), report=False)
+    assert [c.label for c in diag.significant] == ["vch.V += a term linear in i_raw"]
+    cube = next(c for c in diag.candidates if c.label == "vch.V += a cubic dependence on i_raw")
+    assert cube.p_value > 0.01

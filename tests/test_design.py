@@ -147,9 +147,11 @@ def test_cli_prediction_json_shape(capsys):
     code = main(["design", str(PROBLEM), "--scenario", str(SCENARIO), "--json"])
     doc = json.loads(capsys.readouterr().out)
     assert code == 0
-    assert set(doc) == {"parameters", "binding", "held", "blind", "worse", "scenario"}
+    assert set(doc) == {"parameters", "binding", "held", "blind", "repeats", "worse",
+                        "scenario"}
     assert doc["binding"] == [] and doc["scenario"] is None
     assert doc["held"] == [] and doc["worse"] == {} and doc["blind"] == {}
+    assert doc["repeats"] == {}
     assert set(doc["parameters"]["l_x"]) == {"predicted_se", "baseline_se"}
     assert doc["parameters"]["l_x"]["predicted_se"] == doc["parameters"]["l_x"]["baseline_se"]
     assert 0.01 < doc["parameters"]["l_x"]["baseline_se"] < 0.05      # mm: 10-50 um

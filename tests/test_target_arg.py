@@ -8,8 +8,8 @@ import shlex
 
 import pytest
 
+from symcal.experiment.command import target_arg
 from symcal.experiment.optimize import _TARGET
-from symcal.revise.watch import target_arg
 
 
 @pytest.mark.parametrize(("unit", "expected"), [

@@ -328,6 +328,7 @@ def test_candidates(
     extras: list[np.ndarray | None] | None = None,
     gauges: Mapping[str, np.ndarray] | None = None,
     reference: Callable[[Candidate], bool] | None = None,
+    flat: Callable[[Candidate], bool] | None = None,
 ) -> list[Candidate]:
     """Test every candidate (regressor ``(M, m)``) and rank them, best first.
 
@@ -341,7 +342,10 @@ def test_candidates(
     determine does that; ``gauges`` (name → whitened column of a fixed parameter that
     fixes one) name which.  ``reference`` marks the candidates on a sensor the problem
     trusts (every parameter fixed): after the local ones, the others lead a group
-    before them.
+    before them.  ``flat`` marks the candidates the data make affine in their variable
+    (a curve in a variable held at two values): absorbed as far as the nuisance takes
+    their affine part, never tested, since what is left of them is the variable's own
+    noise (their test would test it).
     """
     nuisance = _nuisance(design)
     qn = nuisance.u
@@ -356,7 +360,7 @@ def test_candidates(
         if raw == 0.0:
             cand.absorbed = True
             continue
-        if np.linalg.norm(xp) < ABSORBED * raw:
+        if np.linalg.norm(xp) < ABSORBED * raw or (flat is not None and flat(cand)):
             cand.absorbed = True
             coef = nuisance.solve @ (qn.T @ x)     # x's coefficients in the nuisance
             weight = np.linalg.norm(coef, axis=1) if coef.ndim == 2 else np.abs(coef)
@@ -371,11 +375,23 @@ def test_candidates(
         if extra is not None:       # as written: its own columns alone (else delta_rss)
             alone = r @ _orthonormal(xp)
             cand.written_rss = float(alone @ alone)
-            qe = _orthonormal(_seen_columns(extra, qn))
+            # each column to unit norm first: the simpler terms' scales differ by up to
+            # the variable's own (a reading in nV: its linear term 6e3, its square 5e12),
+            # and the basis would drop the smaller as rounding (a cube in a current was
+            # then tested beyond its square alone, and kept in place of the linear term)
+            seen = _seen_columns(extra, qn)
+            qe = _orthonormal(seen / np.linalg.norm(seen, axis=0)) if seen.shape[1] else seen
             m_extra = qe.shape[1]
             base = _project(r, qe)
             rb = float(base @ base)
             xp = _project(xp, qe)
+            if np.linalg.norm(xp) < ABSORBED * raw:
+                # on these data the term is the simpler terms it contains, to within the
+                # readings' noise (a cubic in a variable held at two values is affine
+                # there): its test would test that noise (a new user's joint, designed
+                # at ±180°, named a cubic in its encoder's reading at p = 1e-20)
+                cand.absorbed = True
+                continue
         q = _orthonormal(xp)
         m = q.shape[1]
         if m == 0:

@@ -3,6 +3,7 @@ whether the scenario can be designed as it is (it declares a ``design`` section)
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 
 from symcal.base.errors import SymcalError
@@ -60,3 +61,13 @@ def design_sentence(problem: str | Path, scenario: str | Path | None, options: s
                 f"{command}")
     return (f"declare which run may change and its limits in {where} "
             f"(a 'design:' section), then: {command}")
+
+
+def target_arg(name: str, value: float, unit: str) -> str:
+    """``NAME=VALUEUNIT`` as a shell takes it: the unit joined where it starts with a
+    letter (``l_y=0.31mm``), else after a space and quoted (``'ifm.kT=3.3e-09 1/K'``:
+    ``3.3e-091/K`` would read as another number)."""
+    unit = unit.replace(" ", "")
+    if not unit or unit[0].isalpha() or unit[0] in "µ°Ω":
+        return f"{name}={value:.2g}{unit}"
+    return shlex.quote(f"{name}={value:.2g} {unit}")

@@ -201,6 +201,45 @@ class Design:
         return out
 
     @property
+    def repeats(self) -> dict[str, float]:
+        """The quantized readings whose rounding the designed motion repeats, by column:
+        its step (the column's unit).  A column read at a repeated pose (every draw of a
+        scatter dwelling at the ends of the states it depends on, or a dwells run's
+        samples) rounds the same value each time, so its rounding does not average over
+        the draws, whereas the predicted standard errors (and a solve's on such data)
+        take it for independent noise: a new user's joint, designed at ±180° for its gear
+        ratio with its motor count rounded to 1 count, ended quiet at the floor with the
+        ratio 6-8 SE off.  Only where the rounding dominates the column's noise (a
+        Gaussian noise of half a step or more dithers it) and the column does not depend
+        on time.  Empty when nothing was optimised."""
+        if self.designed is None or self.designed is self.baseline:
+            return {}
+        motion = motion_of(self.scenario, self.baseline.run)
+        if isinstance(motion, Scatter):
+            if motion.dwell < TWO_LEVELS:
+                return {}
+            held = set(motion.dwell_at)
+        elif motion.samples > 1:
+            held = {s.name for s in self.scenario.states}
+        else:
+            return {}
+        found = graph(self.scenario)
+        columns = found.explicit_columns()
+        out: dict[str, float] = {}
+        for column in self.scenario.columns:
+            if column.quantization <= 0 or column.noise >= 0.5 * column.quantization \
+                    or column.name not in columns:
+                continue
+            sx = columns[column.name]
+            if ca.depends_on(sx, found.t):
+                continue
+            reads = {s.name for j, s in enumerate(self.scenario.states)
+                     if ca.depends_on(sx, found.states[j])}
+            if reads and reads <= held:
+                out[column.name] = column.quantization
+        return out
+
+    @property
     def final(self) -> Prediction:
         """The prediction of the design (the baseline when nothing was optimised)."""
         return self.designed if self.designed is not None else self.baseline

@@ -21,7 +21,7 @@ from symcal.base.files import json_text as plain_json
 from symcal.base.units import DISPLAY_UNITS, symbol
 from symcal.base.units import size as unit_size
 from symcal.calibrate.result import REGRESSION_TOLERANCE, Regression, Result
-from symcal.experiment.command import design_sentence
+from symcal.experiment.command import design_sentence, target_arg
 
 if TYPE_CHECKING:
     from symcal.analysis.fit import SeriesStats
@@ -876,10 +876,19 @@ def design_pointer(result: Result) -> list[str]:
         return []
     spec = result.problem.datasets.get(result.problem.fit_dataset)
     scenario = getattr(spec, "scenario", None) if spec is not None else None
-    return [f"poorly determined by this motion: {near[0][0].text} (singular value "
+    combination = near[0][0]
+    # the command as it runs: the combination's leading parameter at half its standard
+    # error, the others held (a placeholder NAME=SE, run as printed, was refused)
+    known = [(abs(c), name, se) for name, c in combination.coefficients.items()
+             if name in result.params and (se := result.params[name].se)]
+    options = "--optimize --target NAME=SE"
+    if known:
+        _, name, se = max(known)
+        target = target_arg(name, 0.5 * se, result.params[name].unit)
+        options = f"--optimize --target {target} --hold"
+    return [f"poorly determined by this motion: {combination.text} (singular value "
             f"{near[0][1]:.1g} of the largest); "
-            + design_sentence(result.problem.path, scenario or None,
-                              "--optimize --target NAME=SE")
+            + design_sentence(result.problem.path, scenario or None, options)
             + " predicts another motion's standard errors before recording it"]
 
 
@@ -1229,6 +1238,21 @@ def design_report(design: Design, result: Result | None = None) -> str:
                          "limit dwell below 1 (or the state's range) in the design "
                          "section, or add the term you fear as a target "
                          "(--target 'mde(TERM)=AMPLITUDE')")
+        repeats = design.repeats
+        if repeats:
+            units = {c.name: c.unit for c in design.scenario.columns}
+            rounded = ", ".join(f"{name} (rounded to {step:g}"
+                                f"{' ' + units[name] if units.get(name) else ''})"
+                                for name, step in repeats.items())
+            lines.append(
+                f"  what the designed motion cannot average: the rounding of {rounded}, "
+                "which the motion reads at repeated poses: each pose rounds the same value "
+                "every time, so its rounding does not average over the draws, whereas the "
+                "standard errors predicted here (and those a solve reports on such data) "
+                "take it for independent noise; what depends on that reading can end far "
+                "more wrong than its standard error, at the floor. Limit dwell below 1 in "
+                "the design section (poses that differ round differently), or record the "
+                "reading with a dither of at least half a step")
     ident0, ident1 = base.identifiability, final.identifiability
     lost = (f" (the given motion's: {ident0.rank}; the designed motion loses "
             f"{ident0.rank - ident1.rank})" if optimised and ident1.rank < ident0.rank else "")
@@ -1276,7 +1300,9 @@ def design_document(design: Design, scenario_path: str | None) -> dict[str, Any]
     standard errors in each parameter's unit (null: determined only in combination),
     ``"held"`` (the parameters ``--hold`` held at their given standard errors),
     ``"blind"`` (``{STATE: share}``: 0 for a state the designed motion holds at the two
-    ends of its range, else the share of its given range it still spans, below 5 %) and
+    ends of its range, else the share of its given range it still spans, below 5 %),
+    ``"repeats"`` (``{COLUMN: step}``: a quantized reading the designed motion reads at
+    repeated poses, whose rounding does not average, the step in the column's unit) and
     ``"worse"`` (``{NAME: factor}``: the growth of a standard error on the designed motion
     beyond 1.1×; null: no longer determined on its own); with
     a term to make detectable also ``"detectable": {"term", "target", "parameters",
@@ -1290,6 +1316,7 @@ def design_document(design: Design, scenario_path: str | None) -> dict[str, Any]
         "binding": list(design.binding),
         "held": [t.name for t in design.held],
         "blind": design.blind,
+        "repeats": design.repeats,
         "worse": design.worse,
         "scenario": scenario_path,
     }

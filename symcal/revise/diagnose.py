@@ -73,7 +73,7 @@ from symcal.revise.library import (
 from symcal.revise.library import (
     own_names as own_names_of,
 )
-from symcal.revise.reliability import mark_two_level, mark_unseen
+from symcal.revise.reliability import CURVES, mark_two_level, mark_unseen, two_levels
 from symcal.revise.variants import Variant, implicit_variant
 from symcal.revise.whitened import design, predict, predicted_spreads, whiten
 
@@ -488,10 +488,20 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
     candidates = [e.candidate for e in entries]
     by_label = {e.candidate.label: e for e in entries}
     gauge_columns = {name: fixed_columns[name] for name in fixes}
+    levels: dict[str, bool] = {}
+
+    def flat(cand: Candidate) -> bool:     # a curve in a variable held at two values
+        name = cand.basis.variable
+        if cand.basis.kind not in CURVES:
+            return False
+        if name not in levels:
+            levels[name] = two_levels(blocks[fit].values(name))
+        return levels[name]
+
     ranked = test_candidates(
         own, candidates, [own_regressor(e.raw) for e in entries], alpha, local,
         [None if e.extra is None else own_regressor(e.extra) for e in entries],
-        gauge_columns, lambda c: on_reference(c, problem) is not None)
+        gauge_columns, lambda c: on_reference(c, problem) is not None, flat)
     have = set(problem.parameter_names)
 
     def restates(cand: Candidate) -> bool:
@@ -730,15 +740,20 @@ def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]
     its meaning there, not its extrapolation to 0 K."""
     basis = entry.candidate.basis
     lower = entry.lower
-    if lower is None or basis.centre == 0.0 or basis.kind == "cubic":
-        return entry        # a cubic stays about its centre: uncentred, it has a quadratic
+    if lower is None or basis.centre == 0.0:
+        return entry
     x_lower = regressor(lower)
     if not absorbed(own, x_lower) and not all(
             unexplained_share(own, x_lower[:, j]) < NEARLY for j in range(x_lower.shape[1])):
         return entry        # the parameters do not (nearly) take what the centre moves
     c = basis.centre
-    v0 = _model_centre(own, x_lower, c) if basis.kind == "quadratic" else 0.0
-    if v0 == 0.0 and _far_from_zero(regressor(entry.raw)[:, 0], x_lower[:, 0], c):
+    power = _power_centre(own, x_lower, c) if basis.kind in ("quadratic", "cubic") else None
+    if basis.kind == "cubic":
+        return entry if power is None else _recentred_cubic(entry, c - power, power)
+    v0 = power if power is not None else (
+        _model_centre(own, x_lower, c) if basis.kind == "quadratic" else 0.0)
+    if power is None and v0 == 0.0 and \
+            _far_from_zero(regressor(entry.raw)[:, 0], x_lower[:, 0], c):
         return entry        # about the data: zero is no point of the run (0 K, 0 degC)
     d = c - v0
     if basis.kind in ("linear", "gain"):    # v = (v - c) + c (times the output)
@@ -754,6 +769,73 @@ def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]
         t.replace("({v} - {centre})", "{v}") for t in basis.terms)
     return Entry(Candidate(entry.candidate.output, replace(basis, centre=v0, terms=terms)),
                  raw, entry.extra, lower)
+
+
+def _recentred_cubic(entry: Entry, d: float, centre: float) -> Entry:
+    """``entry``'s cubic written about ``centre`` (``c - d``, c its own): the centre of
+    the square or cube in the variable the model already has, so that the parameters
+    hold at one point (a quadratic about 0 and a cubic about the data's centre left a
+    magnetometer's scale factor the slope at neither).  With that term in the model,
+    moving the cube's centre moves only what the parameters take: the same test."""
+    lower = entry.lower
+    assert lower is not None
+    basis = entry.candidate.basis
+
+    def raw(i: int) -> np.ndarray:      # (v - centre)³ = ((v - c) + d)³, times the hooks
+        both = lower(i)
+        ones, lin = both[:, :, :1], both[:, :, 1:2]
+        safe = np.where(ones != 0.0, ones, 1.0)
+        return np.where(ones != 0.0, ones * (lin / safe + d) ** 3, 0.0)
+
+    terms = basis.terms if centre != 0.0 else tuple(
+        t.replace("({v} - {centre})", "{v}") for t in basis.terms)
+    return Entry(Candidate(entry.candidate.output, replace(basis, centre=centre,
+                                                           terms=terms)),
+                 raw, entry.extra, lower)
+
+
+def _power_centre(own: Design, x_lower: np.ndarray, centre: float) -> float | None:
+    """The centre C of a square or a cube of the variable the model already has on this
+    output: a free parameter whose column is ``q*(v - C)**2`` or ``k*(v - C)**3`` (a
+    quadratic or cubic an earlier round added), rounded as a centre is; None where there
+    is none, or where two disagree.  ``x_lower`` is the whitened ``[1, v - c]`` of the
+    term's output (``c`` = ``centre``)."""
+    ones, slope = x_lower[:, 0], x_lower[:, 1]
+    rows = np.abs(ones) > 1e-9 * float(np.max(np.abs(ones), initial=0.0))
+    if int(rows.sum()) < 8:
+        return None
+    w, x = ones[rows], slope[rows] / ones[rows]
+    spread = float(np.std(x))
+    if spread == 0.0:
+        return None
+    t = x / spread
+    powers = np.column_stack([w * t**k for k in range(4)])
+    found = []
+    for k in range(own.nuisance.shape[1]):
+        column = own.nuisance[rows, k]
+        size = float(np.linalg.norm(column))
+        if size == 0.0:
+            continue
+        a, *_ = np.linalg.lstsq(powers, column, rcond=None)
+        if float(np.linalg.norm(column - powers @ a)) > POWER * size:
+            continue                    # not a polynomial of degree 3 in the variable
+        big = float(np.max(np.abs(a)))
+        if abs(a[3]) > POWER * big:     # a cube about d: a3 (t - d)³
+            d, pure = -a[2] / (3 * a[3]), w * a[3] * (t + a[2] / (3 * a[3])) ** 3
+        elif abs(a[2]) > POWER * big:   # a square about d: a2 (t - d)²
+            d, pure = -a[1] / (2 * a[2]), w * a[2] * (t + a[1] / (2 * a[2])) ** 2
+        else:
+            continue
+        if float(np.linalg.norm(column - pure)) <= POWER * size:
+            found.append(centre + d * spread)
+    if not found or max(found) - min(found) > POWER * spread:
+        return None
+    return float(f"{found[0]:.6g}") if abs(found[0]) > POWER * spread else 0.0
+
+
+#: A parameter's column is a pure power of a variable where a polynomial leaves less than
+#: this share of it.
+POWER = 1e-6
 
 
 #: A variable's zero is no point of the run when it lies more than this many of the

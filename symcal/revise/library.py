@@ -12,10 +12,10 @@ in the spaces is significant.
 
 **The shapes** on each output of the instance: a harmonic of a periodic variable (orders 1
 to :data:`HARMONICS`), a term linear in a variable, a quadratic, a cubic (odd about the
-data's centre, ``(v - c)**3``, tested beyond the linear term it contains), a drift in
-time, the product of two of the instance's variables (tested beyond the two linear terms it
-contains: it is tried after them), an angle times a harmonic (the orders of the plain
-harmonics), the output's own gain varying with a variable that is not one of the
+data's centre, ``(v - c)**3``, tested beyond the linear and quadratic terms below it),
+a drift in time, the product of two of the instance's variables (tested beyond the two
+linear terms it contains: it is tried after them), an angle times a harmonic (the orders
+of the plain harmonics), the output's own gain varying with a variable that is not one of the
 sensor's readings (``O*(w - c)``, tested beyond the term linear in ``w``: a sensitivity
 that changes with the temperature, where the output is not its reading plus a small
 error), and a share of another of the sensor's outputs (``Bx += k*By``: a triad's
@@ -197,6 +197,8 @@ class _Shape:
     phi: Callable[[Block], np.ndarray]       # block -> (N, m)
     contains: tuple[str, ...] = ()           # variables of the linear terms it contains
     lower: Callable[[Block], np.ndarray] | None = None  # see Entry.lower
+    beyond: Callable[[Block], np.ndarray] | None = None  # other simpler terms it is tested
+    #                                                     beyond (block -> (N, k))
 
 
 def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shape]:
@@ -237,14 +239,15 @@ def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shap
                               _quadratic(v.name, c), lower=_affine(v.name, c)))
         if allowed("cubic"):
             # odd about the data's centre (an amplifier's S-curve about mid-scale), tested
-            # beyond the linear term it contains (tried after it, as a product is) and
-            # beside the quadratic, a candidate of its own: a curve both odd and even is
-            # found in two rounds; written about its centre (uncentred, it would hold a
-            # quadratic part too)
+            # beyond the linear and quadratic terms below it (tried after them, as a
+            # product is: a quadratic on skewed data also correlates with a cube, and a
+            # new user's load cell kept the cube in its place, the cell's sensitivity 9 SE
+            # off); a curve both odd and even is found in two rounds
             out.append(_Shape(Basis("cubic", v.name, f"a cubic dependence on {v.name}",
                                     ("cub",), ("({v} - {centre})**3",), unit=v.unit,
                                     centre=c),
-                              _cubic(v.name, c), (v.name,), lower=_affine(v.name, c)))
+                              _cubic(v.name, c), (v.name,), lower=_affine(v.name, c),
+                              beyond=_square(v.name, c)))
     if allowed("product"):
         # uncentred: a gain growing with time is exactly c·v·t (centring would leave a
         # drift c·v̄·t behind); the linear terms it contains are allowed for in its test
@@ -412,6 +415,10 @@ def _quadratic(name: str, centre: float) -> Callable[[Block], np.ndarray]:
     return lambda b: np.column_stack([b.values(name) - centre, (b.values(name) - centre) ** 2])
 
 
+def _square(name: str, centre: float) -> Callable[[Block], np.ndarray]:
+    return lambda b: ((b.values(name) - centre) ** 2)[:, None]
+
+
 def _cubic(name: str, centre: float) -> Callable[[Block], np.ndarray]:
     return lambda b: ((b.values(name) - centre) ** 3)[:, None]
 
@@ -491,10 +498,12 @@ def _entries(blocks: list[Block], fit: int, h: int, output: str, shapes: list[_S
             return b.hooks[:, :, h][:, :, None] * phi(b)[:, None, :]
 
         extra = None
-        if shape.contains:
+        if shape.contains or shape.beyond is not None:
             parts = [_linear(n, 0.0 if v.kind == "drift" else centre_of(blocks[fit].values(n)))
                      for n in shape.contains
                      for v in variables if v.name == n]
+            if shape.beyond is not None:
+                parts.append(shape.beyond)
 
             def extra(i: int, parts: list = parts) -> np.ndarray:
                 b = blocks[i]

@@ -75,7 +75,13 @@ def mark_unseen(own: Design, entries: Sequence[Entry], ranked: Sequence[Candidat
         x = regressor(entry.raw)
         lower = [regressor(part) for part in (entry.lower, entry.extra) if part is not None]
         reach = unseen_bias(own, x, level)
-        if lower:
+        # a curve is proposed about the point the model's parameters mean (its zero, or
+        # its own centre: the diagnosis chose it to keep that meaning), so its reach as
+        # written is what it would move them by: a new user's load cell, whose
+        # sensitivity is its slope at zero load, ended quiet 20-24 SE off under a
+        # quadratic just below the test's level, unnamed: without its affine part it
+        # reached the sensitivity by less
+        if lower and cand.basis.kind not in CURVES:
             beyond = _beyond(x, np.hstack(lower))
             if _written_alike(own, x, beyond):
                 reach = np.minimum(reach, unseen_bias(own, beyond, level))
@@ -116,6 +122,11 @@ def _beyond(x: np.ndarray, lower: np.ndarray) -> np.ndarray:
 TWO_LEVELS = 1e-3
 
 
+#: Shapes in one variable that are curved in it: on data that hold the variable at two
+#: values, each is an offset and a slope in it, plus that variable's noise.
+CURVES = ("quadratic", "cubic", "harmonic")
+
+
 def two_levels(values: np.ndarray) -> bool:
     """Whether ``values`` cluster at two levels (every draw of a design at the two ends of
     its range): a quadratic in it is then an offset and a gain on these data."""
@@ -142,8 +153,7 @@ def mark_two_level(ranked: Sequence[Candidate], physical: Sequence[str],
     wanted = set(physical)
     for cand in ranked:
         if not (cand.absorbed and cand.biases and not cand.unseen
-                and cand.basis.kind in ("quadratic", "cubic")
-                and two_levels(values(cand.basis.variable))):
+                and cand.basis.kind in CURVES and two_levels(values(cand.basis.variable))):
             continue
         mine = cand.output.split(".", 1)[0] + "."
         cand.unseen = tuple((name, float("inf")) for name in cand.biases

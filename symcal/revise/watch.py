@@ -16,7 +16,6 @@ experiment that would separate them (a ``symcal design`` target).
 
 from __future__ import annotations
 
-import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +24,7 @@ import scipy.stats
 
 from symcal.base.digits import estimate_text
 from symcal.calibrate.result import Result
-from symcal.experiment.command import design_sentence
+from symcal.experiment.command import design_sentence, target_arg
 from symcal.revise.effects import centre_variable
 
 #: A parameter moved by more than this many of its old standard errors is reported.
@@ -268,13 +267,3 @@ def design_hint(result: Result, problem_file: Path, target: tuple[str, float]) -
                      if spec.scenario is not None), None)
     return "an experiment that separates them: " + design_sentence(
         problem_file, scenario, f"--optimize --target {target_arg(name, se, unit)} --hold")
-
-
-def target_arg(name: str, value: float, unit: str) -> str:
-    """``NAME=VALUEUNIT`` as a shell takes it: the unit joined where it starts with a
-    letter (``l_y=0.31mm``), else after a space and quoted (``'ifm.kT=3.3e-09 1/K'``:
-    ``3.3e-091/K`` would read as another number)."""
-    unit = unit.replace(" ", "")
-    if not unit or unit[0].isalpha() or unit[0] in "µ°Ω":
-        return f"{name}={value:.2g}{unit}"
-    return shlex.quote(f"{name}={value:.2g} {unit}")
