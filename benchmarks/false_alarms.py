@@ -76,6 +76,15 @@ SYSTEMS: dict[str, Callable[[], tuple[Path, Scenario, tuple[str, ...]]]] = {
         ROOT / "tests" / "data" / "power_bench" / "problem.yaml",
         load_scenario(ROOT / "tests" / "data" / "power_bench" / "scenario.yaml"),
         ("calibration", "validation")),
+    "robot joint, two encoders and a tracker (tests/data/joint)": lambda: (
+        ROOT / "tests" / "data" / "joint" / "problem.yaml",
+        load_scenario(ROOT / "tests" / "data" / "joint" / "scenario.yaml"),
+        ("calibration", "validation")),
+    "weighing platform, three load cells, test masses and a crane scale "
+    "(tests/data/platform)": lambda: (
+        ROOT / "tests" / "data" / "platform" / "prob-v2.yaml",
+        load_scenario(ROOT / "tests" / "data" / "platform" / "scenario.yaml"),
+        ("calibration", "validation")),
 }
 
 
