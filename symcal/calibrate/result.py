@@ -26,7 +26,14 @@ from symcal.analysis.identifiability import Conditioning, Identifiability, Uncer
 from symcal.analysis.implicit import ImplicitCheck
 from symcal.analysis.outliers import Outliers
 from symcal.analysis.serial import SerialCorrelation
-from symcal.analysis.verdicts import PROPAGATED, DatasetTest, at_floor, family_document
+from symcal.analysis.verdicts import (
+    ALONE_LEVEL,
+    PROPAGATED,
+    DatasetTest,
+    alone_above,
+    at_floor,
+    family_document,
+)
 from symcal.base.errors import SymcalError, excerpt
 from symcal.base.files import atomic_write_text, check_set, json_text
 from symcal.base.numeric import mapped
@@ -495,9 +502,34 @@ class Result:
     def at_floor(self) -> bool | None:
         """Whether every dataset is at its noise floor (:attr:`floor_tests`), one decision
         at 95 % for the datasets together (each dataset's band at the Šidák level,
-        :func:`~symcal.analysis.verdicts.at_floor`): False when one is above or below it, None
-        when one's floor is unknown and none is off it."""
-        return at_floor(self.floor_tests)
+        :func:`~symcal.analysis.verdicts.at_floor`): False when one is above or below it, or
+        when a constraint's own test is above its floor at 1 % over them all
+        (:attr:`alone`); None when one's floor is unknown and none is off it."""
+        return at_floor(self.floor_tests,
+                        tuple(s.noise for s in self.alone if s.noise is not None))
+
+    @property
+    def alone(self) -> tuple[SeriesStats, ...]:
+        """The fitted dataset's constraints whose own test against a propagated floor is
+        known, in the order of :attr:`statistics` (what :attr:`at_floor` tests beside the
+        datasets' joint tests).  Not a held-out dataset's: there a constraint's statistic
+        carries the estimate's error, one draw shared by its rows, and spreads more than
+        its χ² (the joint test allows for it, :func:`~symcal.analysis.floors.held_out_test`;
+        a constraint's own band does not: the power bench's validation g_V stood 3.2 of
+        its standard deviations high on a seed with nothing there)."""
+        fit = self.problem.fit_dataset
+        return tuple(s for s in self.statistics if s.kind == "constraint"
+                     and s.dataset == fit
+                     and s.noise is not None and s.noise.method == PROPAGATED
+                     and s.noise.chi2 is not None and s.noise.dof)
+
+    @property
+    def above_alone(self) -> tuple[tuple[SeriesStats, float], ...]:
+        """The constraints above their own floor at 1 % over them all, with the bound
+        each passed (:func:`~symcal.analysis.verdicts.alone_above`)."""
+        alone = self.alone
+        bounds = alone_above(tuple(s.noise for s in alone if s.noise is not None))
+        return tuple((s, b) for s, b in zip(alone, bounds, strict=True) if b is not None)
 
     @property
     def outliers(self) -> Outliers | None:
@@ -636,7 +668,10 @@ class Result:
             "implicit": [c.to_dict() for c in self.implicit],
             "floor_tests": [t.to_dict() for t in self.floor_tests],
             "at_floor": self.at_floor,
-            "at_floor_test": family_document(self.floor_tests),
+            "at_floor_test": {**family_document(self.floor_tests),
+                              "alone": {"level": ALONE_LEVEL, "above": [
+                                  {"dataset": s.dataset, "name": s.name, "chi2_dof":
+                                   s.chi2_dof, "bound": b} for s, b in self.above_alone]}},
             "information_criteria": {"aic": self.aic, "bic": self.bic, "rows": self.rows,
                                      "rss": self.rss},
             "notes": list(self.notes),

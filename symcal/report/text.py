@@ -162,6 +162,29 @@ def family_note(tests: Any, index: int) -> str:
             f"{band[0]:.2f}–{band[1]:.2f}, 95 % for all of them, Šidák)")
 
 
+def alone_lines(result: Result) -> list[str]:
+    """One line per constraint above its own floor at 1 % over the constraints tested
+    alone (:attr:`~symcal.calibrate.result.Result.above_alone`) whose dataset's joint
+    test is at the floor (where it is not, the dataset's line says so already)."""
+    above = getattr(result, "above_alone", ())
+    if not above:
+        return []
+    family = dict(zip((t.dataset for t in result.floor_tests),
+                      family_verdicts(result.floor_tests), strict=True))
+    k = len(result.alone)
+    lines = []
+    for s, bound in above:
+        if s.noise is None or family.get(s.dataset) != "at":
+            continue            # its dataset is off its floor already: said there
+        lines.append(f"{s.dataset} {s.name}: above its own floor ({_chi2_text(s.noise)}; "
+                     f"beyond {bound:.3g}, its bound at 1 % over the {k} constraints "
+                     "tested alone): the dataset's joint test, which weighs its "
+                     "constraints by their shared noise, is at the floor, but a signal "
+                     "the constraints share lies along that noise and the joint test "
+                     "dilutes it")
+    return lines
+
+
 def floor_lines(result: Result) -> list[str]:
     """One verdict line per dataset: its constraints' global test against the floor (and
     where the family-wise decision of ``at_floor`` differs from its own band, why)."""
@@ -178,7 +201,7 @@ def floor_lines(result: Result) -> list[str]:
                 for s in result.statistics if s.dataset == t.dataset):
             text += " (some floors estimated from the data: successive differences)"
         lines.append(f"{t.dataset}: {text}")
-    return lines
+    return lines + alone_lines(result)
 
 
 def _what(s: Any) -> str:
@@ -772,6 +795,7 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     family = family_verdicts(tests)
     where += [f"{t.dataset}: {floor_verdict(t)}" for t, v in zip(tests, family, strict=True)
               if v in ("above", "below")]
+    where += alone_lines(result)
     worst = _worst_against_floor(result, floors)
     if worst is not None and worst[0].noise is not None and worst[0].noise.verdict == "above":
         where.append(str(_worst_text(result, floors)))
