@@ -110,3 +110,22 @@ def test_the_design_says_a_rounding_repeats_at_its_poses(tmp_path) -> None:
     text = (tmp_path / "design" / "report.txt").read_text()
     assert ("what the designed motion cannot average: the rounding of c (rounded to 1 "
             "count), which the motion reads at repeated poses") in text
+
+
+def test_a_prediction_casadi_cannot_evaluate_is_a_failure_not_an_internal_error() -> None:
+    """A new user's scenario (``atan(1/tan(pi*t/P))``) made the optimisation's first
+    evaluation fail inside CasADi: an internal error.  It is now a failed design (exit 1)
+    that says what to look for."""
+    from symcal.base.errors import SolveError
+    from symcal.experiment.optimize import _at_start
+
+    def failing(x0):
+        raise RuntimeError("Error in Function::call for 'r' [MXFunction]\n"
+                           ".../function_internal.hpp:1766: Evaluation failed")
+
+    with pytest.raises(SolveError) as info:
+        _at_start(failing, [0.0])
+    assert info.value.exit_code == 1
+    assert str(info.value).startswith(
+        "design: the optimisation cannot evaluate its prediction on the given motion "
+        "(CasADi: .../function_internal.hpp:1766: Evaluation failed)")

@@ -43,7 +43,7 @@ import casadi as ca
 import numpy as np
 
 from symcal.base.didyoumean import did_you_mean
-from symcal.base.errors import SymcalError
+from symcal.base.errors import SolveError, SymcalError
 from symcal.base.linalg import sqrt_psd, whitening
 from symcal.base.progress import Bars, Progress, Report, reporting
 from symcal.base.units import internal_unit, size
@@ -353,6 +353,22 @@ def parse_target(text: str, problem: Problem) -> Target:
 # --------------------------------------------------------------------------- motions
 
 
+def _at_start(fn: ca.Function, x0: list[float]) -> Any:
+    """``fn(x0)``, the design's prediction on the given motion, or a clear error where
+    CasADi cannot evaluate it (a new user's scenario with ``atan(1/tan(pi*t/P))``: the
+    evaluation failed inside, reported as an internal error)."""
+    try:
+        return fn(x0)
+    except RuntimeError as exc:
+        raise SolveError(
+            "design: the optimisation cannot evaluate its prediction on the given motion "
+            "(CasADi: " + str(exc).splitlines()[-1].strip()[:160] + "); an expression of "
+            "the problem or the scenario that is not finite there (a division by zero, a "
+            "tan at its pole) does this, and so may a fault of symcal's: if none is, "
+            "please report it with the output of 'symcal --debug ...'. symcal design "
+            "without --optimize predicts the given motion") from None
+
+
 def motion_of(scenario: Scenario, run: str) -> Scatter | Dwells:
     """The scatter or dwells motion of ``run`` (a line or series cannot be designed)."""
     motion = scenario.runs[scenario.run_index(run)].motion
@@ -624,7 +640,7 @@ def _optimise(model: _Model, variables: list[_Var], fixed: dict[str, object],
             term_model, term = detect
             ratios.append(term_model.mde2(term_model.covariance(values), term)
                           / term.value**2 / n_scale)
-        start: Any = ca.Function("r", [d], ratios)(x0)
+        start: Any = _at_start(ca.Function("r", [d], ratios), x0)
         start = start if isinstance(start, (list, tuple)) else [start]
         g += [r - t for r in ratios]
         glb += [-ca.inf] * len(ratios)
@@ -634,7 +650,7 @@ def _optimise(model: _Model, variables: list[_Var], fixed: dict[str, object],
         x0 = x0 + [t0]
     else:
         assert criterion is not None
-        reference = float(ca.Function("c", [d], [ca.trace(cov)])(x0))
+        reference = float(_at_start(ca.Function("c", [d], [ca.trace(cov)]), x0))
         objective = _criterion(criterion, cov, model.rank, reference)
     gub = [0.0 if b == -ca.inf else -b if b < 0 else ca.inf for b in glb]
     glb = [-ca.inf if b < 0 else b for b in glb]
