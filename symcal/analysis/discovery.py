@@ -49,8 +49,7 @@ class Basis:
     """φ(v): the shape of a candidate term, with what it takes to write it in YAML."""
 
     kind: str                  # harmonic | linear | quadratic | cubic | angle_harmonic |
-                               # drift |
-                               # product | gain | latency | constant | fixed |
+                               # drift | product | gain | latency | constant | fixed |
                                # approximation
     variable: str              # the variable's name in the problem (column, signal, expr)
     description: str           # e.g. "harmonic 3 of s2.p (period 1.016 mm)"

@@ -244,7 +244,7 @@ def alone_above(tests: Sequence[FloorTest], level: float = ALONE_LEVEL
     out: list[float | None] = []
     for t in tests:
         value = t.chi2_dof
-        if t not in known or value is None:
+        if not any(t is k for k in known) or value is None:
             out.append(None)
             continue
         nu = 2.0 / t.sd**2 if t.sd else float(t.dof or 0.0)
