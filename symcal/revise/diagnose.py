@@ -737,7 +737,10 @@ def _uncentred(entry: Entry, own: Design, regressor: Callable[[Raw], np.ndarray]
     which a ``quad*T**2`` would move).  Where zero is no point of the run
     (:func:`_far_from_zero`: a temperature in kelvin or degC) and the model has no centre
     of its own, the term stays about the run's centre: the bias a gyro had in the run is
-    its meaning there, not its extrapolation to 0 K."""
+    its meaning there, not its extrapolation to 0 K.  Where the model already has a
+    square or a cube in the variable (:func:`_power_centre`), a quadratic or a cubic goes
+    about its centre; a cubic otherwise stays about the run's (uncentred, it would hold a
+    quadratic part too)."""
     basis = entry.candidate.basis
     lower = entry.lower
     if lower is None or basis.centre == 0.0:
