@@ -251,15 +251,26 @@ def test_predictions_are_what_solving_again_gives(case, start, tmp_path) -> None
     again = symcal.solve(revised, data)
     for key, (_, predicted) in lead.reduction.items():
         dataset, name = key.split("/")
-        actual = again.stat(name, dataset).shown("after").std
+        stat = again.stat(name, dataset)
+        actual = stat.shown("after").size(stat.remove_mean)      # the RMS it predicts
         assert predicted == pytest.approx(actual, rel=0.2), (lead.label, key)
+        scatter = lead.scatter[key][1]
+        assert scatter == pytest.approx(stat.shown("after").std, rel=0.2), (lead.label, key)
 
 
 @pytest.mark.slow
 def test_a_candidate_left_unsolved_would_have_been_refused(tmp_path, monkeypatch) -> None:
     """The loop does not solve a candidate whose held-out constraint residuals the
-    diagnosis predicts to grow; solved anyway, each of them is refused for it."""
+    diagnosis predicts to grow (their RMS and their standard deviation alike); solved
+    anyway, each of them is refused for it.  A thermistor bath whose second thermistor
+    lags by a step that follows the sweep's direction: after the first round, the
+    diagnosis predicts both sizes to grow for a delay and a drift."""
     from symcal.revise import improve as loop
+
+    bath = ROOT / "tests" / "acceptance" / "thermistor_bath"
+    scenario = load_scenario(bath / "scenario_hysteresis.yaml")
+    data = {k: make_dataset(k, "simulated", simulate_run(scenario, k, 1000), [])
+            for k in ("calibration", "validation")}
 
     skipped = []
     predicted_worse = loop._predicted_worse
@@ -271,7 +282,7 @@ def test_a_candidate_left_unsolved_would_have_been_refused(tmp_path, monkeypatch
         return why
 
     monkeypatch.setattr(loop, "_predicted_worse", spy)
-    outcome = improve(EXPLICIT, tmp_path / "out")
+    outcome = improve(bath / "problem.yaml", tmp_path / "out", data, max_rounds=2)
     assert skipped and all(("; ".join(labels), why) in outcome.rejected
                            for _, labels, why in skipped)
     for i, (diag, labels, why) in enumerate(skipped):
@@ -329,16 +340,19 @@ def test_a_prediction_for_siblings_together_is_what_solving_again_gives(tmp_path
     lead = next(c for c in diag.significant if c.label.startswith("s2.p_hat += harmonic 3"))
     also = siblings(diag, lead)
     assert len(also) == 3 and diag.together is not None
-    assert diag.together([lead.label]) == lead.reduction
-    predicted = diag.together([c.label for c in (lead, *also)])
+    assert diag.together([lead.label]) == (lead.reduction, lead.scatter)
+    sizes, scatter = diag.together([c.label for c in (lead, *also)])
     path = write_revision(result.problem, lead, tmp_path, "all", also)
     again = symcal.solve(path, result.data)
     assert again.success
-    for key, (now, new) in predicted.items():
+    for key, (now, new) in sizes.items():
         dataset, name = key.split("/")
-        assert now == pytest.approx(result.stat(name, dataset).shown("after").std)
-        assert new == pytest.approx(again.stat(name, dataset).shown("after").std,
+        before, after = result.stat(name, dataset), again.stat(name, dataset)
+        assert now == pytest.approx(before.shown("after").size(before.remove_mean))
+        assert new == pytest.approx(after.shown("after").size(after.remove_mean),
                                     rel=0.2), key
+        assert scatter[key][0] == pytest.approx(before.shown("after").std)
+        assert scatter[key][1] == pytest.approx(after.shown("after").std, rel=0.2), key
 
 
 def _apply_printed(text: str, home: Path) -> Path:
@@ -630,10 +644,13 @@ def test_the_models_approximation_is_solved_whatever_its_prediction() -> None:
     term = next(c for c in diag.candidates if c.basis.kind == "harmonic" and c.reduction)
     for cand in (by_label[APPROXIMATION], term):
         cand.reduction = {k: (now, 2 * now) for k, (now, _) in cand.reduction.items()}
+        cand.scatter = {k: (now, 3 * now) for k, (now, _) in cand.scatter.items()}
     assert _predicted_worse(diag, [APPROXIMATION]) is None
     assert _predicted_worse(diag, [term.label]) == (
         "not solved: the diagnosis predicts that the held-out constraint residuals do not "
-        "fall (mean change +100.0%)")
+        "fall (mean change +100.0% in RMS, +200.0% in standard deviation)")
+    term.scatter = {k: (now, 0.9 * now) for k, (now, _) in term.scatter.items()}
+    assert _predicted_worse(diag, [term.label]) is None      # its scatter falls
 
 
 @pytest.mark.parametrize("corr", [0.0, 0.6, -0.95])

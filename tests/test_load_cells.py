@@ -14,6 +14,7 @@ weighed), cell 2 with a quadratic nonlinearity (1.5e-3 per mV/V).
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from conftest import ROOT
 
@@ -94,3 +95,53 @@ def test_a_constraint_far_above_its_own_floor_is_not_at_the_floor() -> None:
     doc = result.to_dict()["at_floor_test"]["alone"]
     assert doc["level"] == 0.01 and {a["name"] for a in doc["above"]} == {"g_test",
                                                                          "g_crane"}
+
+
+CRANE = "the fixed parameter crane.off (zero offset (certificate)) is off"
+
+
+def test_an_offset_is_kept_for_the_mean_it_removes_on_held_out_data(tmp_path) -> None:
+    """The crane scale reads 0.4 kg high (8 times its noise).  Freeing its zero offset
+    took the BIC from 4052 to 82, and the loop refused it: "the held-out constraint
+    residuals do not fall (mean change +0.0 %)".  The check compared standard
+    deviations, which an offset does not move: it moves the mean.  The residuals are now
+    compared by their RMS (the mean is an error of the model like the scatter), and the
+    diagnosis predicts the same RMS, so that a candidate it skips is one the check would
+    refuse."""
+    from symcal.revise.improve import _predicted_worse, held_out_change
+
+    scenario = load_scenario(PLATFORM / "scenario.yaml").overlay(
+        {"effects": {"crane_off": {"on": True}}})
+    data = {k: make_dataset(k, "simulated", simulate_run(scenario, k, 11), [])
+            for k in ("calibration", "validation")}
+    result = symcal.solve(PROBLEM, data)
+    diag = symcal.diagnose(result, report=False)
+    cand = next(c for c in diag.candidates if c.label == CRANE)
+    assert cand.significant
+    now, new = cand.reduction["validation/g_crane"]
+    assert new < 0.5 * now                           # the offset's RMS, predicted gone
+    assert _predicted_worse(diag, [CRANE]) is None
+    done = symcal.improve(PROBLEM, tmp_path / "out", data, max_rounds=3)
+    assert [r.added for r in done.rounds[1:]] == [CRANE], done.rejected
+    assert done.quiet and done.at_floor
+    final = done.rounds[-1].result
+    assert held_out_change(final, result, "constraint") < np.log(0.5)
+    # the ladder shows the RMS the loop judged by, beside the standard deviation
+    from symcal.report.ladder import ladder_report
+    from symcal.revise.ladder import compare
+
+    rungs = compare([result, final])
+    ladder = ladder_report(rungs)
+    assert rungs[1].to_dict()["spreads"][-1]["rms"] is not None
+    row = next(line.split() for line in ladder.splitlines()
+               if line.strip().startswith("validation g_crane RMS (kg)"))
+    before = result.stat("g_crane", "validation").shown("after")
+    after = final.stat("g_crane", "validation").shown("after")
+    assert [float(v) for v in row[-2:]] == pytest.approx([before.rms, after.rms], rel=1e-3)
+    assert after.rms < 0.5 * before.rms and after.std == pytest.approx(before.std, rel=0.05)
+    off = final.params["crane.off"]
+    assert abs(off.value - 0.4) < 3 * off.se, (off.value, off.se)
+    true = truth(scenario)["parameters"]
+    for name in ("c1.S", "c2.S", "c3.S", "M0"):
+        p = final.params[name]
+        assert abs(p.value - true[name]) < 3 * p.se, (name, p.value, p.se)

@@ -108,7 +108,10 @@ class Candidate:
     significant: bool = False
     absorbed: bool = False
     biases: tuple[str, ...] = ()
+    # every residual's RMS now and as predicted with the term ("DATASET/NAME" → (now, new),
+    # display units), and the same of their standard deviations
     reduction: dict[str, tuple[float, float]] = field(default_factory=dict)
+    scatter: dict[str, tuple[float, float]] = field(default_factory=dict)
     coefficient: tuple[float, ...] = ()
     coefficient_se: tuple[float, ...] = ()
     indistinguishable: list[str] = field(default_factory=list)
@@ -412,7 +415,7 @@ def test_candidates(
         cand.p_value = float(scipy.stats.f.sf(cand.f_stat, m, rest))
         cand.log_p = f_log_sf(cand.f_stat, m, rest)     # finite where p underflows
         cand.significant = cand.p_value < level
-        cand.reduction = _reduction(design, r, base - q @ proj)
+        cand.reduction, cand.scatter = _reduction(design, r, base - q @ proj)
         cand.mde = _detectable(xp, cand.basis.scales, m, level, denom, cand.basis.term)
     tested = [c for c in candidates if not c.absorbed and not c.reopens]
     ranked = sorted(tested, key=lambda c: (c.log_p, -c.delta_rss))
@@ -512,18 +515,27 @@ def _detectable(xp: np.ndarray, scales: tuple[float, ...], m: int, level: float,
     return term * float(np.sqrt(noncentrality(m, level) * variance / low))
 
 
+def rms(values: np.ndarray) -> float:
+    """The root mean square of ``values``: what :func:`_reduction` and a candidate's
+    predictions measure a residual by (an offset is an error like the scatter)."""
+    return float(np.sqrt(np.mean(np.square(values))))
+
+
 def _reduction(design: Design, before: np.ndarray, after: np.ndarray
-               ) -> dict[str, tuple[float, float]]:
-    """Standard deviation of every residual, before and after adding a candidate."""
-    out = {}
+               ) -> tuple[dict[str, tuple[float, float]], dict[str, tuple[float, float]]]:
+    """The RMS of every residual before and after adding a candidate, and the same of
+    their standard deviations."""
+    sizes, scatter = {}, {}
     for dataset, rows, unwhiten, names, scales in design.blocks:
         rank = unwhiten.shape[2]
         b = np.einsum("nqr,nr->nq", unwhiten, before[rows].reshape(-1, rank))
         a = np.einsum("nqr,nr->nq", unwhiten, after[rows].reshape(-1, rank))
         for k, name in enumerate(names):
-            out[f"{dataset}/{name}"] = (float(np.std(b[:, k]) / scales[k]),
-                                        float(np.std(a[:, k]) / scales[k]))
-    return out
+            key = f"{dataset}/{name}"
+            sizes[key] = (rms(b[:, k]) / scales[k], rms(a[:, k]) / scales[k])
+            scatter[key] = (float(np.std(b[:, k]) / scales[k]),
+                            float(np.std(a[:, k]) / scales[k]))
+    return sizes, scatter
 
 
 def _same(a: Candidate, b: Candidate) -> bool:

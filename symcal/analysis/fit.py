@@ -34,6 +34,12 @@ class Spread:
         return cls(float(np.sqrt(np.mean(values**2))), float(np.mean(values)),
                    float(np.std(values)))
 
+    def size(self, remove_mean: bool) -> float:
+        """The residual's size as a model's fit is judged by it: its RMS (a constraint's
+        mean is an error of the model like its scatter: an offset moves the mean only),
+        its standard deviation where ``remove_mean`` says the mean is an arbitrary zero."""
+        return self.std if remove_mean else self.rms
+
 
 @dataclass(frozen=True)
 class SeriesStats:

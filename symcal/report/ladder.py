@@ -14,7 +14,10 @@ from symcal.revise.ladder import Rung
 
 
 def ladder_report(rungs: Sequence[Rung]) -> str:
-    """The ladder as a table: one column per model revision."""
+    """The ladder as a table: one column per model revision; each residual's standard
+    deviation and, where its mean is no arbitrary zero and the two differ as shown, its
+    RMS (what ``symcal improve`` judges a held-out residual by: an offset moves the mean
+    alone)."""
     keys: list[tuple[str, str]] = []
     for r in rungs:
         keys += [k for k in r.spreads if k not in keys]
@@ -23,12 +26,16 @@ def ladder_report(rungs: Sequence[Rung]) -> str:
             ["identifiable / free parameters", *[f"{r.identifiable} / {r.free}" for r in rungs]],
             ["AIC (calibration)", *[f"{r.aic:.1f}" for r in rungs]],
             ["BIC (calibration)", *[f"{r.bic:.1f}" for r in rungs]]]
-    for dataset, quantity in keys:
-        unit = next(r.spreads[(dataset, quantity)][1] for r in rungs
-                    if (dataset, quantity) in r.spreads)
-        label = f"{dataset} {quantity} std ({symbol(unit)})"
-        rows.append([label, *[f"{r.spreads[(dataset, quantity)][0]:.4g}"
-                              if (dataset, quantity) in r.spreads else "—" for r in rungs]])
+    for key in keys:
+        unit = next(r.spreads[key][1] for r in rungs if key in r.spreads)
+        rows.append([f"{key[0]} {key[1]} std ({symbol(unit)})",
+                     *[f"{r.spreads[key][0]:.4g}" if key in r.spreads else "—"
+                       for r in rungs]])
+        if any(key in r.sizes and key in r.spreads and not r.sizes[key][1]
+               and f"{r.sizes[key][0]:.4g}" != f"{r.spreads[key][0]:.4g}" for r in rungs):
+            rows.append([f"{key[0]} {key[1]} RMS ({symbol(unit)})",
+                         *[f"{r.sizes[key][0]:.4g}" if key in r.sizes else "—"
+                           for r in rungs]])
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
     lines = ["symcal compare: model revisions on the same data (lower is better; a lower "
              "AIC/BIC says the added parameters pay for themselves)", ""]

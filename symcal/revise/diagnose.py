@@ -75,7 +75,7 @@ from symcal.revise.library import (
 )
 from symcal.revise.reliability import CURVES, mark_two_level, mark_unseen, two_levels
 from symcal.revise.variants import Variant, implicit_variant
-from symcal.revise.whitened import design, predict, predicted_spreads, whiten
+from symcal.revise.whitened import Sizes, design, predict, predicted_spreads, whiten
 
 #: How many leading candidates get a prediction and a suggestion.
 TOP = 10
@@ -137,8 +137,8 @@ class Diagnosis:
     ``spaces`` says, per instance, which space of candidates was searched;
     ``gauge_fixes`` names the fixed parameters that fix a gauge (never tested as "off",
     and no candidate that re-opens one is proposed: :attr:`reopened`).  ``together``
-    predicts, as a candidate's ``reduction``, what solving again with several candidates
-    at once would give (their labels; None where none were tested).
+    predicts, as a candidate's ``reduction`` and ``scatter``, what solving again with
+    several candidates at once would give (their labels; None where none were tested).
     """
 
     result: Result
@@ -154,7 +154,7 @@ class Diagnosis:
     pointer: str = ""
     spaces: tuple[str, ...] = ()
     gauge_fixes: dict[str, str] = field(default_factory=dict)
-    together: Callable[[Sequence[str]], dict[str, tuple[float, float]]] | None = field(
+    together: Callable[[Sequence[str]], tuple[Sizes, Sizes]] | None = field(
         default=None, repr=False)
     # how to test a coupling what is left points at but no search space holds
     unsearched: tuple[str, ...] = ()
@@ -277,7 +277,7 @@ def _read_by_output(problem: Problem) -> dict[str, tuple[str, ...]]:
 
 def _falls(cand: Candidate) -> str:
     biggest = sorted(cand.reduction.items(), key=lambda kv: -(kv[1][0] - kv[1][1]))[:3]
-    return "; ".join(f"{k.replace('/', ' ')} std {b:.3g} → {a:.3g}" for k, (b, a) in biggest)
+    return "; ".join(f"{k.replace('/', ' ')} RMS {b:.3g} → {a:.3g}" for k, (b, a) in biggest)
 
 
 def _group_words(cand: Candidate, own: Mapping[str, tuple[str, ...]]) -> str:
@@ -543,7 +543,7 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
         predict(cand, own, own_regressor(by_label[cand.label].raw), blocks, free,
                 by_label[cand.label].raw)
 
-    def together(labels: Sequence[str]) -> dict[str, tuple[float, float]]:
+    def together(labels: Sequence[str]) -> tuple[Sizes, Sizes]:
         parts = [by_label[label].raw for label in labels]
 
         def raw(i: int) -> np.ndarray:

@@ -14,7 +14,7 @@ name.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from symcal.calibrate.result import Result
@@ -74,6 +74,9 @@ class Rung:
     bic: float
     spreads: dict[tuple[str, str], tuple[float, str]]   # (dataset, quantity) -> (std, unit)
     label: str = ""
+    # (dataset, quantity) -> (RMS, whether the mean is an arbitrary zero): symcal improve
+    # judges a held-out residual by its RMS, by its std where the mean is arbitrary
+    sizes: dict[tuple[str, str], tuple[float, bool]] = field(default_factory=dict)
 
     @property
     def title(self) -> str:
@@ -85,10 +88,12 @@ class Rung:
         """The rung of one calibration result (labelled by its file name by default)."""
         spreads = {(s.dataset, s.name): (s.shown("after").std, s.unit or "(internal)")
                    for s in result.statistics}
+        sizes = {(s.dataset, s.name): (s.shown("after").rms, s.remove_mean)
+                 for s in result.statistics}
         return cls(result.name, result.problem_path, result.success,
                    result.identifiability.rank, len(result.stages[-1].free), result.rows,
                    result.rss, result.aic, result.bic, spreads,
-                   label if label is not None else Path(result.problem.path).name)
+                   label if label is not None else Path(result.problem.path).name, sizes)
 
     def to_dict(self) -> dict:
         """Plain-data form (units as declared)."""
@@ -96,7 +101,9 @@ class Rung:
                 "success": self.success,
                 "identifiable_parameters": self.identifiable, "free_parameters": self.free,
                 "rows": self.rows, "rss": self.rss, "aic": self.aic, "bic": self.bic,
-                "spreads": [{"dataset": d, "quantity": q, "std": s, "unit": u}
+                "spreads": [{"dataset": d, "quantity": q, "std": s,
+                             "rms": self.sizes[(d, q)][0] if (d, q) in self.sizes else None,
+                             "unit": u}
                             for (d, q), (s, u) in self.spreads.items()]}
 
 

@@ -16,12 +16,15 @@ from collections.abc import Callable
 
 import numpy as np
 
-from symcal.analysis.discovery import Candidate, Design, bic_change, refit
+from symcal.analysis.discovery import Candidate, Design, bic_change, refit, rms
 from symcal.analysis.row_noise import EXACT
 from symcal.base.linalg import range_basis, whitening
 from symcal.base.units import DISPLAY_UNITS
 from symcal.problem.symbolic import Problem
 from symcal.revise.blocks import Block
+
+#: Each residual's ``"DATASET/NAME"`` → (now, predicted), display units.
+Sizes = dict[str, tuple[float, float]]
 
 Raw = Callable[[int], np.ndarray]   # block index -> unwhitened regressor (N, n_q, m)
 
@@ -121,29 +124,33 @@ def predict(cand: Candidate, own: Design, x_own: np.ndarray, blocks: list[Block]
             free: np.ndarray, raw: Raw) -> None:
     """What solving the calibration again with ``cand`` would give on every dataset: a
     Gauss-Newton refit of the current parameters and the candidate's coefficients on the
-    calibration's constraints, applied to every residual; fills ``reduction`` (std now →
-    predicted, display units) and the coefficients of the term to add (regressors are the
+    calibration's constraints, applied to every residual; fills ``reduction`` (RMS now →
+    predicted, display units; the standard deviation where a comparison's mean is an
+    arbitrary zero) and the coefficients of the term to add (regressors are the
     change a term of coefficient 1 makes) with standard errors, and the BIC's predicted
     change (:func:`~symcal.analysis.discovery.bic_change`)."""
-    coef_x, cov, out = predicted_spreads(own, x_own, blocks, free, raw)
+    coef_x, cov, (sizes, scatter) = predicted_spreads(own, x_own, blocks, free, raw)
     cand.bic_change = bic_change(own, x_own)
     # the fit explains the residual as X·δ; the term to add to the model is -δ
     cand.coefficient = tuple(-float(v) for v in coef_x)
     cand.coefficient_se = tuple(float(np.sqrt(max(cov[k, k], 0.0)))
                                 for k in range(len(coef_x)))
-    cand.reduction = out
+    cand.reduction, cand.scatter = sizes, scatter
 
 
 def predicted_spreads(own: Design, x_own: np.ndarray, blocks: list[Block],
                       free: np.ndarray, raw: Raw
-                      ) -> tuple[np.ndarray, np.ndarray, dict[str, tuple[float, float]]]:
+                      ) -> tuple[np.ndarray, np.ndarray, tuple[Sizes, Sizes]]:
     """The Gauss-Newton refit of :func:`predict` for the regressors ``x_own`` (whitened,
     the calibration's constraints) and ``raw`` (every block's): their coefficients, the
-    coefficients' covariance, and ``"DATASET/NAME"`` → (std now, predicted std) in
-    display units."""
+    coefficients' covariance, and every residual's RMS now and predicted (the mean
+    removed first where it is an arbitrary zero) and the same of its standard deviation:
+    the sizes ``symcal improve`` compares after the solve
+    (:meth:`~symcal.analysis.fit.Spread.size`)."""
     coef_n, coef_x, cov, _ = refit(own, x_own)
     n_params = int(free.sum())
-    out: dict[str, tuple[float, float]] = {}
+    sizes: Sizes = {}
+    scatter: Sizes = {}
     for i, b in enumerate(blocks):
         change = b.jac @ coef_n[:n_params] + raw(i) @ coef_x
         predicted = b.after - change
@@ -151,7 +158,7 @@ def predicted_spreads(own: Design, x_own: np.ndarray, blocks: list[Block],
             now, new = b.after[:, k], predicted[:, k]
             if b.offsets[k]:
                 now, new = now - now.mean(), new - new.mean()
-            scale = DISPLAY_UNITS[b.units[k]]
-            out[f"{b.dataset.name}/{name}"] = (float(np.std(now)) / scale,
-                                               float(np.std(new)) / scale)
-    return coef_x, cov, out
+            scale, key = DISPLAY_UNITS[b.units[k]], f"{b.dataset.name}/{name}"
+            sizes[key] = (rms(now) / scale, rms(new) / scale)
+            scatter[key] = (float(np.std(now)) / scale, float(np.std(new)) / scale)
+    return coef_x, cov, (sizes, scatter)

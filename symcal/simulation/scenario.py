@@ -446,10 +446,10 @@ def _value(name: str, value: Any, where: Where) -> Value:
 
 
 def _dotted(key: Any, where: Where, what: str) -> str:
-    if not isinstance(key, str) or not _DOTTED.match(key) or key.split(".")[0] in (
-            expr.RESERVED_NAMES):
+    if not isinstance(key, str) or not _DOTTED.match(key):
         raise SpecError(where, f"{what} must be a name with at most one dot (s1.k0), found "
                                f"{excerpt(repr(key))}")
+    expect_symbol(key.split(".")[0], where, f"{what}'s name")   # abs.k: abs is reserved
     return key
 
 
