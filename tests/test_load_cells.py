@@ -20,7 +20,7 @@ from conftest import ROOT
 
 import symcal
 from symcal.data.dataset import make_dataset
-from symcal.report.text import diagnosis_report
+from symcal.report.text import detectable_text, diagnosis_report
 from symcal.simulation import load_scenario, simulate_run, truth
 
 PLATFORM = ROOT / "tests" / "data" / "platform"
@@ -121,6 +121,11 @@ def test_an_offset_is_kept_for_the_mean_it_removes_on_held_out_data(tmp_path) ->
     now, new = cand.reduction["validation/g_crane"]
     assert new < 0.5 * now                           # the offset's RMS, predicted gone
     assert _predicted_worse(diag, [CRANE]) is None
+    # its detectable size in the JSON is the text's, in the parameter's unit (it said
+    # "(internal)" for a fixed parameter's and a delay's)
+    entry = next(c for c in diag.to_dict()["candidates"] if c["label"] == CRANE)
+    assert entry["mde_unit"] == "kg" and 0 < entry["mde"] < 0.1
+    assert detectable_text(result, cand).startswith(f"{entry['mde']:.3g}"[:4])
     done = symcal.improve(PROBLEM, tmp_path / "out", data, max_rounds=3)
     assert [r.added for r in done.rounds[1:]] == [CRANE], done.rejected
     assert done.quiet and done.at_floor

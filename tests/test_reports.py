@@ -368,7 +368,7 @@ def test_diagnosis_document(gain: symcal.Result, gain_diagnosis) -> None:
     assert [ln.strip() for ln in section.splitlines()[1:]] == doc["left"]
     assert "<h2>What is left above the noise floor</h2>" in html_report(doc, text)
     # each candidate's minimal detectable effect, in the unit of the residuals (µm)
-    assert all(c["mde"] > 0 and c["mde_unit"] == "mm" for c in doc["candidates"]
+    assert all(c["mde"] > 0 and c["mde_unit"] == "um" for c in doc["candidates"]
                if c["label"] != "the model's approximation: errors evaluated at the raw "
                "readings")
     assert "detectable from" in text.split("Which effect is missing")[1].splitlines()[1]

@@ -734,29 +734,13 @@ def _strongest_left(diag: Any) -> str:
     return f"; what is left: {lines[0]}" if lines else ""
 
 
-def output_unit(result: Result, output: str) -> str:
-    """The unit a term on a sensor output is shown in: that of the first constraint of its
-    dimension (the residuals' scale, e.g. µm), else the output's declared unit."""
-    from symcal.base.units import internal_unit
-
-    unit = next((s.unit for s in result.problem.signals if s.name == output), "")
-    return next((c.unit for c in result.problem.constraints
-                 if internal_unit(c.unit) == internal_unit(unit)), unit)
-
-
 def detectable_text(result: Result, cand: Any) -> str:
-    """A candidate's minimal detectable effect in its output's unit (``—`` unknown)."""
-    mde = getattr(cand, "mde", None)
-    if mde is None:
-        return "—"
-    kind = cand.basis.kind
-    if kind == "fixed":        # a fixed parameter's change, in its declared unit
-        return _spread_text(mde, cand.basis.unit)
-    if kind in ("constant", "latency"):   # a constant's or a delay's, internal units
-        unit = cand.basis.unit
-        return _spread_text(mde / DISPLAY_UNITS[unit], unit)
-    unit = output_unit(result, cand.output)
-    return _spread_text(mde / DISPLAY_UNITS[unit], unit)
+    """A candidate's minimal detectable effect in its unit (``—`` unknown;
+    :func:`~symcal.revise.diagnose.detectable`)."""
+    from symcal.revise.diagnose import detectable
+
+    found = detectable(result, cand)
+    return "—" if found is None else _spread_text(*found)
 
 
 def outliers_dominate(diag: Diagnosis) -> bool:

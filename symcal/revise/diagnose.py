@@ -53,7 +53,7 @@ from symcal.analysis.residuals import (
 )
 from symcal.base.digits import estimate_text
 from symcal.base.numeric import mapped
-from symcal.base.units import DISPLAY_UNITS
+from symcal.base.units import DISPLAY_UNITS, internal_unit
 from symcal.calibrate.result import Result
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
@@ -197,10 +197,6 @@ class Diagnosis:
         return _words(cand, self.alpha, self.tested, self.variant, self.own) + \
             _reference_words(cand, self.result)
 
-    def _unit(self, cand: Candidate) -> str:
-        """The declared unit of a candidate's output."""
-        return next((s.unit for s in self.result.problem.signals if s.name == cand.output), "")
-
     def to_dict(self, series: bool = False) -> dict:
         """Plain data (``--json``; with ``series`` the plotting contract)."""
         ranked = list(self.leads)
@@ -217,8 +213,7 @@ class Diagnosis:
                  "reduction": {k: list(v) for k, v in c.reduction.items()},
                  "predicted": {k: v[1] for k, v in c.reduction.items()},
                  "indistinguishable": list(c.indistinguishable),
-                 "mde": None if c.mde is None else c.mde / DISPLAY_UNITS[self._unit(c)],
-                 "mde_unit": self._unit(c) or "(internal)",
+                 **_mde_fields(self.result, c),
                  "text": self.candidate_text(c), "yaml": self.yaml.get(c.label, "")}
                 for i, c in enumerate(ranked[:20])],
             "uncalibratable": [
@@ -235,8 +230,7 @@ class Diagnosis:
                          for c in self.candidates if c.absorbed and c.biases][:20],
             "nearly_absorbed": [
                 {"label": c.label, "moves": {name: v for name, v in c.unseen},
-                 "mde": None if c.mde is None else c.mde / DISPLAY_UNITS[self._unit(c)],
-                 "mde_unit": self._unit(c) or "(internal)"}
+                 **_mde_fields(self.result, c)}
                 for c in self.candidates if c.unseen and not c.absorbed][:20],
             "outliers": None if self.outliers is None else {
                 **self.outliers.to_dict(), "remedy": remedy_yaml(self.outliers)
@@ -1031,3 +1025,32 @@ def _contains(residual: np.ndarray, values: np.ndarray) -> bool:
         return False
     size = float(np.max(np.abs(residual)) + np.max(np.abs(values)))
     return any(float(np.ptp(residual - sign * values)) <= 1e-9 * size for sign in (1, -1))
+
+
+def output_unit(result: Result, output: str) -> str:
+    """The unit a term on a sensor output is shown in: that of the first constraint of its
+    dimension (the residuals' scale, e.g. µm), else the output's declared unit."""
+    unit = next((s.unit for s in result.problem.signals if s.name == output), "")
+    return next((c.unit for c in result.problem.constraints
+                 if internal_unit(c.unit) == internal_unit(unit)), unit)
+
+
+def _mde_fields(result: Result, cand: Candidate) -> dict[str, float | str | None]:
+    """``mde`` and ``mde_unit`` of a candidate's JSON (:func:`detectable`)."""
+    found = detectable(result, cand)
+    return {"mde": None if found is None else found[0],
+            "mde_unit": "(internal)" if found is None else found[1] or "1"}
+
+
+def detectable(result: Result, cand: Candidate) -> tuple[float, str] | None:
+    """A candidate's minimal detectable effect in the unit it is shown in, and that unit
+    (None: not known): a fixed parameter's change in its declared unit, a constant's or a
+    delay's in theirs, a term's in its output's (:func:`output_unit`)."""
+    if cand.mde is None:
+        return None
+    kind = cand.basis.kind
+    if kind == "fixed":        # a fixed parameter's change, already in its declared unit
+        return cand.mde, cand.basis.unit
+    unit = cand.basis.unit if kind in ("constant", "latency") else \
+        output_unit(result, cand.output)
+    return cand.mde / DISPLAY_UNITS[unit], unit
