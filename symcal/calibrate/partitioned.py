@@ -49,12 +49,12 @@ from symcal.calibrate.result import (
     parameter_table,
 )
 from symcal.calibrate.solve import (
-    _fit,
     _hashes,
     _info,
     _initial,
     _no_se_reason,
     correlations,
+    stage_fit,
 )
 from symcal.data.dataset import Dataset
 from symcal.data.loading import load_datasets, needed_columns
@@ -232,7 +232,8 @@ def _solve(problem: Problem, log: ShardedDataset | Dataset, held: dict[str, Data
             if not outcome.success:
                 break
         last = stages[-1]
-        fit = _fit(problem, cast("dict[str, Dataset]", {log.name: log, **held}), theta, last)
+        fit = stage_fit(problem, cast("dict[str, Dataset]", {log.name: log, **held}), theta,
+                        last)
         found, tests = floor_tests_passes(problem, log, sample, held, theta, fit, ordered,
                                           theta0)
     params = parameter_table(

@@ -305,7 +305,7 @@ def with_floors(result: Result) -> Result:
     expressions evaluated once; only their floors are added)."""
     problem, datasets, theta = result.problem, dict(result.data), result.theta
     floors = floor_outcome(problem, datasets, theta,
-                           _fit(problem, datasets, theta, result.stages[-1]), result.theta0)
+                           stage_fit(problem, datasets, theta, result.stages[-1]), result.theta0)
     stats = tuple(replace(s, noise=floors.tests.get((s.dataset, s.name)))
                   for s in result.statistics)
     return replace(result, statistics=stats, floor_tests=floors.joint)
@@ -366,7 +366,7 @@ def _result(problem: Problem, datasets: dict[str, Dataset],
                         p.lower, p.upper, p.doc, correlations(last.uncertainty, p.name))
         for i, p in enumerate(problem.parameters)
     )
-    fit = _fit(problem, datasets, theta, last)
+    fit = stage_fit(problem, datasets, theta, last)
     floors = floor_outcome(problem, datasets, theta, fit, theta0) if all_floors \
         else _fit_test(problem, datasets, theta, fit, theta0)
     found, tests = floors.tests, floors.joint
@@ -407,7 +407,7 @@ def _hashes(problem: Problem) -> dict[str, str] | None:
         return None
 
 
-def _fit(problem: Problem, datasets: Mapping[str, Dataset], theta: np.ndarray,
+def stage_fit(problem: Problem, datasets: Mapping[str, Dataset], theta: np.ndarray,
          last: StageResult) -> Fit:
     """How the last stage fitted the estimate, for the noise's share in it."""
     stage = next(st for st in problem.stages if st.name == last.name)

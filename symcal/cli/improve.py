@@ -40,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from symcal.report.text import (
         declared_gauges_line,
         floor_lines,
+        noise_bias_line,
         outcome_text,
         plain_json,
         unvouched,
@@ -75,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         sys.stdout.write(plain_json({**result.to_dict(), "left": left, "unvouched": [
             {"parameter": name, "reach_se": value if math.isfinite(value) else None,
-             "absorbed": not math.isfinite(value)} for name, value in reach]}))
+             "absorbed": not math.isfinite(value)} for name, value in reach],
+            "noise_bias": result.last.noise_bias_dict()}))
     else:
         lines = [f"symcal improve: {len(result.rounds) - 1} round(s) kept; "
                  + outcome_text(result), ""]
@@ -85,6 +87,9 @@ def run(args: argparse.Namespace) -> int:
         if reach:
             lines.append("  " + unvouched_line(reach, "symcal diagnose of the final problem "
                                                       "names them"))
+        shifted = noise_bias_line(result.last)
+        if shifted:
+            lines.append("  " + shifted)
         declared = declared_gauges_line(result.last)
         if declared:
             lines.append("  " + declared)

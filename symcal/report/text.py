@@ -845,11 +845,34 @@ def diagnosis_verdict(diag: Diagnosis) -> list[str]:
     reach = unvouched(diag)
     if reach:
         lines.append(unvouched_line(reach, '"Absorbed" and "Nearly absorbed" below'))
+    shifted = noise_bias_line(diag)
+    if shifted:
+        lines.append(shifted)
     declared = declared_gauges_line(diag)
     if declared:
         lines.append(declared)
     lines += design_pointer(result)
     return lines
+
+
+def noise_bias_line(diag: Any) -> str:
+    """The verdict's line on the parameters the readings' own noise shifts by at least
+    :data:`~symcal.analysis.noise_bias.NOISE_BIAS` standard errors (``""``: none)."""
+    shifted = tuple(getattr(diag, "biased_by_noise", ()))
+    if not shifted:
+        return ""
+    params = diag.result.params
+    parts = []
+    for name, shift, z in shifted[:4]:
+        p = params[name]
+        unit = f" {symbol(p.unit)}" if p.unit else ""
+        parts.append(f"{name} by {z:+.1f} SE ({shift:+.3g}{unit}; corrected "
+                     f"{estimate_text(p.value - shift, p.se)})")
+    more = f" and {len(shifted) - 4} more" if len(shifted) > 4 else ""
+    return ("what the readings' own noise shifts: " + ", ".join(parts) + more
+            + ": second order in the declared noise, the constraints not linear in the "
+              "readings (errors in variables): more rows shrink the standard errors, "
+              "not the shift")
 
 
 def declared_gauges_line(diag: Any) -> str:

@@ -41,6 +41,7 @@ from symcal.analysis.discovery import (
     test_candidates,
     unexplained_share,
 )
+from symcal.analysis.noise_bias import NOISE_BIAS, noise_shift
 from symcal.analysis.outliers import Outliers, remedy_yaml
 from symcal.analysis.residuals import (
     Binned,
@@ -55,6 +56,7 @@ from symcal.base.digits import estimate_text
 from symcal.base.numeric import mapped
 from symcal.base.units import DISPLAY_UNITS, internal_unit
 from symcal.calibrate.result import Result
+from symcal.calibrate.solve import stage_fit
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
 from symcal.revise.blocks import Block, distinct, evaluate
@@ -162,6 +164,16 @@ class Diagnosis:
     # that are (:func:`symcal.revise.library.outside_entries`), and how to test each
     outside: tuple[Candidate, ...] = ()
     outside_words: dict[str, str] = field(default_factory=dict)
+    # each free parameter's expected shift by the readings' own noise, second order
+    # (:mod:`symcal.analysis.noise_bias`): (name, shift in its unit, shift in its SE)
+    noise_bias: tuple[tuple[str, float, float], ...] = ()
+
+    @property
+    def biased_by_noise(self) -> tuple[tuple[str, float, float], ...]:
+        """The parameters whose shift by the readings' noise reaches
+        :data:`~symcal.analysis.noise_bias.NOISE_BIAS` standard errors, largest first."""
+        return tuple(sorted((b for b in self.noise_bias if abs(b[2]) >= NOISE_BIAS),
+                            key=lambda b: -abs(b[2])))
 
     @property
     def reopened(self) -> tuple[Candidate, ...]:
@@ -237,7 +249,16 @@ class Diagnosis:
                 if self.outliers.dominate and self.outliers.squared else ""},
             "singular_values": list(self.result.identifiability.singular_values),
             "correlation": self.result.uncertainty.to_dict()["correlation"],
+            "noise_bias": self.noise_bias_dict(),
         }
+
+    def noise_bias_dict(self) -> dict:
+        """``{"level_se": ..., "parameters": [{"name", "shift", "shift_se", "unit"}]}``:
+        every free parameter's shift by the readings' own noise (empty where it was not
+        computed), and the level from which the verdict names it."""
+        return {"level_se": NOISE_BIAS, "parameters": [
+            {"name": n, "shift": b, "shift_se": z, "unit": self.result.params[n].unit}
+            for n, b, z in self.noise_bias]}
 
 
 def _leads(candidates: tuple[Candidate, ...]) -> tuple[Candidate, ...]:
@@ -574,7 +595,30 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
                      together, unsearched(problem, found, views, tested_outside,
                                           _reached(problem, blocks) if views else None),
                      outside,
-                     {c.label: outside_words(problem, found, c) for c in outside})
+                     {c.label: outside_words(problem, found, c) for c in outside},
+                     _noise_bias(result, data))
+
+
+def _noise_bias(result: Result, data: Mapping[str, Dataset]
+                ) -> tuple[tuple[str, float, float], ...]:
+    """Each free parameter's shift by the readings' noise on the fitted dataset
+    (:func:`~symcal.analysis.noise_bias.noise_shift`): (name, shift, shift / SE); empty
+    where it is not computed."""
+    problem, last = result.problem, result.stages[-1]
+    if problem.fit_dataset not in data:
+        return ()
+    fit = stage_fit(problem, data, result.theta, last)
+    names = [n for n, f in zip(problem.parameter_names, fit.free, strict=True) if f]
+    scales = np.array([p.scale for p in problem.parameters])[np.asarray(fit.free, bool)]
+    shift = noise_shift(problem, data[problem.fit_dataset], result.theta, fit, scales)
+    if shift is None:
+        return ()
+    out = []
+    for name, b in zip(names, shift, strict=True):
+        se = result.params[name].se
+        if se:
+            out.append((name, float(b), float(b) / se))
+    return tuple(out)
 
 
 def _outside(problem: Problem, blocks: list[Block], fit: int, found: Mapping[str, Space],
