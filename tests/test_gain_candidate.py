@@ -157,9 +157,11 @@ def test_a_declared_value_that_sets_a_gauge_is_named() -> None:
     data, _ = _data(None, 5)
     diag = symcal.diagnose(symcal.solve(HALL / "problem.yaml", data))
     assert "sh.R0" in diag.gauge_fixes
-    assert ("the estimates are only as right as the declared value the data cannot check: "
-            "sh.R0 = 1 mohm (fixed, it sets a gauge: the parameters that share it follow "
-            "its value unseen)") in diagnosis_report(diag)
+    # and the constant the sensitivity absorbs exactly (its reference temperature)
+    assert ("the estimates are only as right as the declared values the data cannot "
+            "check: sh.R0 = 1 mohm (fixed, it sets a gauge: the parameters that share it "
+            "follow its value unseen); T25 = 25 delta_degC (a constant hall.sens absorbs "
+            "exactly, following its value unseen)") in diagnosis_report(diag)
 
 
 def test_a_declared_variable_no_term_can_use_is_said(tmp_path) -> None:

@@ -136,3 +136,21 @@ def test_the_verdict_names_the_shift_that_more_rows_do_not_shrink(seed: int) -> 
         assert abs(p.value - shift - true[name]) < 3 * p.se
         assert f"{name} by {z:+.1f} SE" in line
     assert {n for n, _, _ in diag.biased_by_noise} == set(NAMES)
+
+
+def test_a_constant_the_parameters_absorb_exactly_is_named_in_the_verdict() -> None:
+    """The ground station's pressure 1 hPa off: only p0·k enters, so the scale factors
+    absorb it whole, the loop is quiet at the floor with both 5-6 SE off, and p0 was
+    named only under "Absorbed" (the same value declared as a fixed parameter was named
+    in the verdict).  Declared as a constant it is now named too."""
+    data, true = _data("scenario_p0off.yaml", 1)
+    result = symcal.solve(PROBLEM, data)
+    diag = symcal.diagnose(result, report=False)
+    assert diag.significant == ()
+    k1 = result.params["b1.k"]
+    assert abs(k1.value - true["b1.k"]) > 4 * k1.se
+    line = next(ln.strip() for ln in diagnosis_report(diag).splitlines()
+                if "only as right as the declared" in ln)
+    assert line == ("the estimates are only as right as the declared value the data "
+                    "cannot check: p0 = 1013.25 hPa (a constant b1.k and b2.k absorb "
+                    "exactly, following its value unseen)")

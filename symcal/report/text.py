@@ -887,13 +887,41 @@ def declared_gauges_line(diag: Any) -> str:
         p = result.params.get(name)
         if p is not None and p.value != 0:
             named.append(f"{name} = {p.value:.6g}{' ' + p.unit if p.unit else ''}")
-    if not named:
+    constants = _absorbed_constants(diag)
+    if not named and not constants:
         return ""
-    one = len(named) == 1
+    parts = []
+    if named:
+        one = len(named) == 1
+        parts.append(", ".join(named) + (" (fixed, it sets a gauge: " if one else
+                                          " (fixed, each sets a gauge: ")
+                     + "the parameters that share it follow its value unseen)")
+    parts += constants
     return ("the estimates are only as right as the declared "
-            + ("value" if one else "values") + " the data cannot check: " + ", ".join(named)
-            + (" (fixed, it sets a gauge: " if one else " (fixed, each sets a gauge: ")
-            + "the parameters that share it follow its value unseen)")
+            + ("value" if len(named) + len(constants) == 1 else "values")
+            + " the data cannot check: " + "; ".join(parts))
+
+
+def _absorbed_constants(diag: Any) -> list[str]:
+    """The constants whose being off the free parameters absorb exactly (a ground
+    station's pressure that a barometer's scale factor multiplies; the local gravity a
+    load cell's sensitivity multiplies), each with the parameters that follow it: on a
+    drone's altimeter a pressure 1 hPa off put both scale factors 5-6 SE off, quiet,
+    named only under "Absorbed" where the same value declared as a fixed parameter was
+    named here."""
+    out = []
+    for c in getattr(diag, "candidates", ()):
+        if c.basis.kind != "constant" or not c.absorbed or not c.biases:
+            continue
+        unit = c.basis.unit
+        value = c.basis.centre / DISPLAY_UNITS[unit]
+        shown = list(c.biases[:3]) + ([f"{len(c.biases) - 3} more"]
+                                      if len(c.biases) > 3 else [])
+        follow = shown[0] if len(shown) == 1 else ", ".join(shown[:-1]) + " and " + shown[-1]
+        out.append(f"{c.basis.variable} = {value:.6g}{' ' + symbol(unit) if unit else ''} "
+                   f"(a constant {follow} absorb{'s' if len(c.biases) == 1 else ''} "
+                   "exactly, following its value unseen)")
+    return out
 
 
 def design_pointer(result: Result) -> list[str]:
