@@ -154,3 +154,20 @@ def test_a_constant_the_parameters_absorb_exactly_is_named_in_the_verdict() -> N
     assert line == ("the estimates are only as right as the declared value the data "
                     "cannot check: p0 = 1013.25 hPa (a constant b1.k and b2.k absorb "
                     "exactly, following its value unseen)")
+
+
+def test_what_is_left_says_where_its_dataset_is_at_its_floor_as_a_whole() -> None:
+    """Clean seed 15: calibration just above its band, validation at its floor as a whole
+    while each of its constraints is above its own; "what is left above the floor:
+    validation g1" under "validation: at the noise floor" read as a contradiction."""
+    from symcal.report.text import left_lines
+
+    data, _ = _data("scenario.yaml", 15)
+    result = symcal.solve(PROBLEM, data)
+    verdicts = {t.dataset: t.verdict for t in result.floor_tests}
+    assert verdicts == {"calibration": "above", "validation": "at"}
+    lines = left_lines(symcal.diagnose(result))
+    assert lines and all(ln.startswith(("validation g1 (above its own floor; validation as "
+                                        "a whole is at its floor): ",
+                                        "validation g2 (above its own floor; validation as "
+                                        "a whole is at its floor): ")) for ln in lines)

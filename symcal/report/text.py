@@ -720,12 +720,18 @@ def left_lines(diag: Any) -> list[str]:
     its excess lies along (binned means), strongest first, with their share of the excess;
     variables a residual contains whole are left out."""
     skip = self_referential(diag.result)
+    joint = {t.dataset: t.verdict for t in diag.result.floor_tests}
     out = []
     for v in getattr(diag, "residuals", ()):
         own = skip.get(v.name, frozenset({v.name}))
         left = [a for a in getattr(v, "left", ()) if not any(_own(n, own) for n in a.variables)]
         if left:
-            out.append(f"{v.dataset} {_what(v)}: " + "; ".join(a.text for a in left))
+            # a residual above its own floor in a dataset whose joint test is at its floor
+            # (a new user's altimeter: "validation g1" listed under "validation: at the
+            # noise floor", what was above being the calibration)
+            alone = (f" (above its own floor; {v.dataset} as a whole is at its floor)"
+                     if joint.get(v.dataset) == "at" else "")
+            out.append(f"{v.dataset} {_what(v)}{alone}: " + "; ".join(a.text for a in left))
     return out
 
 
