@@ -649,8 +649,16 @@ def test_the_models_approximation_is_solved_whatever_its_prediction() -> None:
     assert _predicted_worse(diag, [term.label]) == (
         "not solved: the diagnosis predicts that the held-out constraint residuals do not "
         "fall (mean change +100.0% in RMS, +200.0% in standard deviation)")
-    term.scatter = {k: (now, 0.9 * now) for k, (now, _) in term.scatter.items()}
-    assert _predicted_worse(diag, [term.label]) is None      # its scatter falls
+    # its scatter falls: that is not enough where its mean grows the RMS by far (a
+    # reviewer's case: +30 % in RMS kept for -0.1 % in standard deviation) ...
+    term.scatter = {k: (now, 0.999 * now) for k, (now, _) in term.scatter.items()}
+    term.reduction = {k: (now, 1.3 * now) for k, (now, _) in term.reduction.items()}
+    assert _predicted_worse(diag, [term.label]).startswith(
+        "not solved: the diagnosis predicts that the held-out constraint residuals do not "
+        "fall (mean change +30.0% in RMS, -0.1% in standard deviation)")
+    # ... and is where the RMS grows by less than the slack beyond the margin (+0.5 %)
+    term.reduction = {k: (now, 1.004 * now) for k, (now, _) in term.reduction.items()}
+    assert _predicted_worse(diag, [term.label]) is None
 
 
 @pytest.mark.parametrize("corr", [0.0, 0.6, -0.95])

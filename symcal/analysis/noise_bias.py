@@ -40,16 +40,19 @@ NOISE_BIAS = 1.0
 MAX_CONSTRAINTS = 4
 
 
-def _build(problem: Problem, fit: Fit) -> tuple[Mapped, int, int] | None:
+def _build(problem: Problem, fit: Fit) -> tuple[Mapped, int, int] | str:
     """Per row: ``½ Σ_k σ_k² ∂²ψ/∂ε_k²`` (n_p), ``J`` (n_f × n_p) and ``W`` (n_f × n_f) at
-    ``ε = 0``; None where the shift is not computed (no noisy reading, too many
-    constraints, a weighting whose weights are not known per row)."""
+    ``ε = 0``; or why the shift is not computed (no noisy reading, too many constraints,
+    a weighting whose weights are not known per row)."""
     noisy = problem.noisy
     readings = [r for r in noisy.readings if r.sigma > 0]
     n_f = len(fit.constraints)
-    if not readings or not 0 < n_f <= MAX_CONSTRAINTS or fit.weighting not in (
-            "propagated", "equal", "estimated"):
-        return None
+    if not readings:
+        return "no reading declares its noise"
+    if not 0 < n_f <= MAX_CONSTRAINTS:
+        return f"the fit has {n_f} constraints per row (at most {MAX_CONSTRAINTS} here)"
+    if fit.weighting not in ("propagated", "equal", "estimated"):
+        return f"the weighting '{fit.weighting}' is not one whose weights are known per row"
     eps = ca.vertcat(*(r.symbol for r in readings))
     sigma = np.array([r.sigma for r in readings])
     g = ca.vertcat(*(noisy.constraint(n).sx for n in fit.constraints))
@@ -74,17 +77,20 @@ def _build(problem: Problem, fit: Fit) -> tuple[Mapped, int, int] | None:
 
 
 def noise_shift(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
-                scales: np.ndarray) -> np.ndarray | None:
-    """The free parameters' expected shift by the readings' noise (internal units, in
-    the order of ``fit.free``), on the fitted rows ``ds`` at the estimate ``theta``
-    (``scales``: the free parameters' scales, for the pseudo-inverse); None where it is
-    not computed (:func:`_build`) or a row's value is not finite."""
+                scales: np.ndarray) -> np.ndarray | str:
+    """The free parameters' expected shift by the readings' noise (in their declared
+    units, in the order of ``fit.free``), on the fitted rows ``ds`` at the estimate
+    ``theta`` (``scales``: the free parameters' scales, for the pseudo-inverse); or why it
+    is not computed (:func:`_build`, no rows, a row whose value is not finite: a
+    collapsed fit, a singular covariance)."""
     key = ("noise bias", tuple(fit.constraints), fit.weighting,
            np.asarray(fit.free, dtype=bool).tobytes(),
            None if fit.whiten is None else np.asarray(fit.whiten).tobytes())
     built = owned(problem, key, lambda: _build(problem, fit))
-    if built is None or ds.n == 0:
-        return None
+    if isinstance(built, str):
+        return built
+    if ds.n == 0:
+        return "the fitted dataset has no rows"
     fn, n_f, n_p = built
     u = ds.matrix(problem.noisy.columns)
     beta = np.zeros(n_p)
@@ -94,8 +100,11 @@ def noise_shift(problem: Problem, ds: Dataset, theta: np.ndarray, fit: Fit,
         m = second.shape[0]
         jac = jt.reshape(m, n_p, n_f).transpose(0, 2, 1)     # column-major vec(J)
         w = wt.reshape(m, n_f, n_f).transpose(0, 2, 1)
-        if not (np.all(np.isfinite(second)) and np.all(np.isfinite(w))):
-            return None
+        bad = ~(np.all(np.isfinite(second.reshape(m, -1)), axis=1)
+                 & np.all(np.isfinite(w.reshape(m, -1)), axis=1))
+        if np.any(bad):
+            return (f"{int(np.sum(bad))} row(s) from row {part.start + int(np.argmax(bad))} "
+                    "give no finite value (a singular covariance, a collapsed fit)")
         beta += second.sum(axis=0)
         a += np.einsum("mfp,mfg,mgq->pq", jac, w, jac)
     return -share_finish(a, a, scales).a_pinv @ beta

@@ -261,10 +261,10 @@ def _robust(
     return robust.output, notes, robust
 
 
-def _singular(count: int, n: int) -> str:
+def _singular(count: int, n: int, kept: str = "kept equal weights", where: str = "") -> str:
     return (f"weighting: the propagated covariance of the constraints is singular on "
-            f"{count} of {n} observations (the readings they use are declared exact "
-            "there); kept equal weights")
+            f"{count} of {n} observations{where} (the readings they use are declared exact "
+            f"there); {kept}")
 
 
 def _propagated(
@@ -293,8 +293,10 @@ def _propagated(
     if not first.success:
         return weighted, first, notes
     again, singular, change = weights.weights(first.theta, start)
-    if singular:
-        return weighted, first, [*notes, _singular(singular, data.n)]
+    if singular:            # at that estimate: it is kept, weighted as at the start
+        return weighted, first, [*notes, _singular(
+            singular, data.n, "kept that estimate, weighted as at the start",
+            " at the estimate weighted at the start")]
     when = "at the start and again at that estimate"
     if change <= REWEIGHT:    # the weights have converged: solving again moves nothing
         second, when = first, (f"at the start (at that estimate they differ by "

@@ -921,6 +921,8 @@ def _absorbed_constants(diag: Any) -> list[str]:
             continue
         unit = c.basis.unit
         value = c.basis.centre / DISPLAY_UNITS[unit]
+        if value == 0:           # a zero is a definition (a frame's origin), as above
+            continue
         shown = list(c.biases[:3]) + ([f"{len(c.biases) - 3} more"]
                                       if len(c.biases) > 3 else [])
         follow = shown[0] if len(shown) == 1 else ", ".join(shown[:-1]) + " and " + shown[-1]

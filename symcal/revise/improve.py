@@ -196,11 +196,13 @@ def _held_out_ratios(new: Result, old: Result, kind: str | None, scatter: bool =
 
 def _held_out_worse(new: Result, old: Result) -> str | None:
     """Why the held-out constraint residuals do not fall (None where they do, or where
-    none are held out): neither their RMS nor their standard deviation falls, on average
-    over them.  The RMS sees an offset a term removes, which moves the mean alone; the
-    standard deviation sees a term the held-out run hardly exercises, whose estimate's
-    noise moves that run's mean either way (the courier's fly-by and one segment's
-    lateral term: RMS +0.2 %, standard deviation -0.1 %).  The diagnosis predicts both
+    none are held out): on average over them, their RMS does not fall, nor does their
+    standard deviation with the RMS grown by at most :data:`MEAN_SLACK`.  The RMS sees an
+    offset a term removes, which moves the mean alone; the standard deviation sees a term
+    the held-out run hardly exercises, whose estimate's noise moves that run's mean
+    either way (the courier's fly-by and one segment's lateral term: RMS +0.2 %,
+    standard deviation -0.1 %), but not a mean it moves far (a term fitted at one
+    temperature that shifts a run at another).  The diagnosis predicts both
     (:func:`_predicted_worse`)."""
     sizes = _held_out_ratios(new, old, "constraint")
     if not sizes:
@@ -208,12 +210,18 @@ def _held_out_worse(new: Result, old: Result) -> str | None:
     return _no_fall(sizes, _held_out_ratios(new, old, "constraint", scatter=True), 0.0)
 
 
+#: How far the held-out RMS may grow (a mean log ratio, +0.5 %) for a term whose held-out
+#: standard deviation falls to count as falling (:func:`_held_out_worse`).
+MEAN_SLACK = 0.005
+
+
 def _no_fall(sizes: list[float], scatter: list[float], margin: float) -> str | None:
-    """Why the held-out residuals do not fall, from their log ratios of sizes and of
-    standard deviations, neither mean below ``margin`` (None where one is)."""
+    """Why the held-out residuals do not fall, from their log ratios of sizes (RMS) and
+    of standard deviations: the mean of the first not below ``margin``, nor that of the
+    second with the first below ``margin`` + :data:`MEAN_SLACK` (None where one is)."""
     change = float(np.mean(sizes))
     spread = float(np.mean(scatter)) if scatter else change
-    if min(change, spread) < margin:
+    if change < margin or (spread < margin and change < margin + MEAN_SLACK):
         return None
     return ("the held-out constraint residuals do not fall (mean change "
             f"{np.expm1(change):+.1%} in RMS, {np.expm1(spread):+.1%} in standard "
