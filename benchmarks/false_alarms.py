@@ -85,6 +85,10 @@ SYSTEMS: dict[str, Callable[[], tuple[Path, Scenario, tuple[str, ...]]]] = {
         ROOT / "tests" / "data" / "platform" / "prob-v2.yaml",
         load_scenario(ROOT / "tests" / "data" / "platform" / "scenario.yaml"),
         ("calibration", "validation")),
+    "drone altimeter, two barometers, a thermometer and GNSS (tests/data/altimeter)":
+        lambda: (ROOT / "tests" / "data" / "altimeter" / "problem.yaml",
+                 load_scenario(ROOT / "tests" / "data" / "altimeter" / "scenario.yaml"),
+                 ("calibration", "validation")),
 }
 
 
