@@ -264,7 +264,8 @@ def _robust(
 def _singular(count: int, n: int, kept: str = "kept equal weights", where: str = "") -> str:
     return (f"weighting: the propagated covariance of the constraints is singular on "
             f"{count} of {n} observations{where} (the readings they use are declared exact "
-            f"there); {kept}")
+            f"there, or one constraint is a combination of the others, as g3 = g1 + g2: "
+            f"leave it out); {kept}")
 
 
 def _propagated(

@@ -746,7 +746,12 @@ def detectable_text(result: Result, cand: Any) -> str:
     from symcal.revise.diagnose import detectable
 
     found = detectable(result, cand)
-    return "—" if found is None else _spread_text(*found)
+    if found is None:
+        return "—"
+    # a constant's or a parameter's without a unit is a pure number (an emissivity), not
+    # a value in symcal's internal units
+    plain = not found[1] and cand.basis.kind in ("fixed", "constant")
+    return f"{found[0]:.4g}" if plain else _spread_text(*found)
 
 
 def outliers_dominate(diag: Diagnosis) -> bool:
@@ -882,19 +887,22 @@ def noise_bias_line(diag: Any) -> str:
 
 
 def declared_gauges_line(diag: Any) -> str:
-    """The fixed parameters that set a gauge at a declared value other than zero (a
-    field's known magnitude, a shunt's certified resistance), or ``""``: the data cannot
-    check them, and the parameters sharing their gauge are only as right as they are (a
+    """The fixed parameters that set a gauge (a field's known magnitude, a shunt's
+    certified resistance; those at zero apart, which may define a frame), and the
+    constants the free parameters absorb exactly, or ``""``: the data cannot check them,
+    and the parameters sharing their gauge are only as right as they are (a
     magnetometer's three scale factors 128-274 SE off, quiet, where the field's magnitude
-    was 200 nT off; a zero that fixes a frame is a definition, not named)."""
+    was 200 nT off)."""
     result = diag.result
-    named = []
+    named: list[str] = []
+    zeros: list[str] = []
     for name in sorted(dict(getattr(diag, "gauge_fixes", {}) or {})):
         p = result.params.get(name)
-        if p is not None and p.value != 0:
-            named.append(f"{name} = {p.value:.6g}{' ' + p.unit if p.unit else ''}")
+        if p is not None:
+            (named if p.value != 0 else zeros).append(
+                f"{name} = {p.value:.6g}{' ' + p.unit if p.unit else ''}")
     constants = _absorbed_constants(diag)
-    if not named and not constants:
+    if not named and not constants and not zeros:
         return ""
     parts = []
     if named:
@@ -903,8 +911,16 @@ def declared_gauges_line(diag: Any) -> str:
                                           " (fixed, each sets a gauge: ")
                      + "the parameters that share it follow its value unseen)")
     parts += constants
+    if zeros:
+        # a zero may define a frame (an axis's orientation: nothing to check) or claim a
+        # sensor's zero: a new user's thermocouple offset was 97 SE off, quiet, where the
+        # connector thermistor it shares a gauge with, fixed at 0 K, read 0.8 K high
+        parts.append(", ".join(zeros) + " (fixed at zero, "
+                     + ("it sets" if len(zeros) == 1 else "each sets")
+                     + " a gauge: a definition where it orients or places a frame, else a "
+                       "sensor's zero the data cannot check)")
     return ("the estimates are only as right as the declared "
-            + ("value" if len(named) + len(constants) == 1 else "values")
+            + ("value" if len(named) + len(constants) + len(zeros) == 1 else "values")
             + " the data cannot check: " + "; ".join(parts))
 
 

@@ -405,7 +405,22 @@ def _constant(problem: Problem, cand: Candidate) -> Revision:
         if c.instance is not None:
             entry = sections.setdefault("instances", {}).setdefault(c.instance, {})
             entry.setdefault("constants", {})[c.name] = name
+    sections.update(_candidates_without(problem, "constants", set(cand.basis.targets)))
     return Revision(f"{problem.name}_const_{_ident(name)}", (), sections)
+
+
+def _candidates_without(problem: Problem, kind: str, gone: set[str]) -> dict[str, Any]:
+    """The problem's ``candidates:`` list of ``kind`` (``constants`` or ``fixed``)
+    restated without ``gone``, where the problem restricts it and lists one of them: a
+    constant made a parameter, or a parameter freed, is no longer one to test, and the
+    inherited list would name what the revision no longer has (improve stopped on an
+    internal error: "'pyr.eps' matches no constant")."""
+    lists = {k: list(getattr(problem.candidates, k)) for k in ("constants", "fixed")}
+    if problem.candidates.where is None or not gone & set(lists[kind]):
+        return {}
+    lists[kind] = [n for n in lists[kind] if n not in gone]
+    # the section replaces the base's whole: both lists, as the problem resolved them
+    return {"candidates": {k: v or False for k, v in lists.items()}}
 
 
 def _fixed(problem: Problem, cand: Candidate) -> Revision:
@@ -424,6 +439,7 @@ def _fixed(problem: Problem, cand: Candidate) -> Revision:
         sections = {"parameters": {pname: {"value": p.value, **_unit_key(p.unit), **bounds,
                                            "scale": p.scale, "fixed": False,
                                            **({"doc": p.doc} if p.doc else {})}}}
+    sections.update(_candidates_without(problem, "fixed", {pname}))
     return Revision(f"{problem.name}_free_{_ident(pname)}", (), sections)
 
 
@@ -542,7 +558,7 @@ def _overlay(problem: Problem, revs: tuple[Revision, ...], name: str, base: str,
     for inst, path in models.items():
         instances[inst] = {"model": path, **instances.get(inst, {})}
     doc_: dict[str, Any] = {"problem": name, "extends": base, "doc": doc}
-    for key in ("constants", "parameters", "columns", "expressions"):
+    for key in ("constants", "parameters", "columns", "expressions", "candidates"):
         if key in sections:
             doc_[key] = sections[key]
     if instances:
