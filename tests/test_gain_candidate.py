@@ -160,7 +160,7 @@ def test_a_declared_value_that_sets_a_gauge_is_named() -> None:
     # and the constant the sensitivity absorbs exactly (its reference temperature)
     assert ("the estimates are only as right as the declared values the data cannot "
             "check: sh.R0 = 1 mohm (fixed, it sets a gauge: the parameters that share it "
-            "follow its value unseen); T25 = 25 delta_degC (a constant hall.sens absorbs "
+            "follow its value unseen); sh.T25 = 25 delta_degC (a constant hall.sens absorbs "
             "exactly, following its value unseen)") in diagnosis_report(diag)
 
 

@@ -931,18 +931,20 @@ def _absorbed_constants(diag: Any) -> list[str]:
     drone's altimeter a pressure 1 hPa off put both scale factors 5-6 SE off, quiet,
     named only under "Absorbed" where the same value declared as a fixed parameter was
     named here."""
+    declared = {k.key: k for k in diag.result.problem.constants}
     out = []
     for c in getattr(diag, "candidates", ()):
-        if c.basis.kind != "constant" or not c.absorbed or not c.biases:
+        if c.basis.kind != "constant" or not c.absorbed or not c.biases or \
+                not c.basis.targets or c.basis.targets[0] not in declared:
             continue
-        unit = c.basis.unit
-        value = c.basis.centre / DISPLAY_UNITS[unit]
-        if value == 0:           # a zero is a definition (a frame's origin), as above
+        const = declared[c.basis.targets[0]]     # its key, value and unit as declared
+        if const.value == 0:     # a reference point at zero (no power, no offset)
             continue
         shown = list(c.biases[:3]) + ([f"{len(c.biases) - 3} more"]
                                       if len(c.biases) > 3 else [])
         follow = shown[0] if len(shown) == 1 else ", ".join(shown[:-1]) + " and " + shown[-1]
-        out.append(f"{c.basis.variable} = {value:.6g}{' ' + symbol(unit) if unit else ''} "
+        unit = const.unit
+        out.append(f"{const.key} = {const.value:.6g}{' ' + symbol(unit) if unit else ''} "
                    f"(a constant {follow} absorb{'s' if len(c.biases) == 1 else ''} "
                    "exactly, following its value unseen)")
     return out
