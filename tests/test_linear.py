@@ -127,11 +127,23 @@ def test_null_space_in_parameter_names(solved) -> None:
 
 
 def test_standard_errors_equal_numpy(solved) -> None:
+    """Equal weights on rows whose declared noise differs (g_p's variance follows each
+    reading's slope): the sandwich ``σ̂₀² A⁺ (Σ a_iᵀ var_i a_i) A⁺``, ``σ̂₀²`` the residual
+    sum of squares over ``Σ var_i − tr(A⁺B)``, with numpy alone; the pooled
+    ``s² A⁺`` differs from it by more than the tolerance."""
     result, data, _ = solved
-    a, b = _numpy_design({k: np.asarray(v) for k, v in data["calibration"].columns.items()})
+    cols = {k: np.asarray(v) for k, v in data["calibration"].columns.items()}
+    a, b = _numpy_design(cols)
     k_np = np.linalg.lstsq(a, -b, rcond=None)[0]
     rss = float(np.sum((a @ k_np + b) ** 2))
-    cov = rss / (a.shape[0] - 33) * np.linalg.pinv(a.T @ a, rcond=1e-10)
+    var = 0.503e-3**2 * np.sum(_slopes(cols, k_np.reshape(4, 9)) ** 2, axis=1)
+    a_pinv = np.linalg.pinv(a.T @ a, rcond=1e-10)
+    meat = a.T @ (var[:, None] * a)
+    factor = rss / (np.sum(var) - np.trace(a_pinv @ meat))
+    cov = factor * a_pinv @ meat @ a_pinv
+    pooled = rss / (a.shape[0] - 33) * a_pinv
+    assert np.max(np.abs(np.sqrt(np.diag(pooled)[1:9] / np.diag(cov)[1:9]) - 1)) > 1e-3
+    assert any("the sandwich of the fit's weights" in n for n in result.stages[-1].notes)
     names = [f"s{i}.k{j}" for i in range(1, 5) for j in range(9)]
     for i, name in enumerate(names):
         p = next(q for q in result.params.values() if q.name == name)

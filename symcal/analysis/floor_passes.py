@@ -48,7 +48,7 @@ class _Share:
     theta: np.ndarray
     name: str
 
-    def __call__(self, piece: Any) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, piece: Any) -> tuple[np.ndarray, np.ndarray, float]:
         return self.plan.sums(piece.dataset(self.name), self.theta)
 
 

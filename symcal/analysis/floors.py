@@ -33,8 +33,10 @@ Rows are evaluated chunk by chunk; nothing of size N × (residuals × readings) 
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -59,7 +61,7 @@ from symcal.analysis.verdicts import (
     FloorTest,
 )
 from symcal.base import jit
-from symcal.base.numeric import chunks
+from symcal.base.numeric import chunks, owned
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
 from symcal.solvers.executor import default_executor
@@ -161,7 +163,32 @@ def _estimate_share(problem: Problem, fit: Fit, ds: Dataset, theta: np.ndarray,
     where a fitted constraint reads a column of undeclared noise and ``assumed`` has no
     variance for it (its floor estimated on ``ds``: :func:`difference_variances`)."""
     plan = share_plan(problem, fit, assumed, cached=True)
-    return None if plan is None else plan.finish(*plan.sums(ds, theta))
+    return None if plan is None else plan.finish(*kept_sums(problem, plan, ds, theta)[:2])
+
+
+#: The share's sums kept per problem (the last asked): a stage whose standard errors
+#: take them (:mod:`symcal.analysis.declared_errors`) and the floors of the same fit at
+#: the same estimate make one pass, not two.
+KEEP_SUMS = 1
+
+
+def kept_sums(problem: Problem, plan: SharePlan, ds: Dataset, theta: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, float]:
+    """``plan.sums(ds, theta)``, kept for the next ask of the same plan's fit, dataset
+    and point (the same bits, without another pass)."""
+    fit = plan.fit
+    key = (fit.dataset, fit.constraints, np.asarray(fit.free, bool).tobytes(), fit.weighting,
+           None if fit.whiten is None else np.asarray(fit.whiten, float).tobytes(),
+           None if plan.variances is None else plan.variances.tobytes(),
+           np.ascontiguousarray(theta, dtype=float).tobytes())
+    kept: list[tuple[Any, Any, tuple[np.ndarray, np.ndarray, float]]] = owned(
+        problem, "share sums", list)
+    for ref, at, found in list(kept):
+        if ref() is ds and at == key:
+            return found
+    found = plan.sums(ds, theta)
+    kept[:] = [*kept[1 - KEEP_SUMS:], (weakref.ref(ds), key, found)]
+    return found
 
 
 @dataclass(frozen=True)
@@ -382,30 +409,34 @@ class SharePlan:
         """The share from the sums of all rows (:func:`share_finish`)."""
         return share_finish(a, b, self.scales)
 
-    def sums(self, ds: Dataset, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(A, B)``: ``Σ J_iᵀW_iJ_i`` and ``Σ J_iᵀW_iC_iW_iJ_i`` over the rows of ``ds``."""
+    def sums(self, ds: Dataset, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(A, B, t)``: ``Σ J_iᵀW_iJ_i``, ``Σ J_iᵀW_iC_iW_iJ_i`` and ``Σ tr(W_iC_i)`` over
+        the rows of ``ds``."""
         prop = self.prop
         u = ds.matrix(prop.columns)
         fn = jit.select(prop.fn, ds.n)
 
-        def piece(part: slice) -> tuple[np.ndarray, np.ndarray]:
+        def piece(part: slice) -> tuple[np.ndarray, np.ndarray, float]:
             _, lmat, jac = prop.at(fn, u, theta, part)
             return self.terms(lmat, jac)
 
-        a, b = np.zeros((prop.n_p, prop.n_p)), np.zeros((prop.n_p, prop.n_p))
-        for da, db in default_executor(ds.n).map(piece, chunks(ds.n)):   # in order
+        a, b, t = np.zeros((prop.n_p, prop.n_p)), np.zeros((prop.n_p, prop.n_p)), 0.0
+        for da, db, dt in default_executor(ds.n).map(piece, chunks(ds.n)):   # in order
             a += da
             b += db
-        return a, b
+            t += dt
+        return a, b, t
 
-    def terms(self, lmat: np.ndarray, jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(A, B)`` of one chunk of rows from their ``L`` and ``J``
+    def terms(self, lmat: np.ndarray, jac: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(A, B, t)`` of one chunk of rows from their ``L`` and ``J``
         (:meth:`RowPropagation.at`): products, not einsum loops."""
         n_p = self.prop.n_p
         c = assumed_covariance(row_grams(lmat), self.variances)
-        wj = fit_weights(self.fit, c, self.sigma) @ jac
+        w = fit_weights(self.fit, c, self.sigma)
+        wj = w @ jac
         flat = wj.reshape(-1, n_p)
-        return jac.reshape(-1, n_p).T @ flat, flat.T @ (c @ wj).reshape(-1, n_p)
+        return (jac.reshape(-1, n_p).T @ flat, flat.T @ (c @ wj).reshape(-1, n_p),
+                float(np.einsum("mab,mba->", w, c)))
 
 
 def share_plan(problem: Problem, fit: Fit, assumed: Mapping[str, float] | None = None,

@@ -173,8 +173,8 @@ def serial_passes(objective: Objective, data: Source, out: SolverOutput
     means = map_pieces(_Means(rows, columns), data, "serial_means")
     n = sum(m[1] for m in means)
     mean = np.sum([m[0] for m in means if m[1]], axis=0) / n
-    rho = lag_one_of(map_pieces(_Lags(rows, columns, mean), data, "serial_lags"))
-    found = detected(objective.constraints, rho, n, len(objective.constraints))
+    rho, z = lag_one_of(map_pieces(_Lags(rows, columns, mean), data, "serial_lags"))
+    found = detected(objective.constraints, rho, n, len(objective.constraints), z)
     if not found.detected:
         return found, None
     lags = bandwidth(max(found.rho, key=abs), n)

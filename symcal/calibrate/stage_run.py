@@ -25,6 +25,7 @@ from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
+from symcal.analysis.declared_errors import declared_errors
 from symcal.analysis.gauges import find_gauges
 from symcal.analysis.identifiability import analyse, conditioning
 from symcal.analysis.outliers import Outliers
@@ -181,9 +182,14 @@ def run_stage_on(
         notes.append(note)
     names, scales, idx = objective.names, objective.scales, objective.index
     meat = None
+    declared = None
+    if robust is None and problem.weighting in ("equal", "estimated"):
+        declared = declared_errors(problem, objective, data, out.theta, out.rss, out.rows)
     if robust is not None and losses is not None:
         meat = held.robust_meat(plain, out.theta, robust, losses,
                                 numerical_rank(out.r_factor, out.rows, scales))
+    elif declared is not None:
+        meat = declared.meat
     elif len(stage.constraints) > 1:
         rank = numerical_rank(out.r_factor, out.rows, scales)
         cov_g = objective.residual_covariance(data, out.theta, rank)
@@ -193,6 +199,8 @@ def run_stage_on(
         serial, hac = held.serial(objective, out)
         if hac is not None:
             meat = hac
+    if declared is not None and meat is declared.meat:
+        notes.append(declared.note())
     exact_null, confirmed = gauges.confirmed(plain, held.sample, out.theta)
     if len(confirmed.gauges) < len(gauges.gauges):
         gone = [g.text.split(":")[0] + " of " + ", ".join(g.parameters)

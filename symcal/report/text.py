@@ -624,6 +624,10 @@ def text_report(result: Result) -> str:
               + ("the robust sandwich with the final weights)" if robust else
                  f"the Newey-West sandwich over {serial.lags} lags: the rows are serially "
                  "correlated)" if serial is not None and serial.detected else
+                 "the sandwich with each observation's covariance from the declared noise, "
+                 "scaled by the residuals' variance over what it predicts)"
+                 if any(n.startswith("standard errors: the sandwich")
+                        for n in result.stages[-1].notes) else
                  "scaled by the residual variance)")]
     lines += _parameter_lines(result)
     lines += ["", "Strongly correlated estimates"]
