@@ -87,7 +87,7 @@ class Basis:
         output's gain varying with a variable, before products."""
         rank = {"approximation": 0, "constant": 0, "fixed": 0, "coupling": 1, "linear": 2,
                 "drift": 2, "latency": 2, "harmonic": 3, "quadratic": 4, "cubic": 5,
-                "gain": 6, "product": 7, "angle_harmonic": 7}
+                "gain": 6, "product": 7, "power": 7, "angle_harmonic": 7}
         return rank.get(self.kind, 8), self.order
 
 

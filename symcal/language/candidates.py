@@ -43,8 +43,8 @@ from symcal.language.fields import (
 )
 
 #: The kinds of candidate effect a space may name.
-KINDS = ("linear", "quadratic", "cubic", "harmonic", "drift", "product", "gain", "coupling",
-         "angle_harmonic", "latency", "constant")
+KINDS = ("linear", "quadratic", "cubic", "harmonic", "drift", "product", "power", "gain",
+         "coupling", "angle_harmonic", "latency", "constant")
 #: The highest harmonic order a space may name.
 MAX_HARMONIC = 64
 

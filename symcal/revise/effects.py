@@ -55,7 +55,7 @@ from symcal.problem.symbolic import Problem
 
 _TAGS = {"harmonic": "h", "linear": "lin", "quadratic": "quad", "cubic": "cub",
          "drift": "drift",
-         "angle_harmonic": "ah", "product": "prod", "gain": "gain",
+         "angle_harmonic": "ah", "product": "prod", "power": "pow", "gain": "gain",
          "coupling": "cpl"}
 #: Kinds written as a term added to one output (a model extension).
 TERMS = tuple(_TAGS)
@@ -320,6 +320,8 @@ def suggestion(problem: Problem, cand: Candidate) -> Suggestion:
              "cubic": [per(out_unit, (var_unit, 3))],
              "angle_harmonic": [per(out_unit, (angle_unit, 1))] * 2,
              "product": [per(out_unit, (var_unit, 1), (other_unit, 1))] * len(params),
+             "power": [per(out_unit, (var_unit, 2),
+                           (other_unit, -1 if basis.terms[0].endswith("/{w}") else 1))],
              "gain": [per("", (var_unit, 1))],
              "coupling": [per(out_unit, (var_unit, 1))],
              }[basis.kind]

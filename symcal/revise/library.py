@@ -14,7 +14,10 @@ in the spaces is significant.
 to :data:`HARMONICS`), a term linear in a variable, a quadratic, a cubic (odd about the
 data's centre, ``(v - c)**3``, tested beyond the linear and quadratic terms below it),
 a drift in time, the product of two of the instance's variables (tested beyond the two
-linear terms it contains: it is tried after them), an angle times a harmonic (the orders
+linear terms it contains: it is tried after them), the power a resistive sensor dissipates
+where a current (or a voltage) and a resistance among its variables both vary
+(``I**2*R``, ``V**2/R``: self-heating, which a quadratic in the current stands in for only
+where the resistance stays put), an angle times a harmonic (the orders
 of the plain harmonics), the output's own gain varying with a variable that is not one of the
 sensor's readings (``O*(w - c)``, tested beyond the term linear in ``w``: a sensitivity
 that changes with the temperature, where the output is not its reading plus a small
@@ -37,6 +40,7 @@ output it changes (internal units), from the data, whatever the units.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
@@ -44,7 +48,8 @@ import numpy as np
 
 from symcal.analysis.discovery import Basis, Candidate
 from symcal.analysis.residuals import Variable
-from symcal.base.units import DISPLAY_UNITS
+from symcal.base.errors import SymcalError
+from symcal.base.units import DISPLAY_UNITS, parse_unit, registry
 from symcal.data.derived import rate_and_noise
 from symcal.language import expr
 from symcal.language.model_file import ModelSpec
@@ -260,6 +265,16 @@ def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shap
                     ("{v}*{w}",), unit=v.unit, centre=cv,
                     other=v2.name, other_unit=v2.unit, other_centre=cw),
                     _product(v.name, cv, v2.name, cw), (v.name, v2.name), lower=_ones))
+    if allowed("power"):
+        for v in plain:
+            for r in plain:
+                form = _power_form(v, r)
+                if form is None:
+                    continue
+                out.append(_Shape(Basis(
+                    "power", v.name, f"the power dissipated, {v.name}{form[1]}{r.name} "
+                    "(self-heating)", ("pow",), (form[0],), unit=v.unit, other=r.name,
+                    other_unit=r.unit), _power(v.name, r.name, form[0]), lower=_ones))
     if allowed("angle_harmonic"):
         for a in angles:
             for v in periodic:
@@ -425,6 +440,38 @@ def _cubic(name: str, centre: float) -> Callable[[Block], np.ndarray]:
 
 def _product(v: str, cv: float, w: str, cw: float) -> Callable[[Block], np.ndarray]:
     return lambda b: ((b.values(v) - cv) * (b.values(w) - cw))[:, None]
+
+
+@functools.cache
+def _dimension(unit: str) -> str | None:
+    """``current``, ``voltage`` or ``resistance`` where ``unit`` measures one, else None."""
+    if not unit:
+        return None
+    try:
+        dim = parse_unit(unit).dimensionality
+    except (SymcalError, ValueError, TypeError):   # pragma: no cover - checked on load
+        return None
+    reg = registry()
+    for name, ref in (("current", "ampere"), ("voltage", "volt"), ("resistance", "ohm")):
+        if dim == reg.Unit(ref).dimensionality:
+            return name
+    return None
+
+
+def _power_form(v: Variable, w: Variable) -> tuple[str, str] | None:
+    """The term and its sign in words of the power ``v`` dissipates in the resistance
+    ``w`` (``{v}**2*{w}`` for a current, ``{v}**2/{w}`` for a voltage), None where ``v``
+    is neither or ``w`` is not a resistance, or either is time."""
+    if "drift" in (v.kind, w.kind) or _dimension(w.unit) != "resistance":
+        return None
+    return {"current": ("{v}**2*{w}", "²·"), "voltage": ("{v}**2/{w}", "²/")}.get(
+        _dimension(v.unit) or "")
+
+
+def _power(v: str, w: str, form: str) -> Callable[[Block], np.ndarray]:
+    if form.endswith("/{w}"):
+        return lambda b: (b.values(v) ** 2 / b.values(w))[:, None]
+    return lambda b: (b.values(v) ** 2 * b.values(w))[:, None]
 
 
 def _angle_harmonic(a: str, v: str, w: float) -> Callable[[Block], np.ndarray]:
