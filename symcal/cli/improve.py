@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
                   f"final problem: {result.final_problem}",
                   f"wrote the revisions, ladder.txt, ladder.json and ladder.png to {out}"]
         sys.stdout.write("\n".join(lines) + "\n")
-    return 0 if result.quiet and all(r.result.success for r in result.rounds) else 1
+    return 0 if result.verified and all(r.result.success for r in result.rounds) else 1
 
 
 def _left(result: Any, alpha: float) -> tuple[list[str], tuple[str, ...]]:

@@ -132,6 +132,17 @@ def outcome_text(improvement: Any) -> str:
         return ("the diagnosis is not quiet: no candidate of the search spaces is "
                 "significant, but a coupling outside them is: "
                 + "; ".join(improvement.last.outside_words[c.label] for c in outside))
+    unverified = getattr(improvement, "unverified", ())
+    if improvement.quiet and improvement.at_floor and unverified:
+        moved = sorted((m for _, ms in unverified for m in ms), key=lambda m: -m.shift)
+        names = ", ".join(f"{m.name} by {m.shift:.3g} SE" for m in moved[:4]) + (
+            f" and {len(moved) - 4} more" if len(moved) > 4 else "")
+        return (f"the diagnosis is quiet on the fitted data alone, which does not verify "
+                f"the model: no held-out run checked {len(unverified)} of the terms kept, "
+                f"and they moved {names}; either a missing effect had biased those, or a "
+                "term stands in for another effect (a step, a coupling the library lacks) "
+                "that fits this run as well: add a held-out run (a dataset with 'role: "
+                "check', another day's log) and improve again" + aliased)
     if improvement.quiet and improvement.at_floor:
         return "the diagnosis is quiet: every dataset is at its noise floor" + aliased
     if improvement.quiet:

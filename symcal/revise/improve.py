@@ -36,7 +36,7 @@ from symcal.revise.diagnose import GROUP as DIAGNOSED
 from symcal.revise.diagnose import Diagnosis, diagnose, on_reference
 from symcal.revise.effects import write_revision
 from symcal.revise.previous import clear_previous
-from symcal.revise.watch import Watch, new_parameters, same_fit, wald, watch
+from symcal.revise.watch import Moved, Watch, new_parameters, same_fit, wald, watch
 
 #: A candidate is not solved when the diagnosis predicts its held-out constraint
 #: residuals grow by more than this (a mean log ratio, +0.1 %, of their RMS and of their
@@ -147,6 +147,23 @@ class Improvement:
         aliased = dict(self.aliased)
         return any(c.label not in aliased for c in self.last.significant)
 
+    @property
+    def unverified(self) -> tuple[tuple[str, tuple[Moved, ...]], ...]:
+        """The kept terms no held-out run checked (:data:`UNCHECKED`) that moved a
+        parameter already there by more than :data:`~symcal.revise.watch.MOVED` of its
+        standard errors, with those moves: on the fitted run alone a term standing in for
+        another effect (a step, a coupling the library lacks) fits as well as the true
+        one, and the loop cannot tell which moved them.  A new user's clock lab, its PPS
+        stepping by 25 ns/s halfway, ended quiet at the floor on one run with its aging
+        rates 11 SE and turnover temperatures 22-41 SE off."""
+        return tuple((r.added, r.watch.moved) for r in self.rounds[1:]
+                     if r.added and UNCHECKED in r.ambiguous and r.watch.moved)
+
+    @property
+    def verified(self) -> bool:
+        """Quiet, and nothing :attr:`unverified`: the loop's success."""
+        return self.quiet and not self.unverified
+
     def tried_in(self) -> tuple[int | None, ...]:
         """The round each rejected candidate was tried in (None where not recorded)."""
         if len(self.rejected_rounds) == len(self.rejected):
@@ -157,6 +174,9 @@ class Improvement:
         """``{"rounds": [...], "quiet": ..., "final_problem": ..., "at_floor": ...}`` (plus
         what was rejected and why)."""
         return {"rounds": [r.to_dict() for r in self.rounds], "quiet": self.quiet,
+                "verified": self.verified,
+                "unverified": [{"added": label, "moved": [m.to_dict() for m in moved]}
+                               for label, moved in self.unverified],
                 "final_problem": str(self.final_problem), "at_floor": self.at_floor,
                 "rejected": [{"label": label, "reason": why, "round": k}
                              for (label, why), k in zip(self.rejected, self.tried_in(),

@@ -1,0 +1,76 @@
+"""A loop with no held-out run does not call itself done when what it kept moved the
+parameters already there.
+
+A new user's clock lab (``tests/data/clock``: two crystal oscillators counted against a
+GNSS PPS, aging and a parabolic temperature curve each; their scenario) with the PPS
+interval 25 ns long from halfway on, a step the library has no term for: on the
+calibration day alone, cubic terms in the temperature stood in for it, the loop ended
+"quiet: every dataset is at its noise floor" (exit 0) and the aging rates were 11 SE,
+the turnover temperatures 22-41 SE off.  On one run the loop cannot tell a term that
+removes a bias from one that stands in for another effect: it says so, and exits 1.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from conftest import ROOT
+
+import symcal
+from symcal.cli import main
+from symcal.data.dataset import make_dataset, write_table
+from symcal.report.text import outcome_text
+from symcal.simulation import load_scenario, simulate_run
+
+CLOCK = ROOT / "tests" / "data" / "clock"
+
+
+def _data(seed: int, step: bool, runs: tuple[str, ...] = ("calibration",)) -> dict:
+    scenario = load_scenario(CLOCK / "scenario.yaml")
+    if step:
+        scenario = scenario.overlay({"effects": {"pps_step": {"on": True}}})
+    return {k: make_dataset(k, "simulated", simulate_run(scenario, k, seed), [])
+            for k in runs}
+
+
+@pytest.mark.slow
+def test_a_step_on_one_run_is_not_called_done(tmp_path: Path) -> None:
+    data = _data(1, step=True)
+    done = symcal.improve(CLOCK / "prob_calonly.yaml", tmp_path / "out", data, max_rounds=3)
+    assert done.quiet and done.at_floor           # what the loop found on this run
+    assert not done.verified and done.unverified
+    moved = {m.name for _, ms in done.unverified for m in ms}
+    assert {"A.T_turn", "B.T_turn"} <= moved
+    text = outcome_text(done)
+    assert text.startswith("the diagnosis is quiet on the fitted data alone, which does not "
+                           "verify the model: no held-out run checked 2 of the terms kept")
+    assert "add a held-out run" in text
+    doc = done.to_dict()
+    assert doc["verified"] is False and doc["quiet"] is True
+    assert {m["name"] for u in doc["unverified"] for m in u["moved"]} == moved
+
+
+@pytest.mark.slow
+def test_the_command_exits_1_and_a_held_out_day_ends_not_quiet(tmp_path: Path, capsys
+                                                                 ) -> None:
+    data = _data(2, step=True, runs=("calibration", "validation"))
+    for name, ds in data.items():
+        write_table(tmp_path / f"{name}.csv", {c: ds.columns[c] for c in ds.columns})
+    out = tmp_path / "loop #1"
+    code = main(["improve", str(CLOCK / "prob_calonly.yaml"), "--data",
+                 f"calibration={tmp_path / 'calibration.csv'}", "--out", str(out),
+                 "--quiet", "--json"])
+    assert code == 1
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["quiet"] is True and doc["verified"] is False
+    held = symcal.improve(CLOCK / "problem.yaml", tmp_path / "held", data, max_rounds=3)
+    assert not held.verified
+
+
+def test_clean_data_on_one_run_is_verified(tmp_path: Path) -> None:
+    done = symcal.improve(CLOCK / "prob_calonly.yaml", tmp_path / "out",
+                          _data(3, step=False), max_rounds=2)
+    assert done.quiet and done.verified and done.unverified == ()
+    assert outcome_text(done) == "the diagnosis is quiet: every dataset is at its noise floor"
