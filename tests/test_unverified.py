@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import ROOT
 
@@ -74,3 +75,21 @@ def test_clean_data_on_one_run_is_verified(tmp_path: Path) -> None:
                           _data(3, step=False), max_rounds=2)
     assert done.quiet and done.verified and done.unverified == ()
     assert outcome_text(done) == "the diagnosis is quiet: every dataset is at its noise floor"
+
+
+def test_absorption_does_not_depend_on_the_parameters_units() -> None:
+    """A drift the aging rate absorbs exactly is absorbed whatever the units of the other
+    columns: a coefficient written per hour beside ns/s parameters made its column 1e13
+    times the aging rate's, and the nuisance's rank tolerance dropped the aging rate's
+    direction (the clock lab's "A.y += a slow drift in time: nearly absorbed, would move
+    A.a 2348 SE")."""
+    from symcal.analysis.discovery import Design, absorbed, unexplained_share
+
+    t = np.linspace(0.0, 86400.0, 500)
+    rng = np.random.default_rng(0)
+    aging = t * 1e-9 / 3600                       # ∂g/∂a, a in ns/s per hour
+    other = rng.normal(size=t.size) * t           # ∂g/∂drift, drift in 1/h: 1e13 larger
+    design = Design(rng.normal(size=t.size), np.column_stack([np.ones_like(t), aging, other]),
+                    ("y0", "a", "drift"), ())
+    assert absorbed(design, t[:, None])
+    assert unexplained_share(design, t) < 1e-9

@@ -247,9 +247,15 @@ def _nuisance(design: Design) -> _Nuisance:
     if matrix.size == 0:
         found = _Nuisance(np.zeros((matrix.shape[0], 0)), np.zeros((matrix.shape[1], 0)))
     else:
-        u, sv, vt = np.linalg.svd(matrix, full_matrices=False)
+        # each column to unit norm first: the rank is that of the directions, whatever
+        # the parameters' units (a drift written per hour beside ns/s parameters made a
+        # column 1e13 times the others, whose directions the tolerance then dropped: a
+        # term the aging rate absorbs exactly was "nearly absorbed, would move A.a 2348 SE")
+        norms = np.linalg.norm(matrix, axis=0)
+        d = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 0.0)
+        u, sv, vt = np.linalg.svd(matrix * d[None, :], full_matrices=False)
         keep = sv > rank_tolerance(sv, matrix.shape[0])
-        found = _Nuisance(u[:, keep], vt[keep].T / sv[keep][None, :])
+        found = _Nuisance(u[:, keep], d[:, None] * (vt[keep].T / sv[keep][None, :]))
     _SVDS.insert(0, (design, found))
     del _SVDS[_KEPT:]
     return found
