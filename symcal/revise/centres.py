@@ -9,8 +9,12 @@ gain at 0 K: a load cell's sensitivity 16 standard errors from its value in the 
 18-28 degC, a glass scale's gain 591 from its value at 20 degC.  Where the parameters
 absorb, or nearly, the product's part linear in ``v`` (a gain times ``v``), it is written
 ``c*v*(w - w0)``, ``w0`` the data's centre of ``w``: the gain then stays the gain at the
-run's own conditions, the same fit.  A product with time stays uncentred (a gain that
-grows from the start of the run: ``c*v*t``; centring time would leave a drift behind).
+run's own conditions, the same fit.  Time itself stays uncentred (a gain that grows from
+the start of the run: ``c*v*t``); the other variable of a product with time is centred
+where a drift the parameters already have absorbs the part linear in time (an
+oscillator's temperature coefficient that grows with its age, ``c*(T - T0)*t``: written
+about ``T = 0`` its aging rate became the rate at 0 degC, 7-11 standard errors from the
+rate at the run's 17-32 degC).
 """
 
 from __future__ import annotations
@@ -41,8 +45,8 @@ def centred_product(entry: Entry, own: Design, regressor: Callable[[Raw], np.nda
             entry.lower is None or basis.centre or basis.other_centre:
         return entry
     kinds = {v.name: v.kind for v in block.variables}
-    if "drift" in (kinds.get(basis.variable), kinds.get(basis.other)):
-        return entry
+    timed = {k for k, name in (("w", basis.variable), ("v", basis.other))
+             if kinds.get(name) == "drift"}      # keeping v centres w: never time
     extra, lower, raw = entry.extra, entry.lower, entry.raw
     cv = centre_of(block.values(basis.variable))
     cw = centre_of(block.values(basis.other))
@@ -51,6 +55,8 @@ def centred_product(entry: Entry, own: Design, regressor: Callable[[Raw], np.nda
         return lambda i: extra(i)[:, :, j:j + 1] + c * lower(i)
 
     for part, keep, c in ((linear(0, cv), "v", cw), (linear(1, cw), "w", cv)):
+        if keep in timed:
+            continue
         x = regressor(part)
         if not (absorbed(own, x) or unexplained_share(own, x[:, 0]) < NEARLY):
             continue

@@ -120,6 +120,16 @@ def per(numerator: str, *denominators: tuple[str, int]) -> str:
     ``kN/Δ°C``, where internal units read ``g*mm/s^2/K``): the value is written in that
     unit, whatever factor it differs from the first by."""
     unit = parse_unit(numerator or "1")
+    whole = unit
+    for den, power in denominators:
+        whole = whole / parse_unit(den or "1") ** power
+    if numerator and unit.dimensionless and not is_angle(numerator) and \
+            abs(size(numerator) - 1.0) > 1e-12 and dict(whole._units):
+        # a ratio the user chose to read in (ns/s, ppm as um/m) is kept whole: reduced
+        # with the rest it was 1/h, a clock's aging written as 2.5e-10 1/h
+        rest = per("", *denominators)
+        return (text_of(unit).replace("µ", "u") + rest[1:] if rest.startswith("1/") else
+                "*".join(x for x in (text_of(unit).replace("µ", "u"), rest) if x))
     for den, power in denominators:
         unit = unit / parse_unit(den or "1") ** power
     if not internal_of(unit):

@@ -1,0 +1,53 @@
+"""A new user's clock lab (``tests/data/clock``): two crystal oscillators against a GNSS
+PPS, fractional frequencies in ns/s, aging per hour, a parabolic temperature curve.
+
+- **A product with time is written about the run's temperature.**  A temperature
+  coefficient growing with age, ``0.1 ns/s/°C/h·(T - 25 °C)·t``, was written
+  ``prod_T_t*T*t``: the aging rate became the rate at 0 °C, 7-11 SE from the physical
+  rate.  Time stays uncentred; the temperature is centred where the aging rate absorbs
+  the part linear in time.
+- **Coefficients in the user's ratio.**  The output in ns/s: a drift was written in
+  ``1/h`` (``2.5e-10``); it is now ``ns/s/h``.
+"""
+
+from __future__ import annotations
+
+import pytest
+from conftest import ROOT
+
+import symcal
+from symcal.data.dataset import make_dataset
+from symcal.revise.effects import per
+from symcal.simulation import load_scenario, simulate_run, truth
+
+CLOCK = ROOT / "tests" / "data" / "clock"
+
+
+def test_a_ratio_the_user_reads_in_is_kept_in_a_coefficients_unit() -> None:
+    assert per("ns/s", ("hour", 1)) == "ns/s/h"
+    assert per("ns/s", ("delta_degC", 1), ("hour", 1)) == "ns/s/Δ°C/h"
+    assert per("ns/s") == "ns/s"
+    assert per("ns/s", ("ns/s", 1)) == ""          # a plain ratio stays plain
+    assert per("rad", ("rad", 1), ("K", 1)) == "1/K"   # an angle over an angle cancels
+    assert per("mm", ("K", 1)) == "mm/K"
+
+
+@pytest.mark.slow
+def test_a_temperature_coefficient_growing_with_age_keeps_the_aging_rate(tmp_path) -> None:
+    scenario = load_scenario(CLOCK / "scenario.yaml").overlay(
+        {"effects": {"tc_aging": {"on": True}}})
+    data = {k: make_dataset(k, "simulated", simulate_run(scenario, k, 3), [])
+            for k in ("calibration", "validation")}
+    done = symcal.improve(CLOCK / "problem.yaml", tmp_path / "out", data, max_rounds=3)
+    assert done.verified
+    assert [r.added for r in done.rounds[1:]] == ["A.y += the product of T and t"]
+    model = next((tmp_path / "out" / "models").glob("*prod_T_t*.yaml")).read_text()
+    assert "y: base.y + prod_T_t*(T - c_prod_T_t)*t" in model
+    assert "prod_T_t: {value: 0, unit: ns/s/Δ°C/h," in model
+    final = symcal.solve(done.final_problem, data)
+    true = truth(scenario)["parameters"]
+    for name in ("A.a", "A.c", "A.T_turn", "B.a", "B.T_turn"):
+        p = final.params[name]
+        assert abs(p.value - true[name]) < 3 * p.se, (name, p.value, true[name], p.se)
+    coef = final.params["A.prod_T_t"]
+    assert abs(coef.value - 0.1) < 3 * coef.se
