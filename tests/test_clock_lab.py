@@ -51,3 +51,27 @@ def test_a_temperature_coefficient_growing_with_age_keeps_the_aging_rate(tmp_pat
         assert abs(p.value - true[name]) < 3 * p.se, (name, p.value, true[name], p.se)
     coef = final.params["A.prod_T_t"]
     assert abs(coef.value - 0.1) < 3 * coef.se
+
+
+def test_a_pair_the_residual_is_written_with_is_not_what_is_left() -> None:
+    """``g = n/f0 − 1 − y`` binned along (n, y) "explains" itself: 10970 % of the
+    excess "along (nA, A.y) together" in the clock lab's verdict; such a pair is left out.
+    (Pairs with the count itself still rank high: binned along a noisy reading, a
+    residual's own noise sorts with it.)"""
+    import numpy as np
+
+    from symcal.analysis.residuals import Variable, what_is_left
+
+    rng = np.random.default_rng(4)
+    n = 4000
+    temp = rng.uniform(17, 33, n)
+    y = 1e-7 * rng.normal(size=n)
+    t = np.linspace(0, 24, n)
+    step = 2e-8 * (temp > 25) * (t > 12)             # what the count carries unmodelled
+    count = 1e7 * (1 + y + step + 35e-9 * rng.normal(size=n))
+    r = count / 1e7 - 1 - y
+    r -= r.mean()
+    found = what_is_left(r, [Variable("nA", count), Variable("A.y", y), Variable("T", temp),
+                             Variable("t", t)], floor_variance=(35e-9) ** 2)
+    pairs = [set(f.variables) for f in found if len(f.variables) == 2]
+    assert pairs and {"nA", "A.y"} not in pairs

@@ -174,6 +174,8 @@ def what_is_left(r: np.ndarray, variables: list[Variable], floor_variance: float
             ib = _bin_index(vb, pair_bins)
             if ia is None or ib is None:
                 continue
+            if _affine_in(r, va, vb):
+                continue        # the residual is written with them: trivially "along"
             explained, used = _cells(r, ia * pair_bins + ib, pair_bins * pair_bins)
             beyond = explained - (used - 1) / n * spread
             found.append(Left((*a.variables, *b.variables), beyond, beyond / excess,
@@ -181,6 +183,26 @@ def what_is_left(r: np.ndarray, variables: list[Variable], floor_variance: float
     found = [f for f in found if f.share > 0]
     found.sort(key=lambda f: -f.share)
     return found[:top]
+
+
+#: A residual is written with a set of variables where their affine fit leaves at most
+#: this share of its norm: rounding, not structure (a count of 1e7 less its nominal value
+#: cancels 8 digits; a residual at its floor leaves its noise, about all of it).
+AFFINE = 1e-3
+
+
+def _affine_in(r: np.ndarray, *columns: np.ndarray) -> bool:
+    """Whether ``r`` is an affine combination of ``columns`` to rounding: a residual
+    ``nA/(f0·tau) − 1 − A.y`` (tau a constant column) is, of the reading nA and the output
+    A.y; binned along the pair it is "10970 % of its excess along (nA, A.y) together"
+    (a new user's clock lab), which says nothing."""
+    a = np.column_stack([np.ones_like(r), *columns])
+    if not np.all(np.isfinite(a)):
+        return False
+    scale = np.linalg.norm(a, axis=0)
+    scale[scale == 0] = 1.0
+    coef, *_ = np.linalg.lstsq(a / scale, r, rcond=None)
+    return float(np.linalg.norm(r - (a / scale) @ coef)) <= AFFINE * float(np.linalg.norm(r))
 
 
 def phase_variable(var: Variable) -> Variable:
