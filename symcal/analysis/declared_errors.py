@@ -28,11 +28,11 @@ row by its own ``C_i`` already.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
-from symcal.analysis.floors import SharePlan, kept_sums, share_finish, share_plan
+from symcal.analysis.floor_passes import ShareSums
+from symcal.analysis.floors import kept_sums, share_finish, share_plan
 from symcal.analysis.row_noise import Fit
 from symcal.base.linalg import sqrt_psd
 from symcal.data.dataset import Dataset
@@ -71,18 +71,6 @@ class DeclaredErrors:
                 f"be off by up to a factor {self.spread:.2g}")
 
 
-@dataclass(frozen=True)
-class _Sums:
-    """One piece's sums of a log kept as shards (picklable)."""
-
-    plan: SharePlan
-    theta: np.ndarray
-    name: str
-
-    def __call__(self, piece: Any) -> tuple[np.ndarray, np.ndarray, float]:
-        return self.plan.sums(piece.dataset(self.name), self.theta)
-
-
 def declared_errors(problem: Problem, objective: Objective, data: Source,
                     theta: np.ndarray, rss: float, rows: int) -> DeclaredErrors | None:
     """The sandwich of a stage solved with ``objective`` (equal weights, or one
@@ -119,7 +107,7 @@ def declared_errors(problem: Problem, objective: Objective, data: Source,
     if isinstance(data, Dataset):
         a, b, t = kept_sums(problem, plan, data, theta)
     else:
-        parts = map_pieces(_Sums(plan, np.array(theta, dtype=float), data.name), data,
+        parts = map_pieces(ShareSums(plan, np.array(theta, dtype=float), data.name), data,
                            "declared_errors")
         a = np.sum([p[0] for p in parts], axis=0)
         b = np.sum([p[1] for p in parts], axis=0)

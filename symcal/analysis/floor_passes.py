@@ -43,7 +43,9 @@ from symcal.solvers.weighed import map_pieces
 
 
 @dataclass(frozen=True)
-class _Share:
+class ShareSums:
+    """One piece's share sums ``(A, B, t)`` of a log kept as shards (picklable)."""
+
     plan: SharePlan
     theta: np.ndarray
     name: str
@@ -81,7 +83,7 @@ def floor_tests_passes(problem: Problem, log: Source, sample: Dataset,
     if fit.dataset == log.name and np.any(fit.free):
         plan = share_plan(problem, fit, _log_variances(problem, log, sample, theta, ordered))
         if plan is not None:
-            parts = map_pieces(_Share(plan, np.array(theta, dtype=float), log.name), log,
+            parts = map_pieces(ShareSums(plan, np.array(theta, dtype=float), log.name), log,
                                 "floor_share")
             share = plan.finish(np.sum([p[0] for p in parts], axis=0),
                                 np.sum([p[1] for p in parts], axis=0))
