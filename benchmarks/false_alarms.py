@@ -89,6 +89,15 @@ SYSTEMS: dict[str, Callable[[], tuple[Path, Scenario, tuple[str, ...]]]] = {
         lambda: (ROOT / "tests" / "data" / "altimeter" / "problem.yaml",
                  load_scenario(ROOT / "tests" / "data" / "altimeter" / "scenario.yaml"),
                  ("calibration", "validation")),
+    "industrial oven, thermocouple, Pt100 under a stepped current, pyrometer "
+    "(tests/data/oven)": lambda: (
+        ROOT / "tests" / "data" / "oven" / "problem.yaml",
+        load_scenario(ROOT / "tests" / "data" / "oven" / "scenario.yaml"),
+        ("calibration", "validation")),
+    "clock lab, two oscillators against a GNSS PPS (tests/data/clock)": lambda: (
+        ROOT / "tests" / "data" / "clock" / "problem.yaml",
+        load_scenario(ROOT / "tests" / "data" / "clock" / "scenario.yaml"),
+        ("calibration", "validation")),
 }
 
 
