@@ -75,3 +75,11 @@ def test_a_pair_the_residual_is_written_with_is_not_what_is_left() -> None:
                              Variable("t", t)], floor_variance=(35e-9) ** 2)
     pairs = [set(f.variables) for f in found if len(f.variables) == 2]
     assert pairs and {"nA", "A.y"} not in pairs
+
+
+def test_ppb_is_a_unit_and_ppt_is_refused() -> None:
+    from symcal.base.units import UnitError, parse_unit, size
+
+    assert size("ppb") == pytest.approx(1e-9) and size("ppb/h") == pytest.approx(1e-9 / 3600)
+    with pytest.raises(UnitError, match="'ppt' is ambiguous .* pint reads it as a picopint"):
+        parse_unit("ppt/K")

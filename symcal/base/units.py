@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import math
+import re
 from collections.abc import Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -77,9 +78,11 @@ def registry() -> pint.UnitRegistry:
         for name in blocked:
             sys.modules.pop(name, None)
     try:
-        return pint.UnitRegistry(cache_folder=":auto:")
+        reg: pint.UnitRegistry = pint.UnitRegistry(cache_folder=":auto:")
     except Exception:  # noqa: BLE001 - an unusable cache folder: build without it
-        return pint.UnitRegistry()
+        reg = pint.UnitRegistry()
+    reg.define("ppb = 1e-9")      # a clock's ns/s, beside pint's ppm
+    return reg
 
 
 def _known_names() -> list[str]:
@@ -115,6 +118,11 @@ def parse_unit(text: str) -> Unit:
     reg = registry()
     if text.strip() in _TRIVIAL:
         return reg.dimensionless
+    if "ppt" in re.split(r"[^A-Za-z_]+", text):
+        raise UnitError(f"unit '{excerpt(text)}': 'ppt' is ambiguous (parts per thousand, "
+                        "or per trillion; pint reads it as a picopint): write 'permille' "
+                        "for parts per thousand, or 'ppb' with values 1000 times smaller "
+                        "for parts per trillion (percent, permille, ppm and ppb are known)")
     try:
         quantity = reg.Quantity(1.0, text)
     except Exception as exc:  # noqa: BLE001 - pint raises several kinds on bad text
