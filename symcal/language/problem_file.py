@@ -241,6 +241,18 @@ def _relative(base: Path, value: Any, where: Where) -> Path:
         raise SpecError(where, f"{display_path(base.parent / text)} is {LINK_LOOP}") from None
 
 
+def _nearby(path: Path) -> str:
+    """A did-you-mean among the YAML files beside where ``path`` was looked for."""
+    try:
+        names = sorted(p.name for p in path.parent.iterdir()
+                       if p.suffix in (".yaml", ".yml") and p.is_file())
+    except OSError:
+        return ""
+    hint = did_you_mean(path.name, names)
+    found = next((n for n in names if hint == f" (did you mean '{n}'?)"), None)
+    return "" if found is None else f" (did you mean '{display_path(path.with_name(found))}'?)"
+
+
 class _ModelCache:
     def __init__(self) -> None:
         self.models: dict[Path, ModelSpec] = {}
@@ -248,7 +260,8 @@ class _ModelCache:
     def get(self, path: Path, where: Where) -> ModelSpec:
         if path not in self.models:
             if not path.exists():
-                raise SpecError(where, f"model file not found: {display_path(path)}")
+                raise SpecError(where, f"model file not found: {display_path(path)}"
+                                       f"{_nearby(path)}")
             reason = input_refusal(path, MAX_BYTES)
             if reason is not None:
                 raise SpecError(where, f"cannot read model file {display_path(path)}: it "
