@@ -103,7 +103,7 @@ def test_valid_files_load(tmp_path: Path, monkeypatch) -> None:
     (MODEL, PROBLEM.replace("inputs: {p: p2}", "inputs: {p: p2, q: p3}"),
      "prob.yaml:6: instances.s2.inputs.q: 'q' is not an input of model 'seg'; it has: p"),
     (MODEL, PROBLEM.replace("s2: {model: seg.yaml", "s2: {model: segg.yaml"),
-     "prob.yaml:6: instances.s2.model: model file not found: segg.yaml"),
+     "prob.yaml:6: instances.s2.model: model file not found: segg.yaml (did you mean 'seg.yaml'?)"),
     (MODEL, PROBLEM.replace("calibration:", "validation:"),
      "prob.yaml:11: datasets: a problem needs a dataset to fit (the data it is solved on): "
      "one named 'calibration', or one with 'role: fit'"),

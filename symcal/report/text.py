@@ -143,6 +143,12 @@ def outcome_text(improvement: Any) -> str:
                 "term stands in for another effect (a step, a coupling the library lacks) "
                 "that fits this run as well: add a held-out run (a dataset with 'role: "
                 "check', another day's log) and improve again" + aliased)
+    undecided = getattr(improvement, "undecided", ())
+    if improvement.quiet and improvement.at_floor and undecided:
+        return ("the diagnosis is quiet, but the data do not decide the model: "
+                + undecided[0] + (f" (and {len(undecided) - 1} more such choice"
+                                  f"{'s' if len(undecided) > 2 else ''}, below)"
+                                  if len(undecided) > 1 else "") + aliased)
     if improvement.quiet and improvement.at_floor:
         return "the diagnosis is quiet: every dataset is at its noise floor" + aliased
     if improvement.quiet:

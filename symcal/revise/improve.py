@@ -160,9 +160,21 @@ class Improvement:
                      if r.added and UNCHECKED in r.ambiguous and r.watch.moved)
 
     @property
+    def undecided(self) -> tuple[str, ...]:
+        """The sentences of kept rounds whose term the data cannot tell from another that
+        fits about as well and puts a physical parameter more than 3 standard errors
+        elsewhere (:func:`_ambiguity`): the loop chose one, the data did not.  A new
+        user's wind mast, its Pitot reading 0.03 m/s low (a Reynolds-number effect),
+        kept an offset on the sonic that the data could not tell from one on the Pitot
+        and ended quiet, exit 0, with the cup's offset 20 SE off."""
+        return tuple(s for r in self.rounds[1:] for s in r.ambiguous
+                     if s.startswith(AMBIGUOUS))
+
+    @property
     def verified(self) -> bool:
-        """Quiet, and nothing :attr:`unverified`: the loop's success."""
-        return self.quiet and not self.unverified
+        """Quiet, and nothing :attr:`unverified` or :attr:`undecided`: the loop's
+        success."""
+        return self.quiet and not self.unverified and not self.undecided
 
     def tried_in(self) -> tuple[int | None, ...]:
         """The round each rejected candidate was tried in (None where not recorded)."""
@@ -177,6 +189,7 @@ class Improvement:
                 "verified": self.verified,
                 "unverified": [{"added": label, "moved": [m.to_dict() for m in moved]}
                                for label, moved in self.unverified],
+                "undecided": list(self.undecided),
                 "final_problem": str(self.final_problem), "at_floor": self.at_floor,
                 "rejected": [{"label": label, "reason": why, "round": k}
                              for (label, why), k in zip(self.rejected, self.tried_in(),
@@ -252,6 +265,9 @@ def _no_fall(sizes: list[float], scatter: list[float], margin: float) -> str | N
             f"{np.expm1(change):+.1%} in RMS, {np.expm1(spread):+.1%} in standard "
             "deviation)")
 
+
+#: How a sentence of two revisions the data cannot tell apart begins (:func:`_ambiguity`).
+AMBIGUOUS = "the data cannot tell "
 
 #: The note of a round kept where no dataset's constraints are held out.
 UNCHECKED = ("kept on the BIC and the Wald test alone: no dataset's constraint residuals "
@@ -583,7 +599,7 @@ def _ambiguity(label: str, new: Result, other: str, other_new: Result,
                 why = ("; the first is kept, the second leaves a parameter already there "
                        f"undetermined, its standard error more than {INFLATION:g} times "
                        "the one before")
-            return (f"the data cannot tell {label} from {other} (BIC {new.bic:.1f} and "
+            return (f"{AMBIGUOUS}{label} from {other} (BIC {new.bic:.1f} and "
                     f"{other_new.bic:.1f}{why}): they give {name} = "
                     f"{estimate_text(a.value, a.se)} ± {a.se:.2g} and "
                     f"{estimate_text(b.value, b.se)} ± {b.se:.2g}"
