@@ -94,6 +94,10 @@ SYSTEMS: dict[str, Callable[[], tuple[Path, Scenario, tuple[str, ...]]]] = {
         ROOT / "tests" / "data" / "oven" / "problem.yaml",
         load_scenario(ROOT / "tests" / "data" / "oven" / "scenario.yaml"),
         ("calibration", "validation")),
+    "wind mast, cup, Pitot-static and sonic anemometers (tests/data/mast)": lambda: (
+        ROOT / "tests" / "data" / "mast" / "problem.yaml",
+        load_scenario(ROOT / "tests" / "data" / "mast" / "scenario.yaml"),
+        ("calibration", "validation")),
     "clock lab, two oscillators against a GNSS PPS (tests/data/clock)": lambda: (
         ROOT / "tests" / "data" / "clock" / "problem.yaml",
         load_scenario(ROOT / "tests" / "data" / "clock" / "scenario.yaml"),
