@@ -93,3 +93,17 @@ def test_absorption_does_not_depend_on_the_parameters_units() -> None:
                     ("y0", "a", "drift"), ())
     assert absorbed(design, t[:, None])
     assert unexplained_share(design, t) < 1e-9
+
+
+@pytest.mark.slow
+def test_the_round_limit_is_named_and_so_are_unchecked_terms(tmp_path: Path) -> None:
+    """Stopped at ``max_rounds`` with candidates left, the ending said "nothing else
+    pays" (a new user's wind mast, five stand-ins at the floor on one run)."""
+    done = symcal.improve(CLOCK / "prob_calonly.yaml", tmp_path / "out", _data(1, step=True),
+                          max_rounds=1)
+    assert done.limit == 1 and not done.quiet and done.unverified
+    text = outcome_text(done)
+    assert text.startswith("the diagnosis is not quiet: the loop stopped at its limit of 1 "
+                           "rounds with significant candidates left")
+    assert "; no held-out run checked 1 of the terms kept, which moved A." in text
+    assert done.to_dict()["round_limit"] == 1

@@ -133,10 +133,10 @@ def outcome_text(improvement: Any) -> str:
                 "significant, but a coupling outside them is: "
                 + "; ".join(improvement.last.outside_words[c.label] for c in outside))
     unverified = getattr(improvement, "unverified", ())
+    moved = sorted((m for _, ms in unverified for m in ms), key=lambda m: -m.shift)
+    names = ", ".join(f"{m.name} by {m.shift:.3g} SE" for m in moved[:4]) + (
+        f" and {len(moved) - 4} more" if len(moved) > 4 else "")
     if improvement.quiet and improvement.at_floor and unverified:
-        moved = sorted((m for _, ms in unverified for m in ms), key=lambda m: -m.shift)
-        names = ", ".join(f"{m.name} by {m.shift:.3g} SE" for m in moved[:4]) + (
-            f" and {len(moved) - 4} more" if len(moved) > 4 else "")
         return (f"the diagnosis is quiet on the fitted data alone, which does not verify "
                 f"the model: no held-out run checked {len(unverified)} of the terms kept, "
                 f"and they moved {names}; either a missing effect had biased those, or a "
@@ -155,15 +155,22 @@ def outcome_text(improvement: Any) -> str:
         return ("the diagnosis is quiet, which here only means that no candidate is "
                 f"significant: the noise floor is unknown ({how_to_declare(result)})"
                 + aliased)
+    unchecked = (f"; no held-out run checked {len(unverified)} of the terms kept, which "
+                 f"moved {names}" if unverified else "")
     if not improvement.candidates_left:
         if any(t.verdict == "below" for t in result.floor_tests) and not any(
                 t.verdict == "above" for t in result.floor_tests):
             return ("the diagnosis is not quiet: below the noise floor (overfitting, or noise "
-                    "declared larger than the sensors')")
+                    "declared larger than the sensors')" + unchecked)
         return ("the diagnosis is not quiet: structure remains that no candidate explains "
                 "(above the noise floor, and no candidate of the library is significant; "
-                "or the readings are noisier than declared)")
-    return "the diagnosis is not quiet (nothing else pays)"
+                "or the readings are noisier than declared)" + unchecked)
+    limit = getattr(improvement, "limit", None)
+    if limit is not None:
+        return (f"the diagnosis is not quiet: the loop stopped at its limit of {limit} "
+                "rounds with significant candidates left (--max-rounds sets it; so many "
+                "terms may stand in for one effect the library lacks)" + unchecked)
+    return "the diagnosis is not quiet (nothing else pays)" + unchecked
 
 
 def family_note(tests: Any, index: int) -> str:

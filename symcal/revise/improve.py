@@ -134,6 +134,8 @@ class Improvement:
     # the round each of ``rejected`` was tried in (a candidate refused in round 1 may be
     # tried again, and refused again, in round 2)
     rejected_rounds: tuple[int, ...] = ()
+    # the round limit, where the loop stopped at it with significant candidates left
+    limit: int | None = None
 
     @property
     def at_floor(self) -> bool | None:
@@ -189,7 +191,7 @@ class Improvement:
                 "verified": self.verified,
                 "unverified": [{"added": label, "moved": [m.to_dict() for m in moved]}
                                for label, moved in self.unverified],
-                "undecided": list(self.undecided),
+                "undecided": list(self.undecided), "round_limit": self.limit,
                 "final_problem": str(self.final_problem), "at_floor": self.at_floor,
                 "rejected": [{"label": label, "reason": why, "round": k}
                              for (label, why), k in zip(self.rejected, self.tried_in(),
@@ -956,8 +958,9 @@ def _improve(problem: Problem | str | Path, out: str | Path,
     quiet = (result.success and not left and result.at_floor is not False
              and not diag.outside)
     tried_in += [ran] * (len(rejected) - len(tried_in))
+    limit = max_rounds if len(rounds) - 1 == max_rounds and left else None
     return Improvement(tuple(rounds), quiet, final, tuple(rejected), diag, aliased,
-                       tuple(tried_in))
+                       tuple(tried_in), limit)
 
 
 def _reads_ahead(diag: Diagnosis, kept: _Kept, old: Result) -> tuple[str, ...]:
