@@ -43,6 +43,18 @@ def _bath_declared() -> Path:
     return path
 
 
+DATA = ROOT / "tests" / "data"
+EXAMPLES = ROOT / "examples"
+
+
+def _held_out(folder: Path, problem: str = "problem.yaml"
+              ) -> tuple[Path, Scenario, tuple[str, ...]]:
+    """A system kept in ``folder``: its problem, its ``scenario.yaml``, and a calibration
+    and a validation run."""
+    return folder / problem, load_scenario(folder / "scenario.yaml"), ("calibration",
+                                                                        "validation")
+
+
 SYSTEMS: dict[str, Callable[[], tuple[Path, Scenario, tuple[str, ...]]]] = {
     "platen (implicit), courier": lambda: (
         ROOT / "problems" / "platen_self_calibration_implicit.yaml",
@@ -50,58 +62,30 @@ SYSTEMS: dict[str, Callable[[], tuple[Path, Scenario, tuple[str, ...]]]] = {
     "dual (implicit), courier": lambda: (
         ROOT / "problems" / "dual_sensor_calibration_implicit.yaml",
         courier_scenarios.dual(), ("calibration", "flyby")),
-    "two thermometers in one bath": lambda: (
-        BATH / "problem.yaml", load_scenario(BATH / "scenario.yaml"),
-        ("calibration", "validation")),
+    "two thermometers in one bath": lambda: _held_out(BATH),
     "two thermometers, the other's reading declared": lambda: (
         _bath_declared(), load_scenario(BATH / "scenario.yaml"),
         ("calibration", "validation")),
-    "accelerometer triad": lambda: (
-        ROOT / "examples" / "accelerometer_triad" / "problem_fixed.yaml",
-        load_scenario(ROOT / "examples" / "accelerometer_triad" / "scenario.yaml"),
-        ("calibration", "validation")),
-    "two NTC thermistors in one bath (noise 1-25 mK across the range)": lambda: (
-        ACCEPTANCE / "thermistor_bath" / "problem.yaml",
-        load_scenario(ACCEPTANCE / "thermistor_bath" / "scenario.yaml"),
-        ("calibration", "validation")),
-    "magnetometer tumbled by hand": lambda: (
-        ACCEPTANCE / "magnetometer" / "problem.yaml",
-        load_scenario(ACCEPTANCE / "magnetometer" / "scenario.yaml"),
-        ("calibration", "validation")),
-    "differential drive": lambda: (
-        ROOT / "examples" / "diff_drive" / "problem_fixed.yaml",
-        load_scenario(ROOT / "examples" / "diff_drive" / "scenario.yaml"),
-        ("calibration", "validation")),
-    "DC power bench, two channels and two references (tests/data/power_bench)": lambda: (
-        ROOT / "tests" / "data" / "power_bench" / "problem.yaml",
-        load_scenario(ROOT / "tests" / "data" / "power_bench" / "scenario.yaml"),
-        ("calibration", "validation")),
-    "robot joint, two encoders and a tracker (tests/data/joint)": lambda: (
-        ROOT / "tests" / "data" / "joint" / "problem.yaml",
-        load_scenario(ROOT / "tests" / "data" / "joint" / "scenario.yaml"),
-        ("calibration", "validation")),
+    "accelerometer triad": lambda: _held_out(EXAMPLES / "accelerometer_triad",
+                                             "problem_fixed.yaml"),
+    "two NTC thermistors in one bath (noise 1-25 mK across the range)":
+        lambda: _held_out(ACCEPTANCE / "thermistor_bath"),
+    "magnetometer tumbled by hand": lambda: _held_out(ACCEPTANCE / "magnetometer"),
+    "differential drive": lambda: _held_out(EXAMPLES / "diff_drive", "problem_fixed.yaml"),
+    "DC power bench, two channels and two references (tests/data/power_bench)":
+        lambda: _held_out(DATA / "power_bench"),
+    "robot joint, two encoders and a tracker (tests/data/joint)":
+        lambda: _held_out(DATA / "joint"),
     "weighing platform, three load cells, test masses and a crane scale "
-    "(tests/data/platform)": lambda: (
-        ROOT / "tests" / "data" / "platform" / "prob-v2.yaml",
-        load_scenario(ROOT / "tests" / "data" / "platform" / "scenario.yaml"),
-        ("calibration", "validation")),
+    "(tests/data/platform)": lambda: _held_out(DATA / "platform", "prob-v2.yaml"),
     "drone altimeter, two barometers, a thermometer and GNSS (tests/data/altimeter)":
-        lambda: (ROOT / "tests" / "data" / "altimeter" / "problem.yaml",
-                 load_scenario(ROOT / "tests" / "data" / "altimeter" / "scenario.yaml"),
-                 ("calibration", "validation")),
+        lambda: _held_out(DATA / "altimeter"),
     "industrial oven, thermocouple, Pt100 under a stepped current, pyrometer "
-    "(tests/data/oven)": lambda: (
-        ROOT / "tests" / "data" / "oven" / "problem.yaml",
-        load_scenario(ROOT / "tests" / "data" / "oven" / "scenario.yaml"),
-        ("calibration", "validation")),
-    "wind mast, cup, Pitot-static and sonic anemometers (tests/data/mast)": lambda: (
-        ROOT / "tests" / "data" / "mast" / "problem.yaml",
-        load_scenario(ROOT / "tests" / "data" / "mast" / "scenario.yaml"),
-        ("calibration", "validation")),
-    "clock lab, two oscillators against a GNSS PPS (tests/data/clock)": lambda: (
-        ROOT / "tests" / "data" / "clock" / "problem.yaml",
-        load_scenario(ROOT / "tests" / "data" / "clock" / "scenario.yaml"),
-        ("calibration", "validation")),
+    "(tests/data/oven)": lambda: _held_out(DATA / "oven"),
+    "wind mast, cup, Pitot-static and sonic anemometers (tests/data/mast)":
+        lambda: _held_out(DATA / "mast"),
+    "clock lab, two oscillators against a GNSS PPS (tests/data/clock)":
+        lambda: _held_out(DATA / "clock"),
 }
 
 
