@@ -68,3 +68,45 @@ def test_the_loop_keeps_the_power_and_ends_with_the_rtd_right(tmp_path, seed: in
     heat = final.params["rtd.pow_I_rtd_R_rtd"]      # K per mA²·Ω = K/µW: -0.25 K/mW
     assert heat.unit == "K/mA^2/Ω"
     assert abs(heat.value + 0.25e-3) < 3 * heat.se
+
+
+DIVIDER = ROOT / "tests" / "data" / "divider"
+
+
+def _divider(n: int, seed: int, period_t: float, period_v: float, phase: float
+             ) -> dict[str, np.ndarray]:
+    """An NTC thermistor (R25 10.03 kΩ, β 3935 K) below a 10 kΩ resistor under a supply
+    switched between about 1 and 5.5 V, heated by its own Vth²/R (2 mW/K), against a
+    reference thermometer in a bath swept 2-58 °C (a reviewer's simulation)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 5.0
+    bath = 273.15 + 30 + 28 * np.sin(2 * np.pi * t / period_t + phase)
+    vs = (3.25 + 1.125 * np.tanh(15 * np.sin(2 * np.pi * t / period_v))
+          + 0.75 * np.tanh(15 * np.sin(2 * np.pi * t / (period_v * 2.7))))
+    temp = bath.copy()
+    for _ in range(50):                              # the heated part's own temperature
+        r = 10.03 * np.exp(3935.0 * (1 / temp - 1 / 298.15))
+        vth = vs * r / (r + 10.0)
+        temp = bath + vth**2 / (r * 1e3) / 2.0e-3
+    return {"t": t, "Vth": vth + rng.normal(size=n) * 1e-4,
+            "Vs": vs + rng.normal(size=n) * 1e-4, "Tr": bath + rng.normal(size=n) * 0.01}
+
+
+@pytest.mark.slow
+def test_the_power_in_a_resistance_the_model_computes(tmp_path) -> None:
+    """``R: Rf*Vth/(Vs - Vth)`` is the thermistor model's own output: the power Vth²/R
+    in it was never offered (the loop kept five stand-ins and stopped at its limit)."""
+    data = {"calibration": make_dataset("calibration", "sim", _divider(3000, 1, 9000, 1100,
+                                                                       0.0), []),
+            "validation": make_dataset("validation", "sim", _divider(1500, 101, 5000, 700,
+                                                                     1.0), [])}
+    done = symcal.improve(DIVIDER / "problem.yaml", tmp_path / "out", data, max_rounds=3)
+    assert [r.added for r in done.rounds[1:]] == [
+        "th.T += the power dissipated, Vth²/th.R (self-heating)"]
+    assert done.verified
+    final = symcal.solve(done.final_problem, data)
+    for name, true in (("th.R25", 10.03), ("th.beta", 3935.0)):
+        p = final.params[name]
+        assert abs(p.value - true) < 3 * p.se, (name, p.value, p.se)
+    heat = final.params["th.pow_Vth_R"]           # K·kΩ/V² = K/mW: -1/(2 mW/K)
+    assert abs(heat.value + 0.5) < 3 * heat.se

@@ -373,6 +373,37 @@ def _couplings(problem: Problem, output: str, block: Block, space: Space) -> lis
     return out
 
 
+def _own_powers(problem: Problem, output: str, variables: list[Variable], block: Block,
+                space: Space) -> list[_Shape]:
+    """The power a current or a voltage of the space dissipates in a resistance the
+    sensor's model computes itself, another of its outputs (a thermistor in a divider:
+    ``R: Rf*Vth/(Vs - Vth)``, ``T`` from ``R``): ``{v}**2/{R}`` on ``output``; never an
+    output that reads ``output`` (no cycle).  A reviewer's divider kept five stand-ins and
+    stopped at the round limit without it."""
+    if space.kinds is not None and "power" not in space.kinds:
+        return []
+    instance, local = output.split(".", 1)
+    model = problem.instances[instance].model
+    have = {v.name: v for v in block.variables}
+    out = []
+    for other in model.outputs:
+        name = f"{instance}.{other}"
+        if other == local or name not in have or reads(model, other, local) or \
+                (space.declared and name not in space.variables):
+            continue
+        r = Variable(name, block.values(name), have[name].unit)
+        if not np.all(np.isfinite(r.values)) or np.ptp(r.values) <= 0:
+            continue
+        for v in variables:
+            form = _power_form(v, r) if v.kind != "angle" else None
+            if form is not None:
+                out.append(_Shape(Basis(
+                    "power", v.name, f"the power dissipated, {v.name}{form[1]}{name} "
+                    "(self-heating)", ("pow",), (form[0],), unit=v.unit, other=name,
+                    other_unit=r.unit), _power(v.name, name, form[0]), lower=_ones))
+    return out
+
+
 def reads(model: ModelSpec, name: str, target: str) -> bool:
     """Whether the model's definition ``name`` (an output or expression) reads
     ``target``, directly or through other definitions."""
@@ -527,6 +558,7 @@ def output_entries(problem: Problem, blocks: list[Block], fit: int
         shapes = _shapes(variables, blocks[fit], space)
         shapes += _gains(problem, output, groups, variables, blocks[fit], space)
         shapes += _couplings(problem, output, blocks[fit], space)
+        shapes += _own_powers(problem, output, variables, blocks[fit], space)
         out += _entries(blocks, fit, h, output, shapes, variables)
     return out, found
 
