@@ -40,6 +40,9 @@ from symcal.problem.symbolic import Problem
 from symcal.solvers.objective import Objective, Source
 from symcal.solvers.weighed import map_pieces
 
+#: How a stage's note on these standard errors begins (the report's header reads it).
+NOTE = "standard errors: the sandwich"
+
 
 @dataclass(frozen=True)
 class DeclaredErrors:
@@ -64,7 +67,7 @@ class DeclaredErrors:
 
     def note(self) -> str:
         """The stage's note on how its standard errors were taken."""
-        return ("standard errors: the sandwich of the fit's weights with each observation's "
+        return (f"{NOTE} of the fit's weights with each observation's "
                 "covariance propagated from the readings' declared noise, scaled by the "
                 "residuals' sum of squares over what that noise predicts for it "
                 f"(σ̂₀² = {self.factor:.3g}); with one pooled residual variance they would "

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 import casadi as ca
 import numpy as np
 
+from symcal.analysis.declared_errors import NOTE as SANDWICH_NOTE
 from symcal.analysis.outliers import THRESHOLD, Outliers, remedy, remedy_yaml
 from symcal.analysis.verdicts import family_bands, family_verdicts
 from symcal.base.digits import estimate_text
@@ -650,7 +651,7 @@ def text_report(result: Result) -> str:
                  "correlated)" if serial is not None and serial.detected else
                  "the sandwich with each observation's covariance from the declared noise, "
                  "scaled by the residuals' variance over what it predicts)"
-                 if any(n.startswith("standard errors: the sandwich")
+                 if any(n.startswith(SANDWICH_NOTE)
                         for n in result.stages[-1].notes) else
                  "scaled by the residual variance)")]
     lines += _parameter_lines(result)

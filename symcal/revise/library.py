@@ -266,15 +266,8 @@ def _shapes(variables: list[Variable], block: Block, space: Space) -> list[_Shap
                     other=v2.name, other_unit=v2.unit, other_centre=cw),
                     _product(v.name, cv, v2.name, cw), (v.name, v2.name), lower=_ones))
     if allowed("power"):
-        for v in plain:
-            for r in plain:
-                form = _power_form(v, r)
-                if form is None:
-                    continue
-                out.append(_Shape(Basis(
-                    "power", v.name, f"the power dissipated, {v.name}{form[1]}{r.name} "
-                    "(self-heating)", ("pow",), (form[0],), unit=v.unit, other=r.name,
-                    other_unit=r.unit), _power(v.name, r.name, form[0]), lower=_ones))
+        out += [shape for v in plain for r in plain
+                if (shape := _power_shape(v, r)) is not None]
     if allowed("angle_harmonic"):
         for a in angles:
             for v in periodic:
@@ -394,13 +387,8 @@ def _own_powers(problem: Problem, output: str, variables: list[Variable], block:
         r = Variable(name, block.values(name), have[name].unit)
         if not np.all(np.isfinite(r.values)) or np.ptp(r.values) <= 0:
             continue
-        for v in variables:
-            form = _power_form(v, r) if v.kind != "angle" else None
-            if form is not None:
-                out.append(_Shape(Basis(
-                    "power", v.name, f"the power dissipated, {v.name}{form[1]}{name} "
-                    "(self-heating)", ("pow",), (form[0],), unit=v.unit, other=name,
-                    other_unit=r.unit), _power(v.name, name, form[0]), lower=_ones))
+        out += [shape for v in variables if v.kind != "angle"
+                and (shape := _power_shape(v, r)) is not None]
     return out
 
 
@@ -497,6 +485,17 @@ def _power_form(v: Variable, w: Variable) -> tuple[str, str] | None:
         return None
     return {"current": ("{v}**2*{w}", "²·"), "voltage": ("{v}**2/{w}", "²/")}.get(
         _dimension(v.unit) or "")
+
+
+def _power_shape(v: Variable, r: Variable) -> _Shape | None:
+    """The power ``v`` dissipates in the resistance ``r`` as a shape (None: not a pair of
+    :func:`_power_form`)."""
+    form = _power_form(v, r)
+    if form is None:
+        return None
+    return _Shape(Basis("power", v.name, f"the power dissipated, {v.name}{form[1]}{r.name} "
+                        "(self-heating)", ("pow",), (form[0],), unit=v.unit, other=r.name,
+                        other_unit=r.unit), _power(v.name, r.name, form[0]), lower=_ones)
 
 
 def _power(v: str, w: str, form: str) -> Callable[[Block], np.ndarray]:
