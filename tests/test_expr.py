@@ -445,6 +445,9 @@ def _regular(node: Node, env: dict[str, float]) -> bool:
     if isinstance(node, Call) and node.func == "atan2":
         if any(evaluate(arg, env) == 0.0 for arg in node.args):
             return False
+    if isinstance(node, Call) and node.func in ("sin", "cos", "tan") and \
+            abs(evaluate(node.args[0], env)) > 1e6:
+        return False     # ill-conditioned: one ulp of cos(27.0**13)'s argument is 512 rad
     children = {Unary: lambda n: (n.operand,), Binary: lambda n: (n.left, n.right),
                 Call: lambda n: n.args}.get(type(node), lambda n: ())(node)
     return all(_regular(child, env) for child in children)
@@ -454,7 +457,8 @@ def _regular(node: Node, env: dict[str, float]) -> bool:
 @given(tree=trees, env=envs)
 def test_render_parse_roundtrip_and_casadi_matches_reference(tree: Node, env: dict) -> None:
     """Policy: CasADi and the reference must agree (rel_tol 1e-9) whenever every
-    subexpression of the reference is finite and no atan2 argument is zero. Otherwise the
+    subexpression of the reference is finite, no atan2 argument is zero and no sin, cos or
+    tan argument exceeds 1e6 (where a rounding of the argument moves the value). Otherwise the
     example is not compared: CasADi legitimately departs from IEEE there because it
     simplifies and folds symbolically (``x - x -> 0``, ``x*0 -> 0``, ``x/x -> 1``,
     ``0 - x -> -x``, ``c/0 -> inf``), so it may return a number where IEEE gives nan, or a
