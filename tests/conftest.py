@@ -86,3 +86,12 @@ def magnetometer_gain_time(folder: Path) -> Path:
         (source / "problem_free.yaml").read_text().replace("scenario.yaml",
                                                            "scenario_gain_time.yaml"))
     return folder / "problem.yaml"
+
+
+def simulated(scenario, seed: int, runs: tuple[str, ...] = ("calibration", "validation")
+              ) -> dict:
+    """The runs of a loaded scenario simulated with ``seed``, as datasets by name."""
+    from symcal.data.dataset import make_dataset
+    from symcal.simulation import simulate_run
+
+    return {k: make_dataset(k, "simulated", simulate_run(scenario, k, seed), []) for k in runs}

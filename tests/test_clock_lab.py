@@ -13,12 +13,11 @@ PPS, fractional frequencies in ns/s, aging per hour, a parabolic temperature cur
 from __future__ import annotations
 
 import pytest
-from conftest import ROOT
+from conftest import ROOT, simulated
 
 import symcal
-from symcal.data.dataset import make_dataset
 from symcal.revise.effects import per
-from symcal.simulation import load_scenario, simulate_run, truth
+from symcal.simulation import load_scenario, truth
 
 CLOCK = ROOT / "tests" / "data" / "clock"
 
@@ -36,8 +35,7 @@ def test_a_ratio_the_user_reads_in_is_kept_in_a_coefficients_unit() -> None:
 def test_a_temperature_coefficient_growing_with_age_keeps_the_aging_rate(tmp_path) -> None:
     scenario = load_scenario(CLOCK / "scenario.yaml").overlay(
         {"effects": {"tc_aging": {"on": True}}})
-    data = {k: make_dataset(k, "simulated", simulate_run(scenario, k, 3), [])
-            for k in ("calibration", "validation")}
+    data = simulated(scenario, 3)
     done = symcal.improve(CLOCK / "problem.yaml", tmp_path / "out", data, max_rounds=3)
     assert done.verified
     assert [r.added for r in done.rounds[1:]] == ["A.y += the product of T and t"]

@@ -13,12 +13,11 @@ offset and cannot decide.  It now ends saying the data do not decide the model, 
 from __future__ import annotations
 
 import pytest
-from conftest import ROOT
+from conftest import ROOT, simulated
 
 import symcal
-from symcal.data.dataset import make_dataset
 from symcal.report.text import outcome_text
-from symcal.simulation import load_scenario, simulate_run
+from symcal.simulation import load_scenario
 
 MAST = ROOT / "tests" / "data" / "mast"
 
@@ -27,8 +26,7 @@ MAST = ROOT / "tests" / "data" / "mast"
 def test_a_choice_the_data_do_not_make_is_not_called_done(tmp_path) -> None:
     scenario = load_scenario(MAST / "scenario.yaml").overlay(
         {"effects": {"reynolds": {"on": True}}})
-    data = {k: make_dataset(k, "simulated", simulate_run(scenario, k, 1), [])
-            for k in ("calibration", "validation")}
+    data = simulated(scenario, 1)
     done = symcal.improve(MAST / "problem.yaml", tmp_path / "out", data, max_rounds=3)
     assert done.quiet and done.at_floor and not done.unverified   # a held-out run checked it
     assert not done.verified and done.undecided
@@ -40,8 +38,6 @@ def test_a_choice_the_data_do_not_make_is_not_called_done(tmp_path) -> None:
 
 
 def test_clean_data_are_verified(tmp_path) -> None:
-    data = {k: make_dataset(k, "simulated",
-                            simulate_run(load_scenario(MAST / "scenario.yaml"), k, 2), [])
-            for k in ("calibration", "validation")}
+    data = simulated(load_scenario(MAST / "scenario.yaml"), 2)
     done = symcal.improve(MAST / "problem.yaml", tmp_path / "out", data, max_rounds=2)
     assert done.verified and done.undecided == () and done.unverified == ()

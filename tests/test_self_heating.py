@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, simulated
 
 import symcal
 from symcal.analysis.residuals import Variable
 from symcal.data.dataset import make_dataset
 from symcal.revise.library import _power_form
-from symcal.simulation import load_scenario, simulate_run, truth
+from symcal.simulation import load_scenario, truth
 
 OVEN = ROOT / "tests" / "data" / "oven"
 POWER = "rtd.T += the power dissipated, I_rtd²·R_rtd (self-heating)"
@@ -42,8 +42,7 @@ def _data(seed: int, heating: bool) -> tuple[dict, dict]:
     scenario = load_scenario(OVEN / "scenario.yaml")
     if heating:
         scenario = scenario.overlay({"effects": {"self_heating": {"on": True}}})
-    data = {k: make_dataset(k, "simulated", simulate_run(scenario, k, seed), [])
-            for k in ("calibration", "validation")}
+    data = simulated(scenario, seed)
     return data, truth(scenario)["parameters"]
 
 

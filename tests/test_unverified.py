@@ -17,13 +17,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, simulated
 
 import symcal
 from symcal.cli import main
-from symcal.data.dataset import make_dataset, write_table
+from symcal.data.dataset import write_table
 from symcal.report.text import outcome_text
-from symcal.simulation import load_scenario, simulate_run
+from symcal.simulation import load_scenario
 
 CLOCK = ROOT / "tests" / "data" / "clock"
 
@@ -32,8 +32,7 @@ def _data(seed: int, step: bool, runs: tuple[str, ...] = ("calibration",)) -> di
     scenario = load_scenario(CLOCK / "scenario.yaml")
     if step:
         scenario = scenario.overlay({"effects": {"pps_step": {"on": True}}})
-    return {k: make_dataset(k, "simulated", simulate_run(scenario, k, seed), [])
-            for k in runs}
+    return simulated(scenario, seed, runs)
 
 
 @pytest.mark.slow
