@@ -95,3 +95,10 @@ def simulated(scenario, seed: int, runs: tuple[str, ...] = ("calibration", "vali
     from symcal.simulation import simulate_run
 
     return {k: make_dataset(k, "simulated", simulate_run(scenario, k, seed), []) for k in runs}
+
+
+def with_effect(folder: Path, effect: str):
+    """``folder``'s ``scenario.yaml`` with its hidden effect ``effect`` switched on."""
+    from symcal.simulation import load_scenario
+
+    return load_scenario(folder / "scenario.yaml").overlay({"effects": {effect: {"on": True}}})

@@ -13,11 +13,11 @@ PPS, fractional frequencies in ns/s, aging per hour, a parabolic temperature cur
 from __future__ import annotations
 
 import pytest
-from conftest import ROOT, simulated
+from conftest import ROOT, simulated, with_effect
 
 import symcal
 from symcal.revise.effects import per
-from symcal.simulation import load_scenario, truth
+from symcal.simulation import truth
 
 CLOCK = ROOT / "tests" / "data" / "clock"
 
@@ -33,8 +33,7 @@ def test_a_ratio_the_user_reads_in_is_kept_in_a_coefficients_unit() -> None:
 
 @pytest.mark.slow
 def test_a_temperature_coefficient_growing_with_age_keeps_the_aging_rate(tmp_path) -> None:
-    scenario = load_scenario(CLOCK / "scenario.yaml").overlay(
-        {"effects": {"tc_aging": {"on": True}}})
+    scenario = with_effect(CLOCK, "tc_aging")
     data = simulated(scenario, 3)
     done = symcal.improve(CLOCK / "problem.yaml", tmp_path / "out", data, max_rounds=3)
     assert done.verified

@@ -13,7 +13,7 @@ offset and cannot decide.  It now ends saying the data do not decide the model, 
 from __future__ import annotations
 
 import pytest
-from conftest import ROOT, simulated
+from conftest import ROOT, simulated, with_effect
 
 import symcal
 from symcal.report.text import outcome_text
@@ -24,8 +24,7 @@ MAST = ROOT / "tests" / "data" / "mast"
 
 @pytest.mark.slow
 def test_a_choice_the_data_do_not_make_is_not_called_done(tmp_path) -> None:
-    scenario = load_scenario(MAST / "scenario.yaml").overlay(
-        {"effects": {"reynolds": {"on": True}}})
+    scenario = with_effect(MAST, "reynolds")
     data = simulated(scenario, 1)
     done = symcal.improve(MAST / "problem.yaml", tmp_path / "out", data, max_rounds=3)
     assert done.quiet and done.at_floor and not done.unverified   # a held-out run checked it

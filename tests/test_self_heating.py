@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import ROOT, simulated
+from conftest import ROOT, simulated, with_effect
 
 import symcal
 from symcal.analysis.residuals import Variable
@@ -39,9 +39,8 @@ def test_the_power_is_proposed_for_a_current_or_a_voltage_in_a_resistance() -> N
 
 
 def _data(seed: int, heating: bool) -> tuple[dict, dict]:
-    scenario = load_scenario(OVEN / "scenario.yaml")
-    if heating:
-        scenario = scenario.overlay({"effects": {"self_heating": {"on": True}}})
+    scenario = (with_effect(OVEN, "self_heating") if heating else
+                load_scenario(OVEN / "scenario.yaml"))
     data = simulated(scenario, seed)
     return data, truth(scenario)["parameters"]
 

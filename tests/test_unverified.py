@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT, simulated
+from conftest import ROOT, simulated, with_effect
 
 import symcal
 from symcal.cli import main
@@ -29,9 +29,8 @@ CLOCK = ROOT / "tests" / "data" / "clock"
 
 
 def _data(seed: int, step: bool, runs: tuple[str, ...] = ("calibration",)) -> dict:
-    scenario = load_scenario(CLOCK / "scenario.yaml")
-    if step:
-        scenario = scenario.overlay({"effects": {"pps_step": {"on": True}}})
+    scenario = (with_effect(CLOCK, "pps_step") if step else
+                load_scenario(CLOCK / "scenario.yaml"))
     return simulated(scenario, seed, runs)
 
 
