@@ -113,6 +113,44 @@ def test_lm_stops_at_the_rounding_of_the_cost_without_a_train_of_rejections(monk
     assert totals["new"] <= totals["old"], totals
 
 
+def test_the_polish_checks_its_step_by_the_cost_alone() -> None:
+    """Converged to rounding, the last Gauss-Newton step is checked by a pass of residuals
+    (no derivatives, no R factor): one linearisation per accepted iterate and the start,
+    no more.  What it keeps is honest: the cost returned is the cost at the polished
+    estimate, the same bits as a pass there, and the R factor kept (the last
+    linearisation's) gives the Gram matrix of a fresh linearisation there to 1e-9."""
+    from symcal.data.dataset import make_dataset
+    from symcal.data.loading import needed_columns
+    from symcal.simulation import load_scenario, simulate_run
+    from symcal.solvers.instrument import counting
+    from symcal.solvers.objective import Objective
+
+    problem = symcal.load_problem(DUAL)
+    scenario = load_scenario(ROOT / "problems" / "scenarios" / "courier_dual.yaml")
+    data = make_dataset("calibration", "test",
+                        simulate_run(scenario, "calibration", seed=7, n=2000),
+                        needed_columns(problem))
+    solved = symcal.solve(problem, {"calibration": data})
+    stage = problem.stages[-1]
+    free = np.array([p.name in stage.free for p in problem.parameters])
+    start = np.array(solved.theta, dtype=float)
+    rng = np.random.default_rng(7)
+    scales = np.array([p.scale for p in problem.parameters])
+    start[free] += 1e-3 * scales[free] * rng.standard_normal(int(free.sum()))
+    objective = Objective(problem, stage.constraints, free)
+    accepted: list[int] = []
+    with counting(on_iteration=lambda *a: accepted.append(a[1])) as counts:
+        out = trust_region.solve_trust_region(objective, data, start)
+    assert out.success and out.status == "converged_to_rounding", out.message
+    assert counts.by_method.get("cost", 0) >= 1
+    assert counts.by_method["accumulate_r"] == len(accepted) + 1, (counts.by_method, accepted)
+    fresh = Objective(problem, stage.constraints, free)
+    assert out.rss == fresh.cost(data, out.theta)
+    r = fresh.accumulate_r(data, out.theta)[0]
+    gram, kept = r.T @ r, out.r_factor.T @ out.r_factor
+    assert np.max(np.abs(kept - gram)) <= 1e-9 * np.max(np.abs(gram))
+
+
 # ------------------------------------------------------------------ BLAS threads
 
 BLAS_PROBE = """
