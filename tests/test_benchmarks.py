@@ -80,3 +80,9 @@ def test_a_partial_run_replaces_only_its_sections() -> None:
     # a section after the targets in the old file is replaced where it was, once
     assert text.count("## Late") == 1 and text.index("## Late: y") > text.index("old tail")
     assert "old late" not in text
+    # a second partial run of the same sections: what the first kept is still from the
+    # run before it, and says so (it was named after the first partial run)
+    again = splice(text, new.replace("2026-02-02", "2026-03-03"), {"date": "2026-03-03"})
+    assert "from the earlier run (produced by `make bench` on 2026-01-01)" in again
+    assert "## Machine of the earlier run\n\n- old machine" in again
+    assert again.count("## Machine") == 2 and "old kept" in again

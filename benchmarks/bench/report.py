@@ -310,6 +310,16 @@ def _title(heading: str) -> str:
     return heading.split(":")[0].strip()
 
 
+def _partial_sections(header: str) -> set[str]:
+    """The sections a partial run's header says came from it (empty: not partial, or
+    no earlier run named)."""
+    if "This file was last written by a partial run" not in header or \
+            "from the earlier run (produced by " not in header:
+        return set()
+    listed = header.split("the sections ", 1)[1].split(" and the targets", 1)[0]
+    return {t.strip().strip("*") for t in listed.split(",")}
+
+
 def splice(old: str, new: str, report: dict[str, Any]) -> str:
     """RESULTS.md after a partial run (``--jobs``): the sections this run rendered
     replace theirs in ``old``, new ones go before *Targets*, the others are kept as the
@@ -318,7 +328,16 @@ def splice(old: str, new: str, report: dict[str, Any]) -> str:
     old_parts, new_parts = _sections(old), _sections(new)
     fresh = {_title(h): lines for h, lines in new_parts
              if h and h not in ("Machine", "How it was measured", "Targets")}
-    earlier = "\n".join(old_parts[0][1]).split("Produced by ", 1)[-1].split(";")[0]
+    header = "\n".join(old_parts[0][1])
+    earlier = header.split("Produced by ", 1)[-1].split(";")[0]
+    machine = dict(old_parts).get("Machine", ["## Machine"])[1:]
+    partial = _partial_sections(header)
+    if partial and partial <= set(fresh):
+        # the old file was itself a partial run whose sections this one replaces: what it
+        # kept from its earlier run is still from that run (its machine block too)
+        earlier = header.split("from the earlier run (produced by ", 1)[1].split(
+            "), whose machine", 1)[0]
+        machine = dict(old_parts).get("Machine of the earlier run", ["## x"])[1:]
     out: list[str] = []
     done: set[str] = set()
     for heading, lines in old_parts:
@@ -332,7 +351,7 @@ def splice(old: str, new: str, report: dict[str, Any]) -> str:
                     "are under *Machine of the earlier run*.", ""]
         elif heading == "Machine":
             out += dict(new_parts)["Machine"]
-            out += ["## Machine of the earlier run", *lines[1:]]
+            out += ["## Machine of the earlier run", *machine]
         elif heading == "Targets":
             # new sections (none of that name in the old file) go before the targets
             later = {_title(h) for h, _ in old_parts}
