@@ -102,3 +102,35 @@ def with_effect(folder: Path, effect: str):
     from symcal.simulation import load_scenario
 
     return load_scenario(folder / "scenario.yaml").overlay({"effects": {effect: {"on": True}}})
+
+
+def divider_run(n: int, seed: int, period_t: float, period_v: float, phase: float,
+                heating: float | None = None, zero: float = 0.0) -> dict[str, np.ndarray]:
+    """An NTC thermistor (R25 10.03 kΩ, β 3935 K) below a 10 kΩ resistor under a supply
+    switched between about 1 and 5.5 V, against a reference thermometer in a bath swept
+    2-58 °C (a reviewer's simulation; ``tests/data/divider``): heated by its own Vth²/R
+    where ``heating`` (its dissipation constant, W/K) is given, its voltage read ``zero``
+    volts high (an ADC channel's zero)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 5.0
+    bath = 273.15 + 30 + 28 * np.sin(2 * np.pi * t / period_t + phase)
+    vs = (3.25 + 1.125 * np.tanh(15 * np.sin(2 * np.pi * t / period_v))
+          + 0.75 * np.tanh(15 * np.sin(2 * np.pi * t / (period_v * 2.7))))
+    temp = bath.copy()
+    for _ in range(50 if heating is not None else 1):     # the heated part's temperature
+        r = 10.03 * np.exp(3935.0 * (1 / temp - 1 / 298.15))
+        vth = vs * r / (r + 10.0)
+        if heating is not None:
+            temp = bath + vth**2 / (r * 1e3) / heating
+    return {"t": t, "Vth": vth + zero + rng.normal(size=n) * 1e-4,
+            "Vs": vs + rng.normal(size=n) * 1e-4, "Tr": bath + rng.normal(size=n) * 0.01}
+
+
+def divider_data(seed: int = 1, heating: float | None = None, zero: float = 0.0) -> dict:
+    """The divider's calibration (3000 rows) and held-out validation (1500) runs of
+    :func:`divider_run`, as datasets by name."""
+    from symcal.data.dataset import make_dataset
+
+    runs = {"calibration": divider_run(3000, seed, 9000, 1100, 0.0, heating, zero),
+            "validation": divider_run(1500, seed + 100, 5000, 700, 1.0, heating, zero)}
+    return {k: make_dataset(k, "simulated", v, []) for k, v in runs.items()}

@@ -182,7 +182,7 @@ def test_no_space_declared_is_none(tmp_path, monkeypatch) -> None:
      "instances.s2.candidates.kinds.0",
      "unknown kind of candidate 'linar' (did you mean 'linear'?); kinds: linear, quadratic, "
      "cubic, harmonic, drift, product, power, gain, coupling, angle_harmonic, latency, "
-     "constant"),
+     "constant, zero"),
     ("[p, T, s1.p, mid]", "[p, T, s1.pp, mid]", "prob.yaml:{line}: "
      "instances.s2.candidates.variables.2",
      "'s1.pp' is not a name of instance 's2' (an input, output or expression of model "

@@ -13,11 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import ROOT, simulated, with_effect
+from conftest import ROOT, divider_data, simulated, with_effect
 
 import symcal
 from symcal.analysis.residuals import Variable
-from symcal.data.dataset import make_dataset
 from symcal.revise.library import _power_form
 from symcal.simulation import load_scenario, truth
 
@@ -71,33 +70,11 @@ def test_the_loop_keeps_the_power_and_ends_with_the_rtd_right(tmp_path, seed: in
 DIVIDER = ROOT / "tests" / "data" / "divider"
 
 
-def _divider(n: int, seed: int, period_t: float, period_v: float, phase: float
-             ) -> dict[str, np.ndarray]:
-    """An NTC thermistor (R25 10.03 kΩ, β 3935 K) below a 10 kΩ resistor under a supply
-    switched between about 1 and 5.5 V, heated by its own Vth²/R (2 mW/K), against a
-    reference thermometer in a bath swept 2-58 °C (a reviewer's simulation)."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(n) * 5.0
-    bath = 273.15 + 30 + 28 * np.sin(2 * np.pi * t / period_t + phase)
-    vs = (3.25 + 1.125 * np.tanh(15 * np.sin(2 * np.pi * t / period_v))
-          + 0.75 * np.tanh(15 * np.sin(2 * np.pi * t / (period_v * 2.7))))
-    temp = bath.copy()
-    for _ in range(50):                              # the heated part's own temperature
-        r = 10.03 * np.exp(3935.0 * (1 / temp - 1 / 298.15))
-        vth = vs * r / (r + 10.0)
-        temp = bath + vth**2 / (r * 1e3) / 2.0e-3
-    return {"t": t, "Vth": vth + rng.normal(size=n) * 1e-4,
-            "Vs": vs + rng.normal(size=n) * 1e-4, "Tr": bath + rng.normal(size=n) * 0.01}
-
-
 @pytest.mark.slow
 def test_the_power_in_a_resistance_the_model_computes(tmp_path) -> None:
     """``R: Rf*Vth/(Vs - Vth)`` is the thermistor model's own output: the power Vth²/R
     in it was never offered (the loop kept five stand-ins and stopped at its limit)."""
-    data = {"calibration": make_dataset("calibration", "sim", _divider(3000, 1, 9000, 1100,
-                                                                       0.0), []),
-            "validation": make_dataset("validation", "sim", _divider(1500, 101, 5000, 700,
-                                                                     1.0), [])}
+    data = divider_data(heating=2.0e-3)
     done = symcal.improve(DIVIDER / "problem.yaml", tmp_path / "out", data, max_rounds=3)
     assert [r.added for r in done.rounds[1:]] == [
         "th.T += the power dissipated, Vth²/th.R (self-heating)"]

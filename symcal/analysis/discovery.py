@@ -41,7 +41,7 @@ EQUAL = 0.95              # a simpler member leads a group if it explains this m
 EXACT_FIT = 1e-6          # a residual sum of squares left below this share: an exact fit
 #: Kinds of candidate that are not a term added to one output: their label is their
 #: description alone ("the constant rho (platen tooth pitch) is off").
-STANDALONE = ("approximation", "constant", "fixed", "latency")
+STANDALONE = ("approximation", "constant", "fixed", "latency", "zero")
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,7 @@ class Basis:
 
     kind: str                  # harmonic | linear | quadratic | cubic | angle_harmonic |
                                # drift | product | gain | latency | constant | fixed |
-                               # approximation
+                               # zero | approximation
     variable: str              # the variable's name in the problem (column, signal, expr)
     description: str           # e.g. "harmonic 3 of s2.p (period 1.016 mm)"
     columns: tuple[str, ...]   # coefficient names, e.g. ("h3_sin", "h3_cos")
@@ -70,7 +70,8 @@ class Basis:
     other_centre: float = 0.0  # its centre, internal units
     # ``constant``: the constants (keys of Problem.constants) made into ONE parameter
     # started at their common value; ``fixed``: the fixed parameter freed (its name);
-    # ``latency``: the instance whose readings lag (variable) and the columns it reads
+    # ``latency``: the instance whose readings lag (variable) and the columns it reads;
+    # ``zero``: the column whose zero is off (variable) and the instances that read it
     targets: tuple[str, ...] = ()
     # the RMS of the term (internal units of what it changes) when every coefficient is
     # its scale; for constant, fixed and latency, the scale itself (the coefficient's size)
@@ -85,8 +86,8 @@ class Basis:
         linear in the reading it is made of, but zero where that output is) before linear
         and drift, before harmonics (by number), before quadratic, before cubic, before an
         output's gain varying with a variable, before products."""
-        rank = {"approximation": 0, "constant": 0, "fixed": 0, "coupling": 1, "linear": 2,
-                "drift": 2, "latency": 2, "harmonic": 3, "quadratic": 4, "cubic": 5,
+        rank = {"approximation": 0, "constant": 0, "fixed": 0, "zero": 0, "coupling": 1,
+                "linear": 2, "drift": 2, "latency": 2, "harmonic": 3, "quadratic": 4, "cubic": 5,
                 "gain": 6, "product": 7, "power": 7, "angle_harmonic": 7}
         return rank.get(self.kind, 8), self.order
 

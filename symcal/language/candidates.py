@@ -44,7 +44,7 @@ from symcal.language.fields import (
 
 #: The kinds of candidate effect a space may name.
 KINDS = ("linear", "quadratic", "cubic", "harmonic", "drift", "product", "power", "gain",
-         "coupling", "angle_harmonic", "latency", "constant")
+         "coupling", "angle_harmonic", "latency", "constant", "zero")
 #: The highest harmonic order a space may name.
 MAX_HARMONIC = 64
 

@@ -3,9 +3,10 @@ expression.
 
 An input bound to a bare column (``p: p1``) reads that column: its declared noise is the
 column's, so every use of the column (in other expressions too) carries the same noise.
-So does an input bound to a column corrected for its latency, the column plus terms in
-its rate (``psi_x: psi_x + tau*psi_x_rate``, ``psi_x_rate`` declared ``rate_of: psi_x``,
-the other names parameters or constants): the rate's own noise is not propagated.
+So does an input bound to a column corrected for its latency or its zero, the column plus
+terms in its rate, parameters and constants (``psi_x: psi_x + tau*psi_x_rate``,
+``psi_x_rate`` declared ``rate_of: psi_x``; ``Vth: Vth + zero_Vth``): the rate's own noise
+is not propagated.
 An input bound to an expression (``q: py_raw - l_o*theta_raw``) carries its own noise,
 independent of its columns'.  Most specific first, a reading's noise is declared by
 
@@ -65,18 +66,29 @@ class NoisePlan:
 
 def bare_column(system: SystemSpec, binding: expr.Node) -> str | None:
     """The column an input binding reads: a column named alone, or a column plus terms in
-    its rate and in parameters or constants (a latency correction); None for any other
-    expression."""
+    its rate and in parameters or constants (a latency or a zero correction); None for any
+    other expression."""
     if isinstance(binding, expr.Name) and binding.name in system.columns:
         return binding.name
-    if isinstance(binding, expr.Binary) and binding.op == "+" and \
-            isinstance(binding.left, expr.Name) and binding.left.name in system.columns:
-        column = binding.left.name
-        rates = {k for k, c in system.columns.items() if c.rate_of == column}
-        names = {n.name for n in expr.names(binding.right)}
-        if names & rates and names <= rates | set(system.parameters) | set(system.constants):
-            return column
+    terms = _summands(binding)
+    bare = [t.name for t in terms if isinstance(t, expr.Name) and t.name in system.columns]
+    if len(terms) < 2 or not bare:
+        return None
+    column = bare[0]
+    rates = {k for k, c in system.columns.items() if c.rate_of == column}
+    exact = rates | set(system.parameters) | set(system.constants)
+    rest = [t for t in terms if not (isinstance(t, expr.Name) and t.name == column)]
+    names = {n.name for t in rest for n in expr.names(t)}
+    if len(rest) == len(terms) - 1 and names <= exact:
+        return column
     return None
+
+
+def _summands(node: expr.Node) -> list[expr.Node]:
+    """The terms of a sum written with ``+`` (the node itself for anything else)."""
+    if isinstance(node, expr.Binary) and node.op == "+":
+        return _summands(node.left) + _summands(node.right)
+    return [node]
 
 
 def plan_noise(system: SystemSpec) -> NoisePlan:

@@ -72,6 +72,7 @@ from symcal.revise.library import (
     latency_entries,
     output_entries,
     outside_entries,
+    zero_entries,
 )
 from symcal.revise.library import (
     own_names as own_names_of,
@@ -358,7 +359,7 @@ def _words(cand: Candidate, alpha: float, tested: int, variant: Variant | None,
                 f"{cand.share:.0%} of what the model cannot yet explain ({_falls(cand)} if "
                 f"the calibration is solved again with it){coef}; {stats}. Switch to the "
                 "implicit model rather than adding harmonics." + _group_words(cand, own))
-    if cand.basis.kind in ("fixed", "constant", "latency"):
+    if cand.basis.kind in ("fixed", "constant", "latency", "zero"):
         return _value_words(cand, stats) + _group_words(cand, own)
     owner = cand.basis.variable.split(".", 1)[0] if "." in cand.basis.variable else None
     instance = cand.output.split(".", 1)[0]
@@ -390,6 +391,8 @@ def changed_instances(cand: Candidate) -> set[str]:
     basis = cand.basis
     if basis.kind == "latency":
         return {basis.variable}
+    if basis.kind == "zero":
+        return set(basis.targets)
     if basis.kind in ("fixed", "constant"):
         return {t.split(".", 1)[0] for t in basis.targets if "." in t}
     if basis.kind in STANDALONE:
@@ -422,7 +425,7 @@ def _reference_words(cand: Candidate, result: Result) -> str:
 
 def _value_words(cand: Candidate, stats: str) -> str:
     """A value the model takes as known that the data say is off: a fixed parameter, a
-    constant, or the delay between a sensor's clock and the others'."""
+    constant, the delay between a sensor's clock and the others', or a reading's zero."""
     basis = cand.basis
     asks = ""
     if cand.coefficient:
@@ -430,6 +433,11 @@ def _value_words(cand: Candidate, stats: str) -> str:
         if basis.kind == "latency":
             asks = (f": the data ask for a delay of {c * 1e3:.4g} ± {se * 1e3:.2g} ms "
                     "(readings stamped that much late)")
+        elif basis.kind == "zero":
+            size = DISPLAY_UNITS[basis.unit]
+            asks = (f": the data say its readings are {-c / size:+.4g} ± {se / size:.2g} "
+                    f"{basis.unit} off (the model would read {basis.variable} "
+                    f"{'+' if c >= 0 else '-'} {abs(c) / size:.4g} {basis.unit})")
         else:
             size = 1.0 if basis.kind == "fixed" else DISPLAY_UNITS[basis.unit]
             value, change = basis.centre / size, c / size
@@ -439,7 +447,7 @@ def _value_words(cand: Candidate, stats: str) -> str:
                     f"{se / size:.2g} "
                     f"{basis.unit} instead of {value:.6g}, a change of {change:+.3g}{rel}")
     what = {"fixed": "Freeing it", "constant": "Making it a parameter",
-            "latency": "Allowing for the delay"}[basis.kind]
+            "latency": "Allowing for the delay", "zero": "Allowing for it"}[basis.kind]
     return (f"{basis.description[0].upper()}{basis.description[1:]}{asks}. {what} would "
             f"remove {cand.share:.0%} of what the calibration's constraints cannot yet "
             f"explain; solving again with it would give {_falls(cand)}; {stats}.")
@@ -501,6 +509,7 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
     entries += fixed_entries(problem, blocks, fit, free, set(fixes))
     entries += latency_entries(problem, blocks, fit, found)
     entries += constant_entries(problem, blocks, fit)
+    entries += zero_entries(problem, blocks, fit, found, free)
     variant = implicit_variant(problem)
     if variant is not None:
         diff = _variant_differences(variant, blocks, data, result.theta)
@@ -1121,6 +1130,6 @@ def detectable(result: Result, cand: Candidate) -> tuple[float, str] | None:
     kind = cand.basis.kind
     if kind == "fixed":        # a fixed parameter's change, already in its declared unit
         return cand.mde, cand.basis.unit
-    unit = cand.basis.unit if kind in ("constant", "latency") else \
+    unit = cand.basis.unit if kind in ("constant", "latency", "zero") else \
         output_unit(result, cand.output)
     return cand.mde / DISPLAY_UNITS[unit], unit

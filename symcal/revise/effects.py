@@ -455,19 +455,24 @@ def _fixed(problem: Problem, cand: Candidate) -> Revision:
     return Revision(f"{problem.name}_free_{_ident(pname)}", (), sections)
 
 
+def _substituted(node: expr.Node, names: Mapping[str, expr.Node]) -> expr.Node:
+    """``node`` with every name in ``names`` replaced by its expression."""
+    if isinstance(node, expr.Name) and node.name in names:
+        return names[node.name]
+    if isinstance(node, expr.Unary):
+        return expr.Unary(node.op, _substituted(node.operand, names))
+    if isinstance(node, expr.Binary):
+        return expr.Binary(node.op, _substituted(node.left, names),
+                           _substituted(node.right, names))
+    if isinstance(node, expr.Call):
+        return expr.Call(node.func, tuple(_substituted(a, names) for a in node.args))
+    return node
+
+
 def _late(node: expr.Node, rates: Mapping[str, str], tau: str) -> expr.Node:
     """``node`` with every column ``c`` of ``rates`` read as ``c + tau*c_rate``."""
-    if isinstance(node, expr.Name) and node.name in rates:
-        return expr.Binary("+", node, expr.Binary("*", expr.Name(tau),
-                                                  expr.Name(rates[node.name])))
-    if isinstance(node, expr.Unary):
-        return expr.Unary(node.op, _late(node.operand, rates, tau))
-    if isinstance(node, expr.Binary):
-        return expr.Binary(node.op, _late(node.left, rates, tau),
-                           _late(node.right, rates, tau))
-    if isinstance(node, expr.Call):
-        return expr.Call(node.func, tuple(_late(a, rates, tau) for a in node.args))
-    return node
+    return _substituted(node, {c: expr.Binary("+", expr.Name(c), expr.Binary(
+        "*", expr.Name(tau), expr.Name(rate))) for c, rate in rates.items()})
 
 
 def _noise_text(value: float, unit: str) -> str:
@@ -525,6 +530,39 @@ def _latency(problem: Problem, cand: Candidate) -> Revision:
     return Revision(f"{problem.name}_{_ident(inst)}_latency", (), sections)
 
 
+def _zero(problem: Problem, cand: Candidate) -> Revision:
+    """Column ``variable`` read with its zero off: every instance of ``targets`` that
+    reads it reads ``c + zero_c`` instead (``zero_c`` a new parameter, minus the zero's
+    offset)."""
+    col = cand.basis.variable
+    spec = problem.column_specs.get(col)
+    if spec is None:
+        raise ValueError(f"'{col}' is not a column of problem '{problem.name}'")
+    name = _free(problem, f"zero_{_ident(col)}")
+    shifted = {col: expr.Binary("+", expr.Name(col), expr.Name(name))}
+    instances: dict[str, Any] = {}
+    for inst in cand.basis.targets:
+        if inst not in problem.instances:
+            raise ValueError(f"no instance '{inst}' in problem '{problem.name}'")
+        inputs = {}
+        for key, text in problem.instances[inst].bindings.items():
+            node = expr.parse(text)
+            if any(n.name == col for n in expr.names(node)):
+                inputs[key] = expr.render(_substituted(node, shifted))
+        if inputs:
+            instances[inst] = {"inputs": inputs}
+    if not instances:
+        raise ValueError(f"none of {', '.join(cand.basis.targets)} reads '{col}' in its "
+                         "input bindings")
+    param: dict[str, Any] = {"value": 0, **_unit_key(spec.unit),
+                             "doc": f"added to every reading of {col}: minus the offset of "
+                                    "its zero"}
+    if cand.basis.scales:
+        param["scale"] = scale_in(cand.basis.scales[0], spec.unit)
+    return Revision(f"{problem.name}_{_ident(col)}_zero", (),
+                    {"parameters": {name: param}, "instances": instances})
+
+
 def revision(problem: Problem, cand: Candidate) -> Revision:
     """What adding ``cand`` changes, as a model extension and/or overlay sections."""
     kind = cand.basis.kind
@@ -533,7 +571,7 @@ def revision(problem: Problem, cand: Candidate) -> Revision:
         inputs = {"inputs": dict(sug.new_inputs)} if sug.new_inputs else {}
         return Revision(f"{problem.name}_{sug.instance}_{_ident(sug.output)}_{sug.tag}",
                         (sug,), {"instances": {sug.instance: inputs}})
-    makers = {"constant": _constant, "fixed": _fixed, "latency": _latency}
+    makers = {"constant": _constant, "fixed": _fixed, "latency": _latency, "zero": _zero}
     if kind not in makers:
         raise ValueError(f"a '{kind}' candidate has no revision here"
                          + (": the model's own approximation is a variant of its files"

@@ -30,7 +30,13 @@ plus a small error).  Besides terms on outputs:
   and the columns move smoothly (the derivative by central differences in time);
 - **a fixed parameter that is off**: the user fixed it but no gauge needs it fixed; its
   regressor is ``∂r/∂θ_k``;
-- **a constant that is off**: its regressor is the derivative by the constant's offset.
+- **a constant that is off**: its regressor is the derivative by the constant's offset;
+- **a reading's zero that is off**: a data column the sensors read (not time, not a
+  reference, not a rate) read with a constant offset, as a transducer or an ADC channel
+  whose zero has moved; its regressor is the derivative by the column (every sensor that
+  reads it), ``∂r/∂c``.  Not where a sensor that reads it has an offset of its own
+  (:data:`OWN_OFFSET`); where the reading goes through the model nonlinearly (a voltage
+  in a divider, a pressure under a square root) no term on the output stands in for it.
 
 Every regressor is the change a coefficient of one makes in every residual (N × n_q × m),
 evaluated at the adjusted readings where the noise is declared.  Each coefficient has a
@@ -52,6 +58,7 @@ from symcal.base.errors import SymcalError
 from symcal.base.units import DISPLAY_UNITS, parse_unit, registry
 from symcal.data.derived import rate_and_noise
 from symcal.language import expr
+from symcal.language.common import ExprSpec
 from symcal.language.model_file import ModelSpec
 from symcal.problem.symbolic import Problem
 from symcal.revise.blocks import Block, distinct_groups, references
@@ -647,13 +654,16 @@ def fixed_entries(problem: Problem, blocks: list[Block], fit: int, free: np.ndar
         basis = Basis("fixed", name, f"the fixed parameter {name}{doc} is off", ("delta",),
                       (), unit=param.unit, scales=(float(f"{scale:.3g}"),), term=scale,
                       centre=param.value, targets=(name,))
-        out.append(Entry(Candidate("", basis), _fixed_raw(blocks, k)))
+        out.append(Entry(Candidate("", basis), _derivative_raw(blocks, "jac_fixed", k)))
     return out
 
 
-def _fixed_raw(blocks: list[Block], k: int) -> Raw:
+def _derivative_raw(blocks: list[Block], field: str, k: int) -> Raw:
+    """The regressor of one derivative a block holds: column ``k`` of its ``field``
+    (``jac_fixed``, ``jac_columns``)."""
     def raw(i: int) -> np.ndarray:
-        return blocks[i].jac_fixed[:, :, k:k + 1]
+        jac: np.ndarray = getattr(blocks[i], field)
+        return jac[:, :, k:k + 1]
     return raw
 
 
@@ -736,6 +746,87 @@ def latency_entries(problem: Problem, blocks: list[Block], fit: int,
                       rate_noise=left)
         out.append(Entry(Candidate("", basis), raw))
     return out
+
+
+#: A reading's zero is a sensor's own offset where the derivative by one of the sensor's
+#: parameters has at least this cosine with the derivative by the reading (both over the
+#: fitted rows): an offset it has, free (its calibration is what absorbs the zero) or fixed
+#: (the fixed parameter that is off is the same candidate, named as the model names it).
+OWN_OFFSET = 0.999
+
+
+def zero_entries(problem: Problem, blocks: list[Block], fit: int,
+                 found: Mapping[str, Space], free: np.ndarray) -> list[Entry]:
+    """Each data column the sensors read as "its zero is off" (see the module): one
+    candidate per column, for every sensor that reads it, where the spaces of all of them
+    allow the kind.  Not for a column a problem-level expression, constraint or comparison
+    reads itself (the revision adds the offset where the sensors read the column, which
+    would leave those reading it as it is), nor where a sensor that reads it has an offset
+    of its own (:data:`OWN_OFFSET`; ``free``: the fit's free parameters)."""
+    hp = problem.diagnostic
+    index = {c: k for k, c in enumerate(hp.columns)}
+    specs = problem.column_specs
+    never = excluded(problem) | direct_columns(problem)
+    readers: dict[str, list[str]] = {}
+    for name, inst in problem.instances.items():
+        for text in inst.bindings.values():
+            for node in expr.names(expr.parse(text)):
+                col = node.name
+                if col in specs and col in index and name not in readers.get(col, []):
+                    readers.setdefault(col, []).append(name)
+    out = []
+    for col, insts in readers.items():
+        spec = specs[col]
+        if col in never or spec.role in ("time", *NEVER) or spec.rate_of:
+            continue
+        if any((sp := found.get(i)) is not None and sp.kinds is not None
+               and "zero" not in sp.kinds for i in insts):
+            continue
+        k = index[col]
+        x_fit = blocks[fit].jac_columns[:, :, k]
+        if not np.any(x_fit) or _own_offset(problem, blocks[fit], free, insts, x_fit):
+            continue
+        scale = column_scale(blocks[fit], x_fit)
+        basis = Basis("zero", col, f"the zero of {col} (read by {', '.join(insts)}) is off",
+                      ("zero",), (), unit=spec.unit, scales=(float(f"{scale:.3g}"),),
+                      term=scale, targets=tuple(insts))
+        out.append(Entry(Candidate("", basis), _derivative_raw(blocks, "jac_columns", k)))
+    return out
+
+
+def _own_offset(problem: Problem, block: Block, free: np.ndarray, insts: list[str],
+                x: np.ndarray) -> bool:
+    """Whether one of ``insts``' parameters (free or fixed) moves the residuals as the
+    zero of their reading does (``x``, N × n_q): :data:`OWN_OFFSET`."""
+    names = problem.parameter_names
+    columns = [(n, block.jac[:, :, j]) for j, n in
+               enumerate(n for n, f in zip(names, free, strict=True) if f)]
+    columns += [(n, block.jac_fixed[:, :, j]) for j, n in
+                enumerate(n for n, f in zip(names, free, strict=True) if not f)]
+    flat = x.ravel()
+    norm = float(np.linalg.norm(flat))
+    for name, col in columns:
+        if name.split(".", 1)[0] not in insts:
+            continue
+        other = col.ravel()
+        size = float(np.linalg.norm(other))
+        if size > 0 and abs(float(flat @ other)) >= OWN_OFFSET * norm * size:
+            return True
+    return False
+
+
+def direct_columns(problem: Problem) -> set[str]:
+    """The data columns a problem-level expression, constraint, comparison, implicit
+    definition or bound constant reads by name (not through a sensor's inputs)."""
+    system = problem.spec.system
+    nodes = []
+    for group in (system.expressions, system.constraints, system.comparisons,
+                  system.implicit):
+        for item in group.values():
+            nodes += [v.node for v in vars(item).values() if isinstance(v, ExprSpec)]
+    for inst in system.instances.values():
+        nodes += [v.node for v in inst.constants.values()]
+    return {n.name for node in nodes for n in expr.names(node)} & set(problem.column_specs)
 
 
 def _rates(block: Block, time: str, cols: list[str], noise: Mapping[str, float]

@@ -1,0 +1,114 @@
+"""A reading's zero as a candidate: a data column the sensors read with a constant offset
+(a transducer's or an ADC channel's zero that has moved).
+
+An NTC thermistor in a divider (``tests/data/divider``) whose voltage channel reads 3 mV
+high: the model has no offset of its own and the voltage reaches the temperature through
+``R = Rf·Vth/(Vs − Vth)`` and a logarithm, so no term on the output stands in for it.
+Before the candidate the loop kept four stand-ins (a cubic, a quadratic and a line in the
+supply, a power), stopped at its round limit, and left R25 22 standard errors off.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import ROOT, divider_data
+
+import symcal
+from symcal.analysis.discovery import Basis, Candidate
+from symcal.base.units import DISPLAY_UNITS
+from symcal.language import expr
+from symcal.language.problem_file import load_problem_spec
+from symcal.problem.readings import bare_column
+from symcal.revise.effects import revision
+from symcal.revise.library import direct_columns
+
+DIVIDER = ROOT / "tests" / "data" / "divider"
+ZERO = "the zero of Vth (read by th) is off"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("seed", "zero"), [(1, 3e-3), (2, -2e-3)])
+def test_a_voltage_channels_zero_is_found_in_the_first_round(tmp_path, seed, zero) -> None:
+    """The loop keeps the zero in its first round, verified on the held-out run; R25 and
+    β within 3 standard errors of the truth, the zero's parameter minus the offset."""
+    data = divider_data(seed, zero=zero)
+    done = symcal.improve(DIVIDER / "problem.yaml", tmp_path / "out", data, max_rounds=3)
+    assert [r.added for r in done.rounds[1:]] == [ZERO]
+    assert done.verified and done.quiet
+    final = symcal.solve(done.final_problem, data)
+    for name, true in (("th.R25", 10.03), ("th.beta", 3935.0), ("zero_Vth", -zero)):
+        p = final.params[name]
+        assert p.se is not None and abs(p.value - true) < 3 * p.se, (name, p.value, p.se)
+    assert final.params["zero_Vth"].unit == "V"
+
+
+def test_the_diagnosis_names_the_zero_and_its_size() -> None:
+    """The first candidate, and its words: how far the readings are off, in the column's
+    unit (3 mV high here)."""
+    result = symcal.solve(DIVIDER / "problem.yaml", divider_data(1, zero=3e-3))
+    diag = symcal.diagnose(result)
+    lead = diag.candidates[0]
+    assert lead.label == ZERO and lead.significant
+    assert lead.basis.targets == ("th",) and lead.basis.unit == "V"
+    volt = DISPLAY_UNITS["V"]                        # internal units per volt
+    offset, se = -lead.coefficient[0] / volt, lead.coefficient_se[0] / volt
+    assert abs(offset - 3e-3) < 3 * se, (offset, se)
+    from symcal.report.text import diagnosis_report
+
+    text = diagnosis_report(diag)
+    assert f"{ZERO[0].upper()}{ZERO[1:]}: the data say its readings are +0.00" in text
+
+
+def test_clean_data_name_no_zero() -> None:
+    """Without an offset no zero is significant (nor anything else here)."""
+    diag = symcal.diagnose(symcal.solve(DIVIDER / "problem.yaml", divider_data(4)))
+    zeros = [c for c in diag.candidates if c.basis.kind == "zero"]
+    assert zeros and not any(c.significant for c in zeros)
+
+
+def test_the_revision_reads_the_column_plus_its_zero_and_keeps_its_noise() -> None:
+    """Every sensor that reads the column reads ``Vth + zero_Vth``; the input keeps the
+    column's declared noise (a column plus exact terms is still a reading of the column)."""
+    problem = symcal.load_problem(DIVIDER / "problem.yaml")
+    basis = Basis("zero", "Vth", ZERO, ("zero",), (), unit="V", scales=(1e-4,),
+                  targets=("th",))
+    rev = revision(problem, Candidate("", basis))
+    assert rev.sections["instances"] == {"th": {"inputs": {"Vth": "Vth + zero_Vth"}}}
+    assert rev.sections["parameters"]["zero_Vth"]["unit"] == "V"
+    system = load_problem_spec(DIVIDER / "problem.yaml").system
+    assert bare_column(system, expr.parse("Vth + zero_Vth")) is None   # not a parameter here
+    assert bare_column(system, expr.parse("Vth + 0.002")) == "Vth"
+    assert bare_column(system, expr.parse("Vth + Vs")) is None
+    assert bare_column(system, expr.parse("Vth*2 + 1")) is None
+
+
+def test_a_column_a_constraint_reads_itself_is_not_offered(tmp_path) -> None:
+    """The revision adds the zero where the sensors read the column: a column a
+    constraint reads by name would be left as it is, so it is not a candidate."""
+    text = (DIVIDER / "problem.yaml").read_text()
+    text = text.replace("g: {expr: th.T - ref.T, unit: K}", "g: {expr: th.T - Tr, unit: K}")
+    text = text.replace("  ref: {model: models/ref.yaml, inputs: {Tr: Tr}}\n", "")
+    (tmp_path / "models").mkdir()
+    for f in (DIVIDER / "models").iterdir():
+        (tmp_path / "models" / f.name).write_text(f.read_text())
+    (tmp_path / "problem.yaml").write_text(text)
+    problem = symcal.load_problem(tmp_path / "problem.yaml")
+    assert direct_columns(problem) == {"Tr"}
+    diag = symcal.diagnose(symcal.solve(problem, divider_data(1, zero=3e-3)))
+    zeros = {c.basis.variable for c in diag.candidates if c.basis.kind == "zero"}
+    assert zeros == {"Vth", "Vs"}
+    assert np.isfinite(diag.candidates[0].f_stat)
+
+
+def test_not_offered_where_the_sensor_has_an_offset_of_its_own() -> None:
+    """The oven (``tests/data/oven``): the thermocouple's channel has a free offset ``o``
+    (its calibration absorbs the EMF's zero) and the connector thermistor a fixed one
+    (``cj.off``: "the fixed parameter cj.off is off" is the same candidate, named as the
+    model names it); the RTD's resistance and the pyrometer's reading have none."""
+    diag = symcal.diagnose(symcal.solve(ROOT / "tests" / "data" / "oven" / "problem.yaml"))
+    zeros = {c.basis.variable for c in diag.candidates if c.basis.kind == "zero"}
+    assert zeros == {"R_rtd", "T_pyr"}
+    offsets = {p.name: p.fixed for p in diag.result.problem.parameters
+               if p.name in ("tc.o", "cj.off")}
+    assert offsets == {"tc.o": False, "cj.off": True}
