@@ -112,3 +112,16 @@ def test_not_offered_where_the_sensor_has_an_offset_of_its_own() -> None:
     offsets = {p.name: p.fixed for p in diag.result.problem.parameters
                if p.name in ("tc.o", "cj.off")}
     assert offsets == {"tc.o": False, "cj.off": True}
+
+
+def test_a_trusted_references_zero_is_not_something_the_floor_cannot_vouch_for() -> None:
+    """The bath's reference thermometer (no free parameter) reads Tr: its zero is tested
+    (a significant one would say the reference reads wrong) but, below the test, is not
+    "what the floor cannot vouch for": the problem trusts its zero as it trusts its gain
+    (it said "th.R25 (up to 779 SE)" on every clean run)."""
+    from symcal.report.text import unvouched
+
+    diag = symcal.diagnose(symcal.solve(DIVIDER / "problem.yaml", divider_data(4)))
+    ref = [c for c in diag.candidates if c.label == "the zero of Tr (read by ref) is off"]
+    assert ref and not ref[0].significant and not ref[0].absorbed
+    assert not ref[0].unseen and unvouched(diag) == []

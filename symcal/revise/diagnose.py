@@ -548,9 +548,15 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
     def restates(cand: Candidate) -> bool:
         """A term linear in its own reading (a gain), or one an earlier round added,
         tested again (its sensor already has its coefficients: what it absorbs is what
-        calibrating them means)."""
+        calibrating them means); the zero of a reading only sensors without a free
+        parameter read (the problem trusts them, as it trusts their gain: a bath
+        thermometer's zero "would move th.R25 779 SE" on every clean run)."""
         if cand.basis.kind == "linear" and cand.output in problem.diagnostic.hooks \
                 and local(cand):
+            return True
+        if cand.basis.kind == "zero" and not any(
+                p.name.split(".", 1)[0] in cand.basis.targets and not p.fixed
+                for p in problem.parameters):
             return True
         inst = cand.output.split(".", 1)[0]
         return any(all(f"{inst}.{n}" in have for n in names)
