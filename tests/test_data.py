@@ -83,3 +83,40 @@ def test_write_read_round_trip(tmp_path, suffix) -> None:
     assert list(back) == ["t", "p1"]
     np.testing.assert_allclose(back["p1"], cols["p1"], rtol=1e-14)
     assert not list(tmp_path.glob(".*tmp*")), "temporary file left behind"
+
+
+def test_npz_headers_are_parsed_one_at_a_time(tmp_path, monkeypatch) -> None:
+    """numpy parses a .npy header with ``ast.literal_eval``, whose state CPython 3.11's
+    threads share (a log's shards read on two threads failed at random with "AST
+    constructor recursion depth mismatch"): two threads reading NPZ files never parse
+    headers at the same time."""
+    import ast
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    files = []
+    for k in range(6):
+        path = tmp_path / f"shard{k}.npz"
+        np.savez(path, x=np.arange(5.0) + k, y=np.ones(5))
+        files.append(path)
+    inside, most = [0], [0]
+    lock = threading.Lock()
+    original = ast.literal_eval
+
+    def slow(text):           # holds the parse long enough for another thread to enter
+        with lock:
+            inside[0] += 1
+            most[0] = max(most[0], inside[0])
+        time.sleep(0.01)
+        try:
+            return original(text)
+        finally:
+            with lock:
+                inside[0] -= 1
+
+    monkeypatch.setattr(ast, "literal_eval", slow)
+    with ThreadPoolExecutor(2) as pool:
+        tables = list(pool.map(read_table, files))
+    assert [float(t["x"][0]) for t in tables] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    assert most[0] == 1

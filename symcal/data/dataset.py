@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import threading
 import warnings
 import zipfile
 import zlib
@@ -352,6 +353,13 @@ def _physical_memory() -> int | None:
         return None
 
 
+#: numpy parses a ``.npy`` header with ``ast.literal_eval``, and CPython 3.11's AST
+#: constructor keeps its recursion depth in state every thread shares: shards read on
+#: several threads at once failed at random with "SystemError: AST constructor recursion
+#: depth mismatch" (CPython gh-106905).  Headers are a few hundred bytes: one at a time.
+_HEADER_LOCK = threading.Lock()
+
+
 def _npz_member(shown: str, zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> _Member:
     """Read and check one member's ``.npy`` header (a few hundred bytes inflated)."""
     name = _name(info.filename.removesuffix(".npy"))
@@ -360,7 +368,8 @@ def _npz_member(shown: str, zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> _Memb
             version = np.lib.format.read_magic(fh)
             read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
                     else np.lib.format.read_array_header_2_0)
-            shape, _, dtype = read(fh)
+            with _HEADER_LOCK:
+                shape, _, dtype = read(fh)
             offset = fh.tell()
     except ValueError:
         raise DataError(f"{shown}: member '{_name(info.filename)}' is not a NumPy array (no "
