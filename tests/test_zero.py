@@ -125,3 +125,22 @@ def test_a_trusted_references_zero_is_not_something_the_floor_cannot_vouch_for()
     ref = [c for c in diag.candidates if c.label == "the zero of Tr (read by ref) is off"]
     assert ref and not ref[0].significant and not ref[0].absorbed
     assert not ref[0].unseen and unvouched(diag) == []
+
+
+def test_not_offered_where_a_constant_of_the_sensor_is_that_zero() -> None:
+    """A thermistor's lead resistance in series with the part (its model's constant
+    ``r_lead``) is the zero of its resistance reading: "th2's resistance of the leads ...
+    is off" is the candidate, named as the model names it, not the zero of R2 beside it
+    (which the loop kept on one acceptance seed in its place)."""
+    from conftest import simulated
+
+    from symcal.simulation import load_scenario
+
+    root = ROOT / "tests" / "acceptance" / "thermistor_bath"
+    problem = symcal.load_problem(root / "problem.yaml")
+    data = simulated(load_scenario(root / "scenario_lead.yaml"), 1001,
+                     tuple(problem.datasets))
+    diag = symcal.diagnose(symcal.solve(problem, data))
+    assert diag.candidates[0].basis.kind == "constant"
+    assert diag.candidates[0].basis.targets == ("th2.r_lead",)
+    assert not [c for c in diag.candidates if c.basis.kind == "zero"]

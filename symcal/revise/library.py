@@ -749,9 +749,11 @@ def latency_entries(problem: Problem, blocks: list[Block], fit: int,
 
 
 #: A reading's zero is a sensor's own offset where the derivative by one of the sensor's
-#: parameters has at least this cosine with the derivative by the reading (both over the
-#: fitted rows): an offset it has, free (its calibration is what absorbs the zero) or fixed
-#: (the fixed parameter that is off is the same candidate, named as the model names it).
+#: parameters, or by a constant of its model the search tests, has at least this cosine
+#: with the derivative by the reading (both over the fitted rows): an offset it has, free
+#: (its calibration is what absorbs the zero), fixed or a constant (the fixed parameter or
+#: the constant that is off is the same candidate, named as the model names it: a
+#: thermistor's lead resistance in series with the part is the zero of its resistance).
 OWN_OFFSET = 0.999
 
 
@@ -796,13 +798,18 @@ def zero_entries(problem: Problem, blocks: list[Block], fit: int,
 
 def _own_offset(problem: Problem, block: Block, free: np.ndarray, insts: list[str],
                 x: np.ndarray) -> bool:
-    """Whether one of ``insts``' parameters (free or fixed) moves the residuals as the
-    zero of their reading does (``x``, N × n_q): :data:`OWN_OFFSET`."""
+    """Whether one of ``insts``' parameters (free or fixed) or tested constants moves the
+    residuals as the zero of their reading does (``x``, N × n_q): :data:`OWN_OFFSET`."""
     names = problem.parameter_names
     columns = [(n, block.jac[:, :, j]) for j, n in
                enumerate(n for n, f in zip(names, free, strict=True) if f)]
     columns += [(n, block.jac_fixed[:, :, j]) for j, n in
                 enumerate(n for n, f in zip(names, free, strict=True) if not f)]
+    index = {c.key: k for k, c in enumerate(problem.diagnostic.constants)}
+    columns += [(f"{c.instance}.{c.name}", block.jac_constants[:, :, index[c.key]])
+                for c in problem.constants
+                if c.tested and c.instance is not None and c.key in index
+                and index[c.key] < block.jac_constants.shape[2]]
     flat = x.ravel()
     norm = float(np.linalg.norm(flat))
     for name, col in columns:
