@@ -10,6 +10,8 @@ supply, a power), stopped at its round limit, and left R25 22 standard errors of
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 from conftest import ROOT, divider_data
@@ -144,3 +146,38 @@ def test_not_offered_where_a_constant_of_the_sensor_is_that_zero() -> None:
     assert diag.candidates[0].basis.kind == "constant"
     assert diag.candidates[0].basis.targets == ("th2.r_lead",)
     assert not [c for c in diag.candidates if c.basis.kind == "zero"]
+
+
+def test_the_datasheet_example_fits_the_centres_unit() -> None:
+    """A new user's orifice rig: the advice to have the parameters hold at a datasheet's
+    reference offered "25 degC, say" for a centre in kPa."""
+    from symcal.revise.watch import Watch
+
+    watch = Watch(centres=(("orf.c_quad_dp", "dp", 13.46, "kPa"),
+                           ("mag.c_gain_T", "T_w", 22.5, "delta_degC")))
+    pressure, temperature = watch.words("a term")
+    assert "to have them hold at one, write" in pressure and "degC" not in pressure
+    assert "to have them hold at one (25 °C, say), write" in temperature
+
+
+
+def test_a_terms_centre_tested_as_a_constant_is_labelled_as_one(tmp_path) -> None:
+    """The constant a centred term brings (its doc :data:`CENTRE_DOC`) is named as the
+    centre of that term, not by its doc string (the orifice rig: "orf's reference dp of
+    the other parameters (the term is zero there; ...) c_quad_dp is off")."""
+    from symcal.revise.effects import CENTRE_DOC
+
+    shutil.copytree(DIVIDER, tmp_path / "d")
+    model = tmp_path / "d" / "models" / "ntc.yaml"
+    text = model.read_text()
+    text = text.replace("  T25: {value: 298.15, unit: K}\n", "  T25: {value: 298.15, unit: K}\n"
+                        f"  c_lin_Vs: {{value: 3.2, unit: V, doc: '{CENTRE_DOC.format('Vs')}'}}\n")
+    text = text.replace("  beta: {value: 3950, unit: K, scale: 1}\n",
+                        "  beta: {value: 3950, unit: K, scale: 1}\n"
+                        "  lin_Vs: {value: 0, unit: K/V, scale: 0.01}\n")
+    text = text.replace("log(R/R25)/beta), unit: K}",
+                        "log(R/R25)/beta) + lin_Vs*(Vs - c_lin_Vs), unit: K}")
+    model.write_text(text)
+    diag = symcal.diagnose(symcal.solve(tmp_path / "d" / "problem.yaml", divider_data(4)))
+    labels = [c.label for c in diag.candidates if c.basis.kind == "constant"]
+    assert "th's c_lin_Vs, the centre of its term in Vs, is off" in labels

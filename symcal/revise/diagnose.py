@@ -448,7 +448,11 @@ def _value_words(cand: Candidate, stats: str) -> str:
                     f"{basis.unit} instead of {value:.6g}, a change of {change:+.3g}{rel}")
     what = {"fixed": "Freeing it", "constant": "Making it a parameter",
             "latency": "Allowing for the delay", "zero": "Allowing for it"}[basis.kind]
-    return (f"{basis.description[0].upper()}{basis.description[1:]}{asks}. {what} would "
+    # a sentence starts with a capital, a name keeps its own ("orf's c_quad_dp ...")
+    text = basis.description
+    if text.startswith("the "):
+        text = "T" + text[1:]
+    return (f"{text}{asks}. {what} would "
             f"remove {cand.share:.0%} of what the calibration's constraints cannot yet "
             f"explain; solving again with it would give {_falls(cand)}; {stats}.")
 

@@ -62,6 +62,7 @@ from symcal.language.common import ExprSpec
 from symcal.language.model_file import ModelSpec
 from symcal.problem.symbolic import Problem
 from symcal.revise.blocks import Block, distinct_groups, references
+from symcal.revise.effects import centre_variable
 
 #: Harmonic orders tried by default.
 HARMONICS = 8
@@ -690,9 +691,11 @@ def constant_entries(problem: Problem, blocks: list[Block], fit: int) -> list[En
                      else "the ")
             shared = (f" (shared by {', '.join(c.instance for c in chosen)})"
                       if len(chosen) > 1 else "")
+            centre = centre_variable(first.doc)
+            text = (f"{whose}{first.name}{shared}, the centre of its term in {centre}, is off"
+                    if centre is not None else f"{whose}{doc}{first.name}{shared} is off")
             scale = column_scale(blocks[fit], x)
-            basis = Basis("constant", first.name,
-                          f"{whose}{doc}{first.name}{shared} is off", ("delta",), (),
+            basis = Basis("constant", first.name, text, ("delta",), (),
                           unit=first.unit, scales=(float(f"{scale:.3g}"),), term=scale,
                           centre=first.value * DISPLAY_UNITS[first.unit],
                           targets=tuple(c.key for c in chosen))

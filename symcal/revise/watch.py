@@ -23,6 +23,7 @@ import numpy as np
 import scipy.stats
 
 from symcal.base.digits import estimate_text
+from symcal.base.units import UnitError, parse_unit
 from symcal.calibrate.result import Result
 from symcal.experiment.command import design_sentence, target_arg
 from symcal.revise.effects import centre_variable
@@ -118,9 +119,10 @@ class Watch:
             out.append(f"with {added}: " + "; ".join(parts))
         for key, variable, value, unit in self.centres:
             local = key.split(".", 1)[-1]
+            say = " (25 °C, say)" if _temperature(unit) else ""
             out.append(f"the term is zero at {variable} = {value:g} {unit} ({key}): the "
                        f"parameters already there now hold at that {variable}, not at a "
-                       f"datasheet's reference; to have them hold at one (25 degC, say), "
+                       f"datasheet's reference; to have them hold at one{say}, "
                        f"write its value as {local}'s in the model file and solve again")
         if self.moved:
             ranked = sorted(self.moved, key=lambda m: -m.shift)
@@ -267,3 +269,11 @@ def design_hint(result: Result, problem_file: Path, target: tuple[str, float]) -
                      if spec.scenario is not None), None)
     return "an experiment that separates them: " + design_sentence(
         problem_file, scenario, f"--optimize --target {target_arg(name, se, unit)} --hold")
+
+
+def _temperature(unit: str) -> bool:
+    """Whether ``unit`` measures a temperature (a datasheet's reference is then 25 °C)."""
+    try:
+        return bool(parse_unit(unit).dimensionality == parse_unit("K").dimensionality)
+    except UnitError:       # a unit pint cannot read is not a temperature it knows
+        return False
