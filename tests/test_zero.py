@@ -181,3 +181,13 @@ def test_a_terms_centre_tested_as_a_constant_is_labelled_as_one(tmp_path) -> Non
     diag = symcal.diagnose(symcal.solve(tmp_path / "d" / "problem.yaml", divider_data(4)))
     labels = [c.label for c in diag.candidates if c.basis.kind == "constant"]
     assert "th's c_lin_Vs, the centre of its term in Vs, is off" in labels
+
+
+def test_a_zero_kept_is_not_offered_again(tmp_path) -> None:
+    """Once kept, the zero is the problem's parameter ``zero_Vth`` that the sensor's input
+    reads: the candidate is not offered again (it was, absorbed, "would bias zero_Vth")."""
+    done = symcal.improve(DIVIDER / "problem.yaml", tmp_path / "out",
+                          divider_data(1, zero=3e-3), max_rounds=1)
+    assert [r.added for r in done.rounds[1:]] == [ZERO]
+    assert not [c for c in done.last.candidates if c.basis.variable == "Vth"
+                and c.basis.kind == "zero"]

@@ -813,10 +813,13 @@ def _own_offset(problem: Problem, block: Block, free: np.ndarray, insts: list[st
                 for c in problem.constants
                 if c.tested and c.instance is not None and c.key in index
                 and index[c.key] < block.jac_constants.shape[2]]
+    # the problem's own parameters a reader's inputs read (``dp + zero_dp``: a zero kept)
+    bound = {n.name for i in insts for text in problem.instances[i].bindings.values()
+             for n in expr.names(expr.parse(text))}
     flat = x.ravel()
     norm = float(np.linalg.norm(flat))
     for name, col in columns:
-        if name.split(".", 1)[0] not in insts:
+        if name.split(".", 1)[0] not in insts and name not in bound:
             continue
         other = col.ravel()
         size = float(np.linalg.norm(other))
