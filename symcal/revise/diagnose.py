@@ -629,7 +629,8 @@ def diagnose(result: Result, alpha: float = 0.01, *, report: bool = True) -> Dia
                      _better_problem(problem) if above else "",
                      tuple(sp.describe() for sp in found.values()), dict(fixes),
                      together, unsearched(problem, found, views, tested_outside,
-                                          _reached(problem, blocks) if views else None),
+                                          _reached(problem, blocks) if views else None,
+                                          leads[0] if leads else None),
                      outside,
                      {c.label: outside_words(problem, found, c) for c in outside})
 
@@ -721,15 +722,18 @@ def _reached(problem: Problem, blocks: list[Block]) -> dict[tuple[str, str], set
 def unsearched(problem: Problem, found: Mapping[str, Space],
                views: Sequence[ResidualView],
                tested: set[tuple[str, str]] | None = None,
-               reached: Mapping[tuple[str, str], set[str]] | None = None
-               ) -> tuple[str, ...]:
+               reached: Mapping[tuple[str, str], set[str]] | None = None,
+               lead: Candidate | None = None) -> tuple[str, ...]:
     """Where what is left of a residual lies most along a sensor's own reading that no
     other sensor's search space holds: a coupling of that reading into another sensor
     (crosstalk from a current channel into a voltage channel) is not tested, unless the
     outside family tested it (``tested``: instance, column), and only into a sensor
     whose outputs that residual reads (``reached``: :func:`_reached`; a coupling into a
     sensor the residual does not read cannot explain it); the sentence says how to test
-    it."""
+    it, and where a significant candidate (``lead``) removes most of what the constraints
+    cannot yet explain, that it comes first (what is left lies along every variable that
+    moves with the effect: a new user's orifice rig, its pressure's zero 97 % of it, was
+    pointed at couplings of the reference's flow)."""
     column_of: dict[str, str] = {}      # a column an instance reads, by either name
     readers: dict[str, list[str]] = {}  # the instances that read each column
     for name, inst in problem.instances.items():
@@ -755,13 +759,23 @@ def unsearched(problem: Problem, found: Mapping[str, Space],
                 names = found_in.setdefault((column, tuple(who), others), [])
                 if v.name not in names:
                     names.append(v.name)
+    first = ""
+    if lead is not None and lead.share >= MOST:
+        first = (f" (first add the leading candidate, {lead.label}: it removes "
+                 f"{lead.share:.0%} of what the constraints cannot yet explain, and what is "
+                 "left here may go with it)")
     return tuple(
         f"{column}, along which what is left of {', '.join(names)} lies most, is read by "
         f"{', '.join(who)} and is in no search space of {', '.join(others)}: a coupling of "
         f"it into {'that sensor' if len(others) == 1 else 'them'} is not tested; to test "
         f"one, name {column} in {others[0]}'s `candidates: variables` beside its own "
-        "readings (the list replaces the default)"
+        f"readings (the list replaces the default){first}"
         for (column, who, others), names in found_in.items())
+
+
+#: A significant candidate that removes at least this share of what the constraints
+#: cannot yet explain comes before the couplings :func:`unsearched` names.
+MOST = 0.5
 
 
 #: How the library names a term's coefficients (``lin_T``, ``h3_sin_u``, ``gain_T``,

@@ -31,10 +31,11 @@ on the exact Jacobian from CasADi's AD.
   from then on at every linearisation, a Gauss–Newton promise within it stops the solve,
   without the train of rejected trials that shrinking the region to nothing would take.
   Converged to rounding, the last Gauss–Newton step (from R, finer than the cost) is
-  taken when the cost stays within its noise (checked by a pass of residuals alone; R is
-  the last linearisation's), so the estimate does not depend on the order the passes
-  reduce in (the residual vanished, or fell below ``EXACT_FIT`` of the
-  starting residual, where rounding dominates).  Divergence,
+  taken when the cost stays within its noise (a step of at most ``KEEP_R`` of the
+  parameters checked by a pass of residuals alone, R the last linearisation's), so the
+  estimate does not depend on the order the passes reduce in (the residual vanished,
+  or fell below ``EXACT_FIT`` of the starting residual, where rounding dominates).
+  Divergence,
   NaN/inf in the Jacobian, the iteration limit and a stall (the region shrank to nothing
   without the test holding) are failures that say so.
 """
@@ -77,6 +78,10 @@ DIVERGED = 1e15
 #: The last Gauss–Newton step is taken when the cost stays within this fraction of
 #: itself (far above the rounding of a sum of squares, far below a real increase).
 POLISH = 1e-12
+#: The last Gauss–Newton step keeps the R factor it was computed from (its cost checked
+#: by a pass of residuals alone) when it moves the parameters by at most this share of
+#: ‖D x‖; a longer one is linearised again (see :func:`_polish`).
+KEEP_R = 1e-9
 #: Machine epsilon of the floats the cost is summed in.
 EPS = float(np.finfo(float).eps)
 #: A step is accepted when it achieves this fraction of its predicted decrease.
@@ -229,6 +234,7 @@ class _Steps:
 
 
 def _polish(steps: _Steps, x: np.ndarray, lin: _Linearisation,
+            linearise: Callable[[np.ndarray], _Linearisation],
             cost_at: Callable[[np.ndarray], float]) -> tuple[np.ndarray, _Linearisation]:
     """Converged to rounding: take the last Gauss–Newton step, which the cost can no longer
     judge, when the cost stays within its rounding noise.  The step comes from the
@@ -236,19 +242,27 @@ def _polish(steps: _Steps, x: np.ndarray, lin: _Linearisation,
     the estimate no longer depends on where rounding stopped the search (the same data in
     shards or in memory give the same estimate).
 
-    The trial is checked by its cost alone (a pass of residuals, no derivatives, no R):
-    the linearisation kept is the last one's R with the residual moved along it, since a
-    step whose decrease is lost in the rounding of the cost moves R by less than the
-    digits any standard error is given to."""
+    A step of at most :data:`KEEP_R` of the parameters is checked by its cost alone (a
+    pass of residuals, no derivatives, no R): the linearisation kept is the last one's R
+    with the residual moved along it, R moving by about ten times the step's share of
+    the parameters (the standard errors to about 8 digits).  A longer step is linearised
+    again (NIST's Nelson, Lanczos3 and MGH17 polish by 3e-8 to 8e-8 of the parameters:
+    the R kept there gave their certified standard errors to 6.4-6.5 digits, not 8)."""
     z = -(steps.vt.T @ (steps.a / steps.s))
     step = np.zeros(len(x))
     step[steps.free] = z / steps.d[steps.free]
     trial = np.clip(x + step, steps.lower, steps.upper)
     if not np.any(trial != x):
         return x, lin
+    allowed = lin.cost + max(NOISE_FACTOR * steps.noise, POLISH * lin.cost)
+    size = float(np.linalg.norm(steps.d * x))
+    if float(np.linalg.norm(steps.d * (trial - x))) > KEEP_R * size:
+        polished = linearise(trial)
+        if polished.finite and polished.cost <= allowed:
+            return trial, polished
+        return x, lin
     cost = cost_at(trial)
-    if math.isfinite(cost) and cost <= lin.cost + max(NOISE_FACTOR * steps.noise,
-                                                      POLISH * lin.cost):
+    if math.isfinite(cost) and cost <= allowed:
         c = lin.c + lin.r_x @ (trial - x)
         return trial, _Linearisation(cost, lin.r_x, c, lin.r_theta, lin.rows)
     return x, lin
@@ -346,14 +360,14 @@ def solve_trust_region(
                           rounding * lin.cost)
         if iterations > 0 and step_out.settled():
             ok, status, words = True, "converged_to_rounding", step_out.settled_words()
-            x, lin = _polish(step_out, x, lin, cost_at)
+            x, lin = _polish(step_out, x, lin, linearise, cost_at)
             break
         if iterations > 0 and decrement <= NOISE_FACTOR * ROUNDING_FLOOR * EPS:
             ok, status = True, "converged_to_rounding"
             words = (f"converged to rounding: a Gauss-Newton step would lower the cost by "
                      f"{decrement:.2g} of itself, within the rounding of a sum of squares "
                      f"({NOISE_FACTOR * ROUNDING_FLOOR:g} machine epsilons)")
-            x, lin = _polish(step_out, x, lin, cost_at)
+            x, lin = _polish(step_out, x, lin, linearise, cost_at)
             break
         fresh = True   # the first trial of a linearisation is evaluated with derivatives
         while not step_out.accepted:
@@ -366,7 +380,7 @@ def solve_trust_region(
             if radius <= STALL * max(float(np.linalg.norm(d * x)), 1.0):
                 ok, status, words = step_out.verdict()
                 if ok:
-                    x, lin = _polish(step_out, x, lin, cost_at)
+                    x, lin = _polish(step_out, x, lin, linearise, cost_at)
                 break
             trial, predicted, size = step_out.trial(radius)
             iterations += 1
@@ -400,7 +414,7 @@ def solve_trust_region(
             if step_out.settled():
                 ok, status, words = True, "converged_to_rounding", step_out.settled_words()
                 step_out.noise = max(step_out.noise, step_out.rounding)
-                x, lin = _polish(step_out, x, lin, cost_at)
+                x, lin = _polish(step_out, x, lin, linearise, cost_at)
                 break
         rounding = max(rounding, step_out.rounding / step_out.lin.cost
                        if step_out.lin.cost > 0 else 0.0)
