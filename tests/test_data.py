@@ -116,7 +116,13 @@ def test_npz_headers_are_parsed_one_at_a_time(tmp_path, monkeypatch) -> None:
                 inside[0] -= 1
 
     monkeypatch.setattr(ast, "literal_eval", slow)
-    with ThreadPoolExecutor(2) as pool:
+    from symcal.data.shards import _rows_npz
+
+    with ThreadPoolExecutor(2) as pool:     # reading shards while others are opened
         tables = list(pool.map(read_table, files))
+        rows = list(pool.map(lambda p: _rows_npz(p, p.name), files))
+        mixed = list(pool.map(lambda k: read_table(files[k]) if k % 2 else
+                              _rows_npz(files[k], "s"), range(6)))
     assert [float(t["x"][0]) for t in tables] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    assert rows == [5] * 6 and mixed[0] == 5 and float(mixed[1]["x"][0]) == 1.0
     assert most[0] == 1

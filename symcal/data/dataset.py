@@ -17,7 +17,7 @@ import zlib
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import IO, Any, BinaryIO
 
 import numpy as np
 
@@ -360,16 +360,23 @@ def _physical_memory() -> int | None:
 _HEADER_LOCK = threading.Lock()
 
 
+def npy_header(fh: IO[bytes]) -> tuple[tuple[int, ...], np.dtype]:
+    """The shape and dtype of the ``.npy`` array whose file ``fh`` is at its start, the
+    file left at its data (raises ``ValueError`` where it holds no ``.npy`` header)."""
+    version = np.lib.format.read_magic(fh)
+    read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+            else np.lib.format.read_array_header_2_0)
+    with _HEADER_LOCK:
+        shape, _, dtype = read(fh)
+    return shape, dtype
+
+
 def _npz_member(shown: str, zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> _Member:
     """Read and check one member's ``.npy`` header (a few hundred bytes inflated)."""
     name = _name(info.filename.removesuffix(".npy"))
     try:
         with zf.open(info) as fh:
-            version = np.lib.format.read_magic(fh)
-            read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                    else np.lib.format.read_array_header_2_0)
-            with _HEADER_LOCK:
-                shape, _, dtype = read(fh)
+            shape, dtype = npy_header(fh)
             offset = fh.tell()
     except ValueError:
         raise DataError(f"{shown}: member '{_name(info.filename)}' is not a NumPy array (no "

@@ -20,7 +20,7 @@ import numpy as np
 
 from symcal.base.errors import DataError
 from symcal.base.files import display_path
-from symcal.data.dataset import Dataset, make_dataset, read_table
+from symcal.data.dataset import Dataset, make_dataset, npy_header, read_table
 
 #: Shard kinds by file suffix.
 KINDS = {".parquet": "parquet", ".npz": "npz", ".csv": "csv"}
@@ -139,10 +139,7 @@ def _rows_npz(path: Path, shown: str) -> int:
             if not names:
                 raise DataError(f"{shown}: the NPZ shard holds no arrays")
             with zf.open(names[0]) as fh:
-                version = np.lib.format.read_magic(fh)
-                header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                          else np.lib.format.read_array_header_2_0)
-                shape, _, _ = header(fh)
+                shape, _ = npy_header(fh)
     except (zipfile.BadZipFile, ValueError, OSError) as exc:
         raise DataError(f"{shown}: not a readable NPZ file ({exc})") from None
     if len(shape) != 1:
