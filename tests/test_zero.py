@@ -206,3 +206,14 @@ def test_untested_couplings_come_after_a_lead_that_explains_most() -> None:
                              "here may go with it)") for line in diag.unsearched)
     clean = symcal.diagnose(symcal.solve(DIVIDER / "problem.yaml", divider_data(4)))
     assert not any("first add" in line for line in clean.unsearched)
+
+
+def test_a_dimensionless_readings_detectable_zero_is_a_plain_number() -> None:
+    """A zero of a column without a unit (a ratio) is shown as the number it is, as a
+    dimensionless constant's is, not with a unit symbol after it."""
+    from symcal.report.text import detectable_text
+
+    cand = Candidate("", Basis("zero", "ratio", "the zero of ratio (read by r) is off",
+                               ("zero",), (), unit="", targets=("r",)))
+    cand.mde = 0.00125
+    assert detectable_text(None, cand) == "0.00125"

@@ -777,9 +777,9 @@ def detectable_text(result: Result, cand: Any) -> str:
     found = detectable(result, cand)
     if found is None:
         return "—"
-    # a constant's or a parameter's without a unit is a pure number (an emissivity), not
-    # a value in symcal's internal units
-    plain = not found[1] and cand.basis.kind in ("fixed", "constant")
+    # a constant's, a parameter's or a reading's zero without a unit is a pure number (an
+    # emissivity, a ratio), not a value in symcal's internal units
+    plain = not found[1] and cand.basis.kind in ("fixed", "constant", "zero")
     return f"{found[0]:.4g}" if plain else _spread_text(*found)
 
 
