@@ -772,13 +772,15 @@ def zero_entries(problem: Problem, blocks: list[Block], fit: int,
     index = {c: k for k, c in enumerate(hp.columns)}
     specs = problem.column_specs
     never = excluded(problem) | direct_columns(problem)
+    reads = {name: list(dict.fromkeys(n.name for text in inst.bindings.values()
+                                      for n in expr.names(expr.parse(text))))
+             for name, inst in problem.instances.items()}    # in the bindings' order
     readers: dict[str, list[str]] = {}
-    for name, inst in problem.instances.items():
-        for text in inst.bindings.values():
-            for node in expr.names(expr.parse(text)):
-                col = node.name
-                if col in specs and col in index and name not in readers.get(col, []):
-                    readers.setdefault(col, []).append(name)
+    for name, names in reads.items():
+        for col in names:
+            if col in specs and col in index:
+                readers.setdefault(col, []).append(name)
+    derivatives = _derivatives(problem, blocks[fit], free)
     out = []
     for col, insts in readers.items():
         spec = specs[col]
@@ -789,7 +791,11 @@ def zero_entries(problem: Problem, blocks: list[Block], fit: int,
             continue
         k = index[col]
         x_fit = blocks[fit].jac_columns[:, :, k]
-        if not np.any(x_fit) or _own_offset(problem, blocks[fit], free, insts, x_fit):
+        # the sensors' own parameters and constants, and the problem's parameters their
+        # inputs read (``dp + zero_dp``: a zero kept)
+        own = [d for name, d in derivatives if name.split(".", 1)[0] in insts
+               or any(name in reads[i] for i in insts)]
+        if not np.any(x_fit) or _own_offset(own, x_fit):
             continue
         scale = column_scale(blocks[fit], x_fit)
         basis = Basis("zero", col, f"the zero of {col} (read by {', '.join(insts)}) is off",
@@ -799,28 +805,29 @@ def zero_entries(problem: Problem, blocks: list[Block], fit: int,
     return out
 
 
-def _own_offset(problem: Problem, block: Block, free: np.ndarray, insts: list[str],
-                x: np.ndarray) -> bool:
-    """Whether one of ``insts``' parameters (free or fixed) or tested constants moves the
-    residuals as the zero of their reading does (``x``, N × n_q): :data:`OWN_OFFSET`."""
+def _derivatives(problem: Problem, block: Block, free: np.ndarray
+                 ) -> list[tuple[str, np.ndarray]]:
+    """Every parameter's (free or fixed) and tested instance constant's derivative of the
+    residuals on ``block`` (N × n_q), by name (``th2.r_lead`` for a constant)."""
     names = problem.parameter_names
-    columns = [(n, block.jac[:, :, j]) for j, n in
-               enumerate(n for n, f in zip(names, free, strict=True) if f)]
-    columns += [(n, block.jac_fixed[:, :, j]) for j, n in
-                enumerate(n for n, f in zip(names, free, strict=True) if not f)]
+    out = [(n, block.jac[:, :, j]) for j, n in
+           enumerate(n for n, f in zip(names, free, strict=True) if f)]
+    out += [(n, block.jac_fixed[:, :, j]) for j, n in
+            enumerate(n for n, f in zip(names, free, strict=True) if not f)]
     index = {c.key: k for k, c in enumerate(problem.diagnostic.constants)}
-    columns += [(f"{c.instance}.{c.name}", block.jac_constants[:, :, index[c.key]])
-                for c in problem.constants
-                if c.tested and c.instance is not None and c.key in index
-                and index[c.key] < block.jac_constants.shape[2]]
-    # the problem's own parameters a reader's inputs read (``dp + zero_dp``: a zero kept)
-    bound = {n.name for i in insts for text in problem.instances[i].bindings.values()
-             for n in expr.names(expr.parse(text))}
+    out += [(f"{c.instance}.{c.name}", block.jac_constants[:, :, index[c.key]])
+            for c in problem.constants
+            if c.tested and c.instance is not None and c.key in index
+            and index[c.key] < block.jac_constants.shape[2]]
+    return out
+
+
+def _own_offset(own: list[np.ndarray], x: np.ndarray) -> bool:
+    """Whether one of the derivatives ``own`` moves the residuals as the zero of the
+    reading does (``x``, N × n_q): :data:`OWN_OFFSET`."""
     flat = x.ravel()
     norm = float(np.linalg.norm(flat))
-    for name, col in columns:
-        if name.split(".", 1)[0] not in insts and name not in bound:
-            continue
+    for col in own:
         other = col.ravel()
         size = float(np.linalg.norm(other))
         if size > 0 and abs(float(flat @ other)) >= OWN_OFFSET * norm * size:
