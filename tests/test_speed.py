@@ -115,10 +115,12 @@ def test_lm_stops_at_the_rounding_of_the_cost_without_a_train_of_rejections(monk
 
 def test_the_polish_checks_its_step_by_the_cost_alone() -> None:
     """Converged to rounding, the last Gauss-Newton step is checked by a pass of residuals
-    (no derivatives, no R factor): one linearisation per accepted iterate and the start,
-    no more.  What it keeps is honest: the cost returned is the cost at the polished
-    estimate, the same bits as a pass there, and the R factor kept (the last
-    linearisation's) gives the Gram matrix of a fresh linearisation there to 1e-9."""
+    (no derivatives, no R factor), kept for the analysis that reads them next: one
+    linearisation per accepted iterate and the start, no more, and no pass for the
+    residuals at the estimate afterwards.  What it keeps is honest: the cost returned is
+    the cost at the polished estimate, the same bits as a pass there, and the R factor
+    kept (the last linearisation's) gives the Gram matrix of a fresh linearisation there
+    to 1e-9."""
     from symcal.data.dataset import make_dataset
     from symcal.data.loading import needed_columns
     from symcal.simulation import load_scenario, simulate_run
@@ -142,13 +144,18 @@ def test_the_polish_checks_its_step_by_the_cost_alone() -> None:
     with counting(on_iteration=lambda *a: accepted.append(a[1])) as counts:
         out = trust_region.solve_trust_region(objective, data, start)
     assert out.success and out.status == "converged_to_rounding", out.message
-    assert counts.by_method.get("cost", 0) >= 1
+    assert counts.by_method.get("residuals", 0) == 1 and "cost" not in counts.by_method, \
+        counts.by_method
     assert counts.by_method["accumulate_r"] == len(accepted) + 1, (counts.by_method, accepted)
+    with counting() as later:
+        kept = objective.residuals(data, out.theta)
+    assert later.by_method == {}, later.by_method
     fresh = Objective(problem, stage.constraints, free)
+    assert np.array_equal(kept, fresh.residuals(data, out.theta))
     assert out.rss == fresh.cost(data, out.theta)
     r = fresh.accumulate_r(data, out.theta)[0]
-    gram, kept = r.T @ r, out.r_factor.T @ out.r_factor
-    assert np.max(np.abs(kept - gram)) <= 1e-9 * np.max(np.abs(gram))
+    gram, kept_gram = r.T @ r, out.r_factor.T @ out.r_factor
+    assert np.max(np.abs(kept_gram - gram)) <= 1e-9 * np.max(np.abs(gram))
 
 
 def test_a_longer_polish_step_is_linearised_again() -> None:
@@ -281,9 +288,8 @@ def test_blocked_qr_gives_the_r_factor_of_the_jacobian_to_rounding(monkeypatch) 
     reference = np.linalg.qr(aug, mode="r")
     np.testing.assert_allclose(np.abs(r), np.abs(reference[:-1, :-1]), rtol=0,
                                atol=1e-11 * np.abs(reference).max())
-    monkeypatch.setattr(passes, "_qr_r", lambda a: (np.linalg.qr(a, mode="r")
-                                                    if a.shape[0] < passes.LAPACK_ROWS
-                                                    else _geqrf(a)))
+    monkeypatch.setattr(passes, "_qr_r", lambda a, overwrite=False: (
+        np.linalg.qr(a, mode="r") if a.shape[0] < passes.LAPACK_ROWS else _geqrf(a)))
     r_old, c_old, tail_old, _ = objective.accumulate_r(data, theta)
     np.testing.assert_allclose(r, r_old, rtol=0, atol=1e-13 * np.abs(r).max())
     # c itself is arbitrary in the rows of R's null directions (the problem's gauges):
@@ -305,9 +311,8 @@ def test_blocked_qr_gives_the_same_estimate(monkeypatch) -> None:
     for earlier in problem.stages[:-1]:
         theta0, _ = run_stage(problem, earlier, data, theta0)
     new, result = run_stage(problem, stage, data, theta0)
-    monkeypatch.setattr(passes, "_qr_r", lambda a: (np.linalg.qr(a, mode="r")
-                                                    if a.shape[0] < passes.LAPACK_ROWS
-                                                    else _geqrf(a)))
+    monkeypatch.setattr(passes, "_qr_r", lambda a, overwrite=False: (
+        np.linalg.qr(a, mode="r") if a.shape[0] < passes.LAPACK_ROWS else _geqrf(a)))
     old, _ = run_stage(problem, stage, data, theta0)
     assert result.success
     for name, se in result.uncertainty.se.items():
@@ -403,6 +408,94 @@ def test_the_r_factor_at_a_point_is_reduced_once(monkeypatch) -> None:
         _, _, data2, _ = _dual_objective(2_000)
         objective.accumulate_r(data2, theta)
     assert counts.by_method == {"accumulate_r": 4}
+
+
+def test_the_solver_starts_from_the_analysis_r_even_where_scaling_rounds() -> None:
+    """The lm works in scaled parameters ``θ/s``; ``s·(θ/s)`` can differ from θ in its
+    last bit.  Its first linearisation is still the start itself, so the R factor the
+    stage's analysis reduced there is found: one pass per accepted iterate, none at the
+    start, and the same estimate, bit for bit, as a solve with nothing kept."""
+    from symcal.solvers.instrument import counting
+    from symcal.solvers.objective import Objective
+
+    problem, stage, data, objective = _dual_objective(2_000)
+    scales = np.array([p.scale for p in problem.parameters])
+    free = objective.free
+    rng = np.random.default_rng(11)
+    start = np.array([p.value for p in problem.parameters])
+    for _ in range(1000):      # a start whose scaling does not round-trip
+        trial = start.copy()
+        trial[free] += scales[free] * 1e-3 * rng.standard_normal(int(free.sum()))
+        if not np.array_equal(scales[free] * (trial[free] / scales[free]), trial[free]):
+            start = trial
+            break
+    else:
+        pytest.fail("no start found whose scaling rounds")
+    objective.accumulate_r(data, start)              # the stage's analysis at the start
+    accepted: list[int] = []
+    with counting(on_iteration=lambda *a: accepted.append(a[1])) as counts:
+        kept = trust_region.solve_trust_region(objective, data, start)
+    assert counts.by_method["accumulate_r"] == len(accepted), (counts.by_method, accepted)
+    alone = trust_region.solve_trust_region(Objective(problem, stage.constraints, free),
+                                            data, start)
+    np.testing.assert_array_equal(kept.theta, alone.theta)
+    np.testing.assert_array_equal(kept.r_factor, alone.r_factor)
+
+
+def test_a_compiled_linearisation_writes_the_qr_block_itself(empty_cache) -> None:
+    """An r pass by a compiled twin lays the rows of ``[J | g]`` out column-major in the
+    generated loop: the same block, bit for bit, as the evaluated rows copied, hence the
+    same R and the same sums of squares; a tile shorter than the loop's is written
+    whole."""
+    from symcal.solvers import passes
+
+    jit = empty_cache
+    if jit.compiler() is None:
+        pytest.skip("no C compiler")
+    problem, _, data, objective = _dual_objective(3 * jit.TILE + 5)
+    theta = np.array([p.value for p in problem.parameters])
+    fn = objective._mapped("linearised", [objective.g, objective.jac.T])
+    twin = jit.fast(fn, build=True)
+    assert isinstance(twin, jit.CompiledMapped) and twin.fills_blocks
+    u = np.ascontiguousarray(data.matrix(problem.columns))
+    ng, n = 3, int(objective.free.sum())
+    g, jt = (np.array(x) for x in fn.evaluate(theta, u))
+    m = u.shape[1]
+    expected = np.empty((m * ng, n + 1), order="F")
+    expected[:, :n] = jt.reshape(m * ng, n)
+    expected[:, n] = g.reshape(m * ng)
+    block = np.full((m * ng, n + 1), np.nan, order="F")
+    twin.fill_block(theta, u, block)
+    np.testing.assert_array_equal(block, expected)
+    for kind in ("r", "rt"):
+        by_twin = passes.Pass(kind, twin, theta, (ng, n), tuple(problem.columns))(u)
+        by_copy = passes.Pass(kind, fn, theta, (ng, n), tuple(problem.columns))(u)
+        for a, b in zip(by_twin, by_copy, strict=True):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="column-major block"):
+        twin.fill_block(theta, u, np.empty((m * ng, n + 1)))
+
+
+def test_the_floors_evaluate_the_start_with_the_estimate() -> None:
+    """The floors' rows at the estimate and their residuals at the start come from one
+    function (the terms of the readings alone shared): the same bits as two."""
+    from symcal.analysis.row_noise import RowPropagation, entries_of
+    from symcal.base.numeric import chunks
+
+    problem, _, data, objective = _dual_objective(3_000)
+    entries = entries_of(problem, data)
+    prop = RowPropagation(problem, entries.exprs, objective.free)
+    rng = np.random.default_rng(5)
+    theta = np.array([p.value for p in problem.parameters])
+    theta0 = theta + 1e-3 * rng.standard_normal(len(theta)) * np.array(
+        [p.scale for p in problem.parameters])
+    u = data.matrix(prop.columns)
+    part = list(chunks(data.n))[0]
+    r, lmat, jac = prop.at(prop.fn, u, theta, part)
+    both = prop.at_and_start(prop.with_start, u, theta, theta0, part)
+    for a, b in zip((r, lmat, jac, prop.residuals(u, theta0, part)), both, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert lmat.shape == (data.n, len(entries.exprs), prop.n_eps) and np.any(lmat != 0)
 
 
 @pytest.mark.parametrize("rows", [30, 5_000])

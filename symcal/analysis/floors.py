@@ -573,11 +573,12 @@ class RowsPlan:
                       [None] * n)
         prop, theta0 = self.prop, self.theta0
         u = ds.matrix(prop.columns)
-        fn = jit.select(prop.fn, ds.n)
+        fn = jit.select(prop.fn if theta0 is None else prop.with_start, ds.n)
 
         def piece(part: slice) -> _Chunk:
-            r, lmat, jac = prop.at(fn, u, self.theta, part)
-            r0 = prop.residuals(u, theta0, part) if theta0 is not None else None
+            if theta0 is None:
+                return self.terms(*prop.at(fn, u, self.theta, part), None)
+            r, lmat, jac, r0 = prop.at_and_start(fn, u, self.theta, theta0, part)
             return self.terms(r, lmat, jac, r0)
 
         parts = list(chunks(ds.n))

@@ -40,8 +40,7 @@ class Covariances:
     def __call__(self, u: np.ndarray) -> np.ndarray:
         """The chunk's covariances."""
         m = u.shape[1]
-        ext = np.vstack([u, np.zeros((self.n_eps, m))])
-        lt = jit.select(self.fn, m).chunk(self.theta, ext)[1]   # compiled when it pays
+        lt = jit.select(self.fn, m).chunk(self.theta, u)[1]   # compiled when it pays
         lmat = lt.reshape(m, self.n_g, self.n_eps) / self.sigma[None, :, None]
         return row_grams(lmat)
 

@@ -54,8 +54,8 @@ from symcal.base.numeric import Mapped, from_serialized
 #: ``auto`` compiles for a pass over at least this many observations, and in the
 #: background once a function's passes have evaluated this many in all.
 JIT_MIN = 131_072
-#: Version of the cache's layout and key.
-FORMAT = 2
+#: Version of the cache's layout and key (4: the block loop).
+FORMAT = 4
 #: Compiler flags: no fused multiply-add contraction, so results keep IEEE operations.
 FLAGS = ("-O1", "-fPIC", "-shared", "-ffp-contract=off")
 
@@ -95,6 +95,11 @@ def _digest(data: bytes) -> str:
 
 #: Name of the loop over observations appended to the generated code.
 ENTRY = "symcal_map"
+#: Name of the loop writing a linearisation's observations into a column-major block.
+BLOCK_ENTRY = "symcal_block"
+#: Observations the block loop evaluates before laying them out (a tile that stays in
+#: the cache while it is transposed).
+TILE = 64
 
 
 def _source(fn: ca.Function) -> str:
@@ -119,6 +124,44 @@ int {ENTRY}(casadi_int n, const casadi_real* theta, const casadi_real* u,
   }}
   return 0;
 }}
+""" + _block_source(fn)
+
+
+def _block_source(fn: ca.Function) -> str:
+    """For a function ``(θ, u) → (g, vec(Jᵀ))`` (``n_g`` residuals, ``vec(Jᵀ)`` holding
+    ``J[a, p]`` at ``a·n_p + p``), a loop :data:`BLOCK_ENTRY` writing ``n`` observations
+    straight into a column-major block ``[J | g]`` of leading dimension ``ld``:
+    observation i's residual a on row ``i·n_g + a`` (what a QR pass factors, without the
+    transposing copy); empty for any other function."""
+    if fn.n_out() != 2 or fn.nnz_out(0) == 0 or fn.nnz_out(1) % fn.nnz_out(0):
+        return ""
+    ng = fn.nnz_out(0)
+    n_p = fn.nnz_out(1) // ng
+    return f"""
+int {BLOCK_ENTRY}(casadi_int n, const casadi_real* theta, const casadi_real* u,
+                  casadi_real* block, casadi_int ld, casadi_real** tmp, casadi_real* w,
+                  casadi_int* iw) {{
+  const casadi_real* arg[{max(fn.sz_arg(), 2)}];
+  casadi_real* res[{max(fn.sz_res(), 2)}];
+  casadi_int i, j, t, a, p;
+  arg[0] = theta;
+  for (i = 0; i < n; i += {TILE}) {{
+    t = n - i < {TILE} ? n - i : {TILE};
+    for (j = 0; j < t; ++j) {{
+      arg[1] = u + (i + j) * {fn.nnz_in(1)};
+      res[0] = tmp[0] + j * {ng};
+      res[1] = tmp[1] + j * {ng * n_p};
+      if ({fn.name()}(arg, res, iw, w, 0)) return 1;
+    }}
+    for (p = 0; p < {n_p}; ++p) {{
+      casadi_real* col = block + p * ld + i * {ng};
+      for (j = 0; j < t; ++j)
+        for (a = 0; a < {ng}; ++a) col[j * {ng} + a] = tmp[1][j * {ng * n_p} + a * {n_p} + p];
+    }}
+    for (j = 0; j < t * {ng}; ++j) block[{n_p} * ld + i * {ng} + j] = tmp[0][j];
+  }}
+  return 0;
+}}
 """
 
 
@@ -129,6 +172,12 @@ def _load(path: Path) -> ctypes.CDLL:
     entry.restype = ctypes.c_int
     entry.argtypes = [ctypes.c_longlong, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
                       ctypes.c_void_p, ctypes.c_void_p]
+    block = getattr(lib, BLOCK_ENTRY, None)
+    if block is not None:
+        block.restype = ctypes.c_int
+        block.argtypes = [ctypes.c_longlong, ctypes.c_void_p, ctypes.c_void_p,
+                          ctypes.c_void_p, ctypes.c_longlong, ctypes.c_void_p,
+                          ctypes.c_void_p, ctypes.c_void_p]
     return lib
 
 
@@ -264,6 +313,7 @@ class CompiledMapped(Mapped):
         self.source = source
         self.lib = lib
         self._entry = getattr(lib, ENTRY)
+        self._block = getattr(lib, BLOCK_ENTRY, None)
         self._serialized = source.serialized()
 
     def evaluate(self, theta: np.ndarray, u: np.ndarray) -> list[np.ndarray]:
@@ -280,6 +330,33 @@ class CompiledMapped(Mapped):
         if status:  # pragma: no cover - generated SX code does not fail
             raise ArithmeticError(f"compiled {self.fn.name()} failed (status {status})")
         return [out[:n] for out in work.outs]
+
+    @property
+    def fills_blocks(self) -> bool:
+        """Whether :meth:`fill_block` is available (a function ``(g, vec(Jᵀ))``)."""
+        return self._block is not None
+
+    def fill_block(self, theta: np.ndarray, u: np.ndarray, block: np.ndarray) -> None:
+        """Write the ``n`` observations ``u`` (``n_u × n``) into ``block``, a column-major
+        ``(n·n_g) × (n_p + 1)`` float array: ``[J | g]`` with observation i's residual a
+        on row ``i·n_g + a`` (the values :meth:`evaluate` gives, copied, the same bits)."""
+        n = u.shape[1]
+        ng = self.fn.nnz_out(0)
+        if (self._block is None or block.dtype != np.float64 or not block.flags.f_contiguous
+                or block.shape != (n * ng, self.fn.nnz_out(1) // ng + 1)):
+            raise ValueError("fill_block needs a (g, vec(J')) function and a column-major "
+                             "block of its shape")
+        work: _Work | None = getattr(self._local, "work", None)
+        if work is None or work.size < n:
+            work = _Work(self.fn, max(n, 1))
+            self._local.work = work
+        th = np.ascontiguousarray(theta, dtype=float)
+        work.u[:n] = u.T
+        status = self._block(n, th.ctypes.data, work.u.ctypes.data, block.ctypes.data,
+                             block.shape[0], work.pointers, work.w.ctypes.data,
+                             work.iw.ctypes.data)
+        if status:  # pragma: no cover - generated SX code does not fail
+            raise ArithmeticError(f"compiled {self.fn.name()} failed (status {status})")
 
     def __reduce__(self) -> tuple[object, tuple[bytes]]:
         return fast_from_serialized, (self.source.serialized(),)

@@ -345,8 +345,21 @@ class Objective:
             return None
         return g, jac
 
-    def cost(self, dataset: Source, theta: np.ndarray) -> float:
-        """Σ (g/σ)² at ``theta`` (residuals only, no derivatives)."""
+    def cost(self, dataset: Source, theta: np.ndarray, keep: bool = False) -> float:
+        """Σ (g/σ)² at ``theta`` (residuals only, no derivatives).
+
+        ``keep``: where this point is the estimate the analysis reads next (the lm's
+        polished point), an in-memory dataset's residuals are kept as :meth:`residuals`
+        keeps them, and the cost summed from them chunk by chunk as the pass sums it, so
+        that the analysis's residuals there are not a pass of their own."""
+        if keep and isinstance(dataset, Dataset) and self.row_weights is None:
+            g = self.residuals(dataset, theta)
+            total = 0.0
+            with np.errstate(over="ignore", invalid="ignore"):
+                for part in chunks(dataset.n):
+                    block = g[part]
+                    total += float(np.sum(block * block))
+            return total
         instrument.record_pass("residual", "cost", dataset.n)
         with np.errstate(over="ignore", invalid="ignore"):  # an inf cost is an answer
             return float(self._pass("cost", "residual", dataset, theta) or 0.0)

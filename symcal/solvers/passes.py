@@ -90,14 +90,18 @@ def _numpy_r(a: np.ndarray) -> np.ndarray:
     return r
 
 
-def _qr_r(a: np.ndarray) -> np.ndarray:
+def _qr_r(a: np.ndarray, overwrite: bool = False) -> np.ndarray:
     """The R factor of ``a`` (``min(rows, cols) × cols``) by LAPACK's blocked ``geqrt``:
     numpy's own LAPACKE at every size when it has one, else SciPy's for a tall piece and
     numpy's ``geqrf`` for a small one (the choice depends on the installation and the
-    size alone, so the result never depends on what was imported before)."""
+    size alone, so the result never depends on what was imported before).  ``overwrite``:
+    ``a`` may be overwritten (no copy where it is already a column-major float array)."""
     geqrt = _lapacke_geqrt()
     if geqrt is not None:
-        f = np.array(a, dtype=float, order="F")        # a copy: LAPACK overwrites it
+        if overwrite and a.dtype == np.float64 and a.flags.f_contiguous and a.flags.writeable:
+            f = a
+        else:
+            f = np.array(a, dtype=float, order="F")    # a copy: LAPACK overwrites it
         m, n = f.shape
         k = min(m, n)
         if k == 0:
@@ -174,6 +178,9 @@ class Pass:
         return out
 
     def _chunk(self, u: np.ndarray, w: np.ndarray | None) -> Any:
+        if self.kind in ("r", "rt") and w is None and self.transform is None and getattr(
+                self.fn, "fills_blocks", False):
+            return self._reduced(u)
         outs = self.fn.evaluate(self.theta, u)
         if w is None:
             g = outs[0]
@@ -207,8 +214,24 @@ class Pass:
         if not np.isfinite(block[:, n]).all():
             block[:, n] = np.nan    # a residual inf or NaN: R's last column says so
         if self.kind == "rt":       # and each constraint's Σ g², as "terms" sums them
-            return _qr_r(block), m * ng, np.sum(g * g, axis=0)
-        return _qr_r(block), m * ng
+            return _qr_r(block, overwrite=True), m * ng, np.sum(g * g, axis=0)
+        return _qr_r(block, overwrite=True), m * ng
+
+    def _reduced(self, u: np.ndarray) -> Any:
+        """:meth:`_chunk` of an ``r`` or ``rt`` pass by a compiled function that writes
+        the block itself (:meth:`~symcal.base.jit.CompiledMapped.fill_block`): the same
+        block, without the copy that lays the evaluated rows out column-major."""
+        ng, n = self.shape
+        m = u.shape[1]
+        block = np.empty((m * ng, n + 1), order="F")
+        self.fn.fill_block(self.theta, u, block)    # type: ignore[attr-defined]
+        g = block[:, n].reshape(m, ng)
+        terms = np.sum(g * g, axis=0) if self.kind == "rt" else None
+        if not np.isfinite(block[:, n]).all():
+            block[:, n] = np.nan    # a residual inf or NaN: R's last column says so
+        if terms is not None:
+            return _qr_r(block, overwrite=True), m * ng, terms
+        return _qr_r(block, overwrite=True), m * ng
 
 
 def reduce_two(kind: Kind, a: Any, b: Any) -> Any:

@@ -307,20 +307,25 @@ def solve_trust_region(
     lower = np.array([q.lower / s for q, s in zip(params, scales, strict=True)])
     upper = np.array([q.upper / s for q, s in zip(params, scales, strict=True)])
     base = np.array(theta0, dtype=float)
+    x = np.clip(base[idx] / scales, lower, upper)
+    # the start itself, bit for bit, where clipping left it: ``scales * (θ/scales)`` can
+    # differ from θ in its last bit, and then the stage's analysis at the start (its R
+    # kept by the objective) is not found and the first linearisation is a pass again
+    x_start = x.copy() if np.array_equal(x, base[idx] / scales) else None
 
     def theta_of(x: np.ndarray) -> np.ndarray:
         theta = base.copy()
-        theta[idx] = scales * x
+        if x_start is None or not np.array_equal(x, x_start):
+            theta[idx] = scales * x
         return theta
 
     def linearise(x: np.ndarray) -> _Linearisation:
         r, c, tail, rows = objective.accumulate_r(dataset, theta_of(x))
         return _Linearisation(float(c @ c + tail), r * scales[None, :], c, r, rows)
 
-    def cost_at(x: np.ndarray) -> float:
-        return objective.cost(dataset, theta_of(x))
+    def cost_at(x: np.ndarray) -> float:     # the polished point: the analysis's next
+        return objective.cost(dataset, theta_of(x), keep=True)
 
-    x = np.clip(base[idx] / scales, lower, upper)
     lin = linearise(x)
     cost0 = lin.cost
     ok, status, words = False, "", ""
