@@ -134,6 +134,19 @@ class RowPropagation:
                                                [*self._outs, r0], "noise_with_start"))
             return self._with_start[0]
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Picklable (a task of a log kept as shards carries it): the functions, built,
+        without their expressions (CasADi pickles no SX) and the lock."""
+        self.with_start  # noqa: B018 - built before its expressions are dropped
+        state = dict(self.__dict__)
+        for name in ("_theta", "_u", "_outs", "_lock"):
+            state.pop(name, None)     # absent once unpickled
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
     def at(self, fn: Mapped, u: np.ndarray, theta: np.ndarray, part: slice
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(r, L, J)`` of the observations ``part`` of ``u`` (the dataset's columns) by

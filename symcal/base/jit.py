@@ -29,6 +29,12 @@ most twice the cost of knowing the future).  When compiling fails the interprete
 function is used, as without a compiler; the results are the same bit for bit (the
 compiled code performs the same IEEE operations in the same order, contraction into fused
 multiply-adds disabled), so when a pass switches makes no difference to any result.
+
+A function of a linearisation, ``(g, vec(Jᵀ))``, has a second loop (:data:`BLOCK_ENTRY`,
+:meth:`CompiledMapped.fill_block`) that writes its observations straight into the
+column-major block ``[J | g]`` a QR pass factors, :data:`TILE` observations at a time (a
+tile evaluated, then laid out while it is in the cache): the same block as the evaluated
+rows copied, without that transposing copy (about 1 ms of a 13 ms chunk of the §3.2 pass).
 """
 
 from __future__ import annotations
