@@ -325,17 +325,24 @@ class CompiledMapped(Mapped):
     def evaluate(self, theta: np.ndarray, u: np.ndarray) -> list[np.ndarray]:
         """As :meth:`Mapped.evaluate`: views of this thread's buffers."""
         n = u.shape[1]
+        work, th = self._inputs(theta, u)
+        self._check(self._entry(n, th.ctypes.data, work.u.ctypes.data, work.pointers,
+                                work.w.ctypes.data, work.iw.ctypes.data))
+        return [out[:n] for out in work.outs]
+
+    def _inputs(self, theta: np.ndarray, u: np.ndarray) -> tuple[_Work, np.ndarray]:
+        """This thread's buffers with the observations ``u`` in, and θ contiguous."""
+        n = u.shape[1]
         work: _Work | None = getattr(self._local, "work", None)
         if work is None or work.size < n:
             work = _Work(self.fn, max(n, 1))
             self._local.work = work
-        th = np.ascontiguousarray(theta, dtype=float)
         work.u[:n] = u.T
-        status = self._entry(n, th.ctypes.data, work.u.ctypes.data, work.pointers,
-                             work.w.ctypes.data, work.iw.ctypes.data)
+        return work, np.ascontiguousarray(theta, dtype=float)
+
+    def _check(self, status: int) -> None:
         if status:  # pragma: no cover - generated SX code does not fail
             raise ArithmeticError(f"compiled {self.fn.name()} failed (status {status})")
-        return [out[:n] for out in work.outs]
 
     @property
     def fills_blocks(self) -> bool:
@@ -352,17 +359,10 @@ class CompiledMapped(Mapped):
                 or block.shape != (n * ng, self.fn.nnz_out(1) // ng + 1)):
             raise ValueError("fill_block needs a (g, vec(J')) function and a column-major "
                              "block of its shape")
-        work: _Work | None = getattr(self._local, "work", None)
-        if work is None or work.size < n:
-            work = _Work(self.fn, max(n, 1))
-            self._local.work = work
-        th = np.ascontiguousarray(theta, dtype=float)
-        work.u[:n] = u.T
-        status = self._block(n, th.ctypes.data, work.u.ctypes.data, block.ctypes.data,
-                             block.shape[0], work.pointers, work.w.ctypes.data,
-                             work.iw.ctypes.data)
-        if status:  # pragma: no cover - generated SX code does not fail
-            raise ArithmeticError(f"compiled {self.fn.name()} failed (status {status})")
+        work, th = self._inputs(theta, u)
+        self._check(self._block(n, th.ctypes.data, work.u.ctypes.data, block.ctypes.data,
+                                block.shape[0], work.pointers, work.w.ctypes.data,
+                                work.iw.ctypes.data))
 
     def __reduce__(self) -> tuple[object, tuple[bytes]]:
         return fast_from_serialized, (self.source.serialized(),)
