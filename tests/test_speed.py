@@ -415,7 +415,9 @@ def test_the_solver_starts_from_the_analysis_r_even_where_scaling_rounds() -> No
     """The lm works in scaled parameters ``θ/s``; ``s·(θ/s)`` can differ from θ in its
     last bit.  Its first linearisation is still the start itself, so the R factor the
     stage's analysis reduced there is found: one pass per accepted iterate, none at the
-    start, and the same estimate, bit for bit, as a solve with nothing kept."""
+    start, and the same estimate, bit for bit, as a second solve from that start (whose
+    own first linearisation is a pass again: only the last iterate's R is kept by
+    then)."""
     from symcal.solvers.instrument import counting
     from symcal.solvers.objective import Objective
 
@@ -441,6 +443,42 @@ def test_the_solver_starts_from_the_analysis_r_even_where_scaling_rounds() -> No
                                             data, start)
     np.testing.assert_array_equal(kept.theta, alone.theta)
     np.testing.assert_array_equal(kept.r_factor, alone.r_factor)
+
+
+def test_a_start_that_does_not_scale_finitely_is_not_reused() -> None:
+    """A parameter of scale 0 (reachable from Python only) makes ``θ/s`` infinite: that
+    start is not the solver's first linearisation (it would freeze the parameter and call
+    the solve a success); the solve reports the invalid number as before."""
+    import dataclasses
+
+    from symcal.solvers.objective import Objective
+
+    problem, stage, data, objective = _dual_objective(500)
+    i = int(np.flatnonzero(objective.free)[3])
+    params = list(problem.parameters)
+    params[i] = dataclasses.replace(params[i], scale=0.0)
+    zero = dataclasses.replace(problem, parameters=tuple(params))
+    start = np.array([p.value for p in problem.parameters])
+    start[i] = 0.01
+    with np.errstate(all="ignore"):
+        out = trust_region.solve_trust_region(Objective(zero, stage.constraints,
+                                                        objective.free), data, start)
+    assert not out.success and out.status == "invalid_number", out.status
+
+
+def test_a_weighed_cost_kept_is_a_cost_pass() -> None:
+    """Weighed rows keep no residuals: the polish's ``cost(keep=True)`` there is one cost
+    pass, the same number as without ``keep``."""
+    from symcal.solvers.instrument import counting
+    from symcal.solvers.weighed import Weighed
+
+    problem, _, data, objective = _dual_objective(500)
+    theta = np.array([p.value for p in problem.parameters])
+    weighed = Weighed.of(objective, lambda u: np.full((u.shape[1], 3), 2.0))
+    with counting() as counts:
+        kept = weighed.cost(data, theta, keep=True)
+    assert counts.by_method == {"cost": 1}, counts.by_method
+    assert kept == weighed.cost(data, theta)
 
 
 def test_a_compiled_linearisation_writes_the_qr_block_itself(empty_cache) -> None:
@@ -475,6 +513,12 @@ def test_a_compiled_linearisation_writes_the_qr_block_itself(empty_cache) -> Non
             np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="column-major block"):
         twin.fill_block(theta, u, np.empty((m * ng, n + 1)))
+    frozen = np.empty((m * ng, n + 1), order="F")
+    frozen.setflags(write=False)
+    with pytest.raises(ValueError, match="writable"):
+        twin.fill_block(theta, u, frozen)
+    with pytest.raises(ValueError, match="its parameters"):
+        twin.fill_block(theta[:-1], u, block)
 
 
 def test_the_floors_evaluate_the_start_with_the_estimate() -> None:

@@ -356,9 +356,11 @@ class CompiledMapped(Mapped):
         n = u.shape[1]
         ng = self.fn.nnz_out(0)
         if (self._block is None or block.dtype != np.float64 or not block.flags.f_contiguous
-                or block.shape != (n * ng, self.fn.nnz_out(1) // ng + 1)):
-            raise ValueError("fill_block needs a (g, vec(J')) function and a column-major "
-                             "block of its shape")
+                or not block.flags.writeable
+                or block.shape != (n * ng, self.fn.nnz_out(1) // ng + 1)
+                or np.size(theta) != self.fn.nnz_in(0)):
+            raise ValueError("fill_block needs a (g, vec(J')) function, its parameters and a "
+                             "writable column-major block of its shape")
         work, th = self._inputs(theta, u)
         self._check(self._block(n, th.ctypes.data, work.u.ctypes.data, block.ctypes.data,
                                 block.shape[0], work.pointers, work.w.ctypes.data,

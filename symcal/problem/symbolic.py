@@ -402,8 +402,10 @@ class Problem:
     @property
     def noisy(self) -> Problem:
         """The problem with every declared reading's noise symbol left open (hooks at
-        zero): evaluate with the symbols as extra rows of u set to zero; the derivative of
-        a residual by a reading's symbol is its derivative by that reading's error."""
+        zero): the derivative of a residual by a reading's symbol is its derivative by that
+        reading's error, and the values are those with the symbols at zero (evaluated as
+        extra rows of u set to zero, or substituted by zero in the expressions, as
+        :class:`~symcal.analysis.row_noise.RowPropagation` does)."""
         return self.views.noisy if self.views is not None and self.views.noisy is not None \
             else self
 

@@ -122,7 +122,8 @@ def _qr_r(a: np.ndarray, overwrite: bool = False) -> np.ndarray:
     if not _LAPACK_SEEN:
         _LAPACK_SEEN = True
         blas_loaded()
-    f = np.asfortranarray(a, dtype=float)
+    f = np.asfortranarray(a, dtype=float) if overwrite else np.array(a, dtype=float,
+                                                                     order="F")
     k = min(f.shape)
     qr, _, info = lapack.dgeqrt(min(QR_BLOCK, k), f, overwrite_a=True)
     if info != 0:  # pragma: no cover - LAPACK reports an illegal argument only

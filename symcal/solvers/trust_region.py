@@ -308,10 +308,11 @@ def solve_trust_region(
     upper = np.array([q.upper / s for q, s in zip(params, scales, strict=True)])
     base = np.array(theta0, dtype=float)
     x = np.clip(base[idx] / scales, lower, upper)
-    # the start itself, bit for bit, where clipping left it: ``scales * (θ/scales)`` can
+    # the start itself, bit for bit, where clipping left it finite: ``scales * (θ/scales)`` can
     # differ from θ in its last bit, and then the stage's analysis at the start (its R
     # kept by the objective) is not found and the first linearisation is a pass again
-    x_start = x.copy() if np.array_equal(x, base[idx] / scales) else None
+    x_start = x.copy() if np.all(np.isfinite(x)) and np.array_equal(
+        x, base[idx] / scales) else None
 
     def theta_of(x: np.ndarray) -> np.ndarray:
         theta = base.copy()

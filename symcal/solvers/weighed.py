@@ -249,6 +249,11 @@ class Weighed(Objective):
         r_aug, rows = out if out is not None else (np.zeros((0, n + 1)), 0)
         return self._split_r(r_aug, rows, n)
 
+    def cost(self, dataset: Source, theta: np.ndarray, keep: bool = False) -> float:
+        """As :meth:`Objective.cost`; weighed rows keep no residuals, so ``keep`` asks for
+        nothing more than the cost (one pass of it)."""
+        return super().cost(dataset, theta, keep and self.weigher is None)
+
     def residuals(self, dataset: Dataset, theta: np.ndarray) -> np.ndarray:
         """Weighted residuals at ``theta``, ``N × n_g`` (in-memory data only; never from,
         nor into, what the unweighted objective keeps)."""
