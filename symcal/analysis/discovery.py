@@ -23,7 +23,6 @@ regressor with each column scaled to a term of RMS one unit (:attr:`Basis.scales
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
@@ -426,26 +425,10 @@ def test_candidates(
         cand.reduction, cand.scatter = _reduction(design, r, base - q @ proj)
         cand.mde = _detectable(xp, cand.basis.scales, m, level, denom, cand.basis.term)
     tested = [c for c in candidates if not c.absorbed and not c.reopens]
-    ranked = ranked_by_test(tested)
+    ranked = sorted(tested, key=lambda c: (c.log_p, -c.delta_rss))
     _group(ranked, local, reference=reference)
     return ranked + [c for c in candidates if c.reopens] + \
         [c for c in candidates if c.absorbed]
-
-
-#: Significant digits of a candidate's log p and Δrss that its rank reads: candidates
-#: whose statistics agree to them are a tie (two names of one fit, such as the mirror
-#: couplings ``c_x += k·c_y`` and ``c_y += k·c_x``), kept in the library's order rather
-#: than in the order of their rounding, which any change of arithmetic may turn.
-RANK_DIGITS = 10
-
-
-def ranked_by_test(tested: list[Candidate]) -> list[Candidate]:
-    """``tested`` from the most to the least significant (log p, then the larger Δrss),
-    ties to :data:`RANK_DIGITS` digits in their given order."""
-    def digits(x: float) -> float:
-        return float(f"{x:.{RANK_DIGITS}g}") if math.isfinite(x) else x
-
-    return sorted(tested, key=lambda c: (digits(c.log_p), digits(-c.delta_rss)))
 
 
 def unseen_bias(design: Design, x: np.ndarray, level: float) -> np.ndarray:
