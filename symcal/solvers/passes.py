@@ -212,11 +212,7 @@ class Pass:
         block = np.empty((m * ng, n + 1), order="F")     # column-major for LAPACK
         block[:, :n] = jac.reshape(m * ng, n)
         block[:, n] = g.reshape(m * ng)
-        if not np.isfinite(block[:, n]).all():
-            block[:, n] = np.nan    # a residual inf or NaN: R's last column says so
-        if self.kind == "rt":       # and each constraint's Σ g², as "terms" sums them
-            return _qr_r(block, overwrite=True), m * ng, np.sum(g * g, axis=0)
-        return _qr_r(block, overwrite=True), m * ng
+        return self._factored(block, m, ng)
 
     def _reduced(self, u: np.ndarray) -> Any:
         """:meth:`_chunk` of an ``r`` or ``rt`` pass by a compiled function that writes
@@ -226,13 +222,18 @@ class Pass:
         m = u.shape[1]
         block = np.empty((m * ng, n + 1), order="F")
         self.fn.fill_block(self.theta, u, block)    # type: ignore[attr-defined]
-        g = block[:, n].reshape(m, ng)
-        terms = np.sum(g * g, axis=0) if self.kind == "rt" else None
-        if not np.isfinite(block[:, n]).all():
-            block[:, n] = np.nan    # a residual inf or NaN: R's last column says so
-        if terms is not None:
-            return _qr_r(block, overwrite=True), m * ng, terms
-        return _qr_r(block, overwrite=True), m * ng
+        return self._factored(block, m, ng)
+
+    def _factored(self, block: np.ndarray, m: int, ng: int) -> Any:
+        """An ``r`` or ``rt`` chunk's result from its column-major block ``[J | g]``
+        (``m`` observations of ``ng`` rows), factored in place."""
+        g = block[:, -1]
+        # each constraint's Σ g², as "terms" sums them (rows of one observation in order)
+        terms = np.sum((g * g).reshape(m, ng), axis=0) if self.kind == "rt" else None
+        if not np.isfinite(g).all():
+            block[:, -1] = np.nan   # a residual inf or NaN: R's last column says so
+        r = _qr_r(block, overwrite=True)
+        return (r, m * ng) if terms is None else (r, m * ng, terms)
 
 
 def reduce_two(kind: Kind, a: Any, b: Any) -> Any:
