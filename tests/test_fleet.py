@@ -9,6 +9,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import multiprocessing
 import subprocess
 import sys
 from pathlib import Path
@@ -118,6 +119,36 @@ def test_each_unit_equals_its_local_solve(fleet, result) -> None:
                                            .resolve())
     # b_npz has no fly-by of its own: the problem's simulated one stands in
     assert {d.name: d.file for d in result.results["b_npz"].provenance}["flyby"] is None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("start", ["fork", "spawn"])
+def test_the_embedded_clusters_units_equal_their_local_solves(fleet, monkeypatch,
+                                                              start) -> None:
+    """The embedded cluster (``workers=2``: forked workers by default on Linux, or
+    ``SYMCAL_WORKER_START=spawn``) gives every unit its local solve's estimate, standard
+    errors and RSS to 1e-12."""
+    import symcal.calibrate.fleet as fleet_module
+
+    if start not in multiprocessing.get_all_start_methods():
+        pytest.skip(f"no {start} on this platform")
+    monkeypatch.setenv("SYMCAL_WORKER_START", start)
+    fleet_dir, _ = fleet
+    made = fleet_module.solve_fleet(PROBLEM, fleet_dir, workers=2)
+    assert set(made.results) == {*GOOD, ODD} and set(made.errors) == {BROKEN, TYPO}
+    for unit in (*GOOD, ODD):
+        local = symcal.solve(PROBLEM, _local(fleet_dir, unit)).to_dict()
+        got = made.results[unit].to_dict()
+        assert got["solver"]["success"] and local["solver"]["success"]
+        for mine, theirs in zip(got["parameters"], local["parameters"], strict=True):
+            assert mine["name"] == theirs["name"]
+            assert abs(mine["value"] - theirs["value"]) <= 1e-12, (unit, mine["name"])
+            if theirs["se"] is None:
+                assert mine["se"] is None
+            else:
+                assert abs(mine["se"] - theirs["se"]) <= 1e-12 * max(1.0, theirs["se"])
+        assert got["information_criteria"]["rss"] == pytest.approx(
+            local["information_criteria"]["rss"], rel=1e-12)
 
 
 def test_a_units_document_is_what_json_gives_back(fleet) -> None:

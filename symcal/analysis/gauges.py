@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import hashlib
 import itertools
-import threading
 import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
@@ -63,6 +62,7 @@ import numpy as np
 
 from symcal.analysis.identifiability import Combination, format_combination, null_groups
 from symcal.analysis.identifiability import _rref_rows as _rref
+from symcal.base.forks import ForkLock
 from symcal.base.linalg import (
     EXACT_RTOL,
     common_null,
@@ -96,7 +96,7 @@ MEMO_SIZE = 32
 
 #: Per problem (while it lives): analyses by the digest of everything they depend on.
 _MEMO: weakref.WeakKeyDictionary[Problem, dict[bytes, Any]] = weakref.WeakKeyDictionary()
-_MEMO_LOCK = threading.Lock()
+_MEMO_LOCK = ForkLock()
 
 
 def _digest(kind: str, objective: Objective, u: np.ndarray, theta: np.ndarray,

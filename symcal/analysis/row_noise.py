@@ -7,7 +7,6 @@ per row the residuals, ``L = ∂r/∂ε·diag(σ)`` and ``J = ∂r/∂θ``, each
 
 from __future__ import annotations
 
-import threading
 import weakref
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -17,6 +16,7 @@ import casadi as ca
 import numpy as np
 
 from symcal.base import jit
+from symcal.base.forks import ForkLock
 from symcal.base.numeric import Mapped, chunks, mapped, owned
 from symcal.data.dataset import Dataset
 from symcal.problem.symbolic import Problem
@@ -118,7 +118,7 @@ class RowPropagation:
         self.fn = mapped(noisy.theta, noisy.u, outs, "noise")
         self.plain: Mapped = mapped(noisy.theta, noisy.u, [outs[0]], "noise_residuals")
         self._with_start: list[Mapped] = []
-        self._lock = threading.Lock()
+        self._lock = ForkLock()
         self.columns = noisy.columns
 
     @property
@@ -145,7 +145,7 @@ class RowPropagation:
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
-        self._lock = threading.Lock()
+        self._lock = ForkLock()
 
     def at(self, fn: Mapped, u: np.ndarray, theta: np.ndarray, part: slice
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

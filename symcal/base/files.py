@@ -48,6 +48,7 @@ from types import TracebackType
 from typing import Any
 
 from symcal.base.errors import SymcalError
+from symcal.base.forks import in_forked_child
 
 #: The record, in every folder symcal writes to, of the files it wrote there (sha256).
 MANIFEST = ".symcal-outputs"
@@ -400,6 +401,18 @@ def forget_committed() -> None:
 
 #: The folders whose lock this process holds for a whole command ((device, inode) → fd).
 _HELD: dict[tuple[int, int], int] = {}
+
+
+def _release_in_child() -> None:
+    """A forked child (a Dask worker of the embedded cluster) closes its copies of the
+    held folders' descriptors: the lock stays its parent's alone, and ends with it."""
+    for fd in _HELD.values():
+        with contextlib.suppress(OSError):
+            os.close(fd)
+    _HELD.clear()
+
+
+in_forked_child(_release_in_child)
 
 
 def _identity(folder: Path) -> tuple[int, int]:

@@ -55,6 +55,7 @@ import numpy as np
 
 from symcal.base.errors import SymcalError
 from symcal.base.files import atomic_write_bytes, atomic_write_text
+from symcal.base.forks import ForkLock, in_forked_child
 from symcal.base.numeric import Mapped, from_serialized
 
 #: ``auto`` compiles for a pass over at least this many observations, and in the
@@ -65,7 +66,7 @@ FORMAT = 4
 #: Compiler flags: no fused multiply-add contraction, so results keep IEEE operations.
 FLAGS = ("-O1", "-fPIC", "-shared", "-ffp-contract=off")
 
-_LOCK = threading.Lock()
+_LOCK = ForkLock()
 _LOADED: dict[str, ctypes.CDLL] = {}
 _FAILED: set[str] = set()
 
@@ -404,7 +405,17 @@ def fast_from_serialized(data: bytes) -> Mapped:
 _TALLY: weakref.WeakKeyDictionary[Mapped, int] = weakref.WeakKeyDictionary()
 #: Functions whose twin is being (or was) built in the background.
 _PENDING: weakref.WeakSet[Mapped] = weakref.WeakSet()
-_TALLY_LOCK = threading.Lock()
+_TALLY_LOCK = ForkLock()
+
+
+def _forget_builds() -> None:
+    """A forked child starts its own tallies: its parent's builds in the background run
+    in threads the child lacks, and would never end there."""
+    _TALLY.clear()
+    _PENDING.clear()
+
+
+in_forked_child(_forget_builds)
 
 
 def select(mapped: Mapped, observations: int) -> Mapped:

@@ -29,6 +29,7 @@ import casadi as ca
 import numpy as np
 
 from symcal.base.cores import inner_threads
+from symcal.base.forks import ForkLock
 
 #: An executor's ``map``: a task over pieces, the results in the pieces' order.
 PieceMap = Callable[[Callable[[slice], list[np.ndarray]], list[slice]],
@@ -87,7 +88,7 @@ class Mapped:
         self.fn = fn
         self._maps: dict[tuple[int, int], ca.Function] = {}
         self._instructions = int(fn.n_instructions()) if fn.is_a("SXFunction") else 0
-        self._lock = threading.Lock()
+        self._lock = ForkLock()
         self._local = threading.local()
         self._serialized: bytes | None = None
 
@@ -155,7 +156,7 @@ class Mapped:
 
 
 _MEMO: dict[bytes, Mapped] = {}
-_MEMO_LOCK = threading.Lock()
+_MEMO_LOCK = ForkLock()
 
 
 def from_serialized(data: bytes) -> Mapped:
@@ -187,7 +188,7 @@ def mapped(theta: ca.SX, u: ca.SX, outputs: list[ca.SX], name: str = "f") -> Map
 _T = TypeVar("_T")
 #: Per owner (a problem, while it lives): what was built for it, by key.
 _OWNED: weakref.WeakKeyDictionary[Any, dict[Any, Any]] = weakref.WeakKeyDictionary()
-_OWNED_LOCK = threading.Lock()
+_OWNED_LOCK = ForkLock()
 
 
 def owned(owner: Any, key: Any, build: Callable[[], _T]) -> _T:

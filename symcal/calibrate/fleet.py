@@ -285,17 +285,17 @@ def fleet_client(scheduler: str | None = None, workers: int | None = None) -> It
         yield client
 
 
-def _tasks(problem: Problem, units: list[Unit], data: Mapping[str, str | Path],
-           options: SolveOptions, drop_invalid: bool,
+def _tasks(problem: Problem, hashes: Mapping[str, str], units: list[Unit],
+           data: Mapping[str, str | Path], options: SolveOptions, drop_invalid: bool,
            report: Callable[[Result], str] | None) -> dict[str, UnitTask]:
-    hashes = tuple(sorted(file_hashes(problem).items()))
+    checked = tuple(sorted(hashes.items()))
     shared = {name: str(Path(path).resolve()) for name, path in data.items()}
     out = {}
     for unit in units:
         if unit.error is not None:
             continue
         files = {**shared, **{k: str(p.resolve()) for k, p in unit.files.items()}}
-        out[unit.name] = UnitTask(unit.name, str(Path(problem.path).resolve()), hashes,
+        out[unit.name] = UnitTask(unit.name, str(Path(problem.path).resolve()), checked,
                                   problem.weighting, tuple(sorted(files.items())),
                                   options.method, options.max_iter, options.tol,
                                   tuple(sorted(options.ipopt.items())), drop_invalid, report)
@@ -449,7 +449,8 @@ def solve_fleet(
         raise SymcalError(f"workers: at most {usable_cores()} on this machine (one worker "
                           f"process per usable core), found {workers}")
     units = find_units(problem, fleet)
-    tasks = _tasks(problem, units, data, options, drop_invalid, report)
+    hashes = file_hashes(problem)     # once: every unit's task and document checks them
+    tasks = _tasks(problem, hashes, units, data, options, drop_invalid, report)
     docs: dict[str, Mapping[str, Any]] = {}
     results: dict[str, Result] = {}
 
@@ -459,7 +460,7 @@ def solve_fleet(
         doc = outcome["document"] if "document" in outcome else {"error": outcome["error"]}
         docs[unit] = doc
         if "error" not in doc:        # built while the workers go on with other units
-            results[unit] = Result.from_document(doc, problem)
+            results[unit] = Result.from_document(doc, problem, hashes=hashes)
         if on_unit is not None:
             on_unit(unit, doc, outcome.get("report"))
         reason = failure_reason(doc)

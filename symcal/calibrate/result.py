@@ -714,7 +714,8 @@ class Result:
 
     @classmethod
     def from_document(cls, doc: Mapping[str, Any], problem: Problem | None = None,
-                      label: str = "the result") -> Result:
+                      label: str = "the result", *,
+                      hashes: Mapping[str, str] | None = None) -> Result:
         """The result a document of :meth:`to_dict` describes (what :meth:`load` reads).
 
         Parameters
@@ -726,6 +727,10 @@ class Result:
             :meth:`load`.
         label
             How to name the document in messages.
+        hashes
+            :func:`file_hashes` of ``problem``, when the caller has just computed them (a
+            fleet reads its units' documents against the hashes it sent them with);
+            None: computed here.
 
         Raises
         ------
@@ -740,7 +745,7 @@ class Result:
             if not isinstance(file, str):
                 raise SymcalError(f"{label} does not name its problem file; give the problem")
             problem = load_problem(file)
-        check_result_problem(doc, label, problem)
+        check_result_problem(doc, label, problem, hashes)
         solver = doc.get("solver")
         if not isinstance(solver, Mapping) or not isinstance(solver.get("success"), bool):
             raise SymcalError(f"{label} does not record whether its solve succeeded (no "
@@ -837,15 +842,17 @@ def _check_numbers(doc: Any, label: str, at: str = "") -> None:
                               "writes null there)")
 
 
-def check_result_problem(doc: Mapping[str, Any], label: str, problem: Problem) -> None:
-    """Refuse a result document for another problem, or from changed problem/model files."""
+def check_result_problem(doc: Mapping[str, Any], label: str, problem: Problem,
+                         hashes: Mapping[str, str] | None = None) -> None:
+    """Refuse a result document for another problem, or from changed problem/model files
+    (``hashes``: the problem's :func:`file_hashes`, when the caller has them)."""
     if doc.get("problem") != problem.name:
         raise SymcalError(f"{label} is for problem '{doc.get('problem')}', not "
                           f"'{problem.name}'")
     stored = doc.get("files")
     if isinstance(stored, Mapping):
         home = Path(problem.path).resolve().parent
-        current = file_hashes(problem)
+        current = file_hashes(problem) if hashes is None else hashes
         for file, digest in current.items():
             if file in stored and stored[file] != digest:
                 raise SymcalError(f"{label} was computed from another version of "

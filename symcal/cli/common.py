@@ -170,12 +170,21 @@ def wants_json(argv: Sequence[str]) -> bool:
 
 @contextlib.contextmanager
 def signals_handled() -> Iterator[None]:
-    """Make SIGTERM raise :class:`Terminated` while the command runs (main thread only)."""
+    """Make SIGTERM raise :class:`Terminated` while the command runs (main thread only).
+
+    A process forked meanwhile (the embedded cluster's workers on Linux) ends on SIGTERM
+    as a process does by default."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
+    owner = os.getpid()
+
     def terminate(signum: int, frame: FrameType | None) -> None:
+        if os.getpid() != owner:     # a forked child (a Dask worker): end as by default
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
         raise Terminated()
 
     previous = signal.signal(signal.SIGTERM, terminate)

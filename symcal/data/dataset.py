@@ -10,7 +10,6 @@ from __future__ import annotations
 import csv
 import io
 import os
-import threading
 import warnings
 import zipfile
 import zlib
@@ -24,6 +23,7 @@ import numpy as np
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError, excerpt
 from symcal.base.files import atomic_write_bytes, atomic_write_text, display_path, input_refusal
+from symcal.base.forks import ForkLock
 
 
 @dataclass(frozen=True, eq=False)
@@ -357,7 +357,7 @@ def _physical_memory() -> int | None:
 #: constructor keeps its recursion depth in state every thread shares: shards read on
 #: several threads at once failed at random with "SystemError: AST constructor recursion
 #: depth mismatch" (CPython gh-106905).  Headers are a few hundred bytes: one at a time.
-_HEADER_LOCK = threading.Lock()
+_HEADER_LOCK = ForkLock()
 
 
 def npy_header(fh: IO[bytes]) -> tuple[tuple[int, ...], np.dtype]:

@@ -9,13 +9,13 @@ dataset source that is not a file.
 from __future__ import annotations
 
 import os
-import threading
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 from symcal.base.didyoumean import did_you_mean
 from symcal.base.errors import DataError
+from symcal.base.forks import ForkLock
 from symcal.base.units import size
 from symcal.data.dataset import Dataset, make_dataset, read_table
 from symcal.data.derived import sources, with_derived
@@ -58,7 +58,7 @@ def load_dataset(
 #: Scenarios loaded in this process: path → (the state of every file it was read from,
 #: the scenario).  A problem solved again re-simulates its datasets from it.
 _SCENARIOS: dict[Path, tuple[tuple[tuple[Path, Any], ...], Any]] = {}
-_SCENARIOS_LOCK = threading.Lock()
+_SCENARIOS_LOCK = ForkLock()
 #: Scenarios kept at most.
 SCENARIOS_KEPT = 16
 

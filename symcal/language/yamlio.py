@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import copy
 import re
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +31,7 @@ import yaml
 
 from symcal.base.errors import SpecError, Where, excerpt
 from symcal.base.files import display_path, read_input_bytes
+from symcal.base.forks import ForkLock
 
 #: Largest YAML file accepted, in bytes.
 MAX_BYTES = 1 << 20
@@ -201,7 +201,7 @@ _core_schema()
 #: problem (``improve``: each revision extends the last and shares its model files) parses
 #: each file once.  A copy is handed out, so no caller sees another's changes.
 _PARSED: dict[tuple[str, str], Any] = {}
-_PARSED_LOCK = threading.Lock()
+_PARSED_LOCK = ForkLock()
 #: At most this many documents are kept (the oldest go first).
 PARSED_KEPT = 256
 

@@ -14,6 +14,8 @@ import concurrent.futures
 import contextlib
 import functools
 import logging
+import os
+import sys
 from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -29,6 +31,18 @@ T = TypeVar("T")
 #: each (a worker process is one core's worth: its passes and evaluations stay serial).
 WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
               "SYMCAL_THREADS": "1"}
+#: How the embedded cluster's worker processes may start (``SYMCAL_WORKER_START``).
+START_METHODS = ("fork", "spawn", "forkserver")
+#: Dask settings of the embedded cluster beside the start method.  Its diagnostics run
+#: less often: they feed a dashboard and logs the embedded cluster does not show (the
+#: workers' statistical profiler sampled every thread's stack every 10 ms, the event
+#: loops' tick ran every 20 ms in each of its servers), and they took about 0.4 s of the
+#: client's and the workers' CPU from a 10 s fleet of the benchmark (2 workers, 2 cores).
+#: The nannies' memory watchdog keeps its own interval.
+CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
+                  "distributed.admin.tick.interval": "1s",
+                  "distributed.admin.system-monitor.interval": "2s",
+                  "distributed.client.scheduler-info-interval": "10s"}
 #: Seconds a scheduler address has to connect and answer Dask's handshake and an
 #: ``identity`` request; an address that listens but does not speak Dask (an HTTP server, a
 #: silent port) is refused after this.
@@ -120,12 +134,54 @@ def dask_client(scheduler: str | None = None, workers: int | None = None,
             return
         # no dashboard; the scheduler's own HTTP server on a free port of this host only
         # (its default, 8787 on every interface, warns when another cluster has it)
-        with _malloc_as_usual(), \
+        with _malloc_as_usual(), _started_as_configured(), \
                 LocalCluster(n_workers=workers or usable_cores(), threads_per_worker=1,
                              processes=True, dashboard_address="127.0.0.1:0",
                              silence_logs=DASK_LOG_LEVEL, env=dict(WORKER_ENV)) as cluster, \
                 Client(cluster) as client:
             yield client
+
+
+def worker_start() -> str:
+    """How the embedded cluster starts its worker processes: ``SYMCAL_WORKER_START``, else
+    ``fork`` on Linux and ``spawn`` elsewhere.
+
+    ``fork`` starts a worker as a copy of this process, with symcal, Dask and the problem's
+    modules already imported: a fleet's workers solve their first unit about half a
+    second sooner than ``spawn``'s fresh interpreters (measured on the benchmark's fleet,
+    2 workers).  A forked worker holds none of this process's locks
+    (:mod:`symcal.base.forks`), pass threads or output-folder locks, and ends on SIGTERM
+    as a process does by default.  ``spawn`` and ``forkserver`` are Python's own
+    (:mod:`multiprocessing`).
+
+    Raises
+    ------
+    SymcalError
+        For another value, or a method this platform lacks.
+    """
+    import multiprocessing
+
+    default = "fork" if sys.platform.startswith("linux") else "spawn"
+    value = os.environ.get("SYMCAL_WORKER_START", "").strip().lower() or default
+    if value not in START_METHODS:
+        raise SymcalError(f"SYMCAL_WORKER_START must be fork, spawn or forkserver, not "
+                          f"'{excerpt(value, 40)}'")
+    if value not in multiprocessing.get_all_start_methods():
+        raise SymcalError(f"SYMCAL_WORKER_START={value}: this platform cannot start "
+                          f"processes that way (it can: "
+                          f"{', '.join(multiprocessing.get_all_start_methods())})")
+    return value
+
+
+@contextlib.contextmanager
+def _started_as_configured() -> Iterator[None]:
+    """Dask's settings for the embedded cluster: the workers' start method
+    (:func:`worker_start`) and :data:`CLUSTER_CONFIG`."""
+    import dask
+
+    with dask.config.set({"distributed.worker.multiprocessing-method": worker_start(),
+                          **CLUSTER_CONFIG}):
+        yield
 
 
 @contextlib.contextmanager

@@ -36,13 +36,13 @@ import contextlib
 import contextvars
 import os
 import sys
-import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, ParamSpec, Protocol, TypeVar
 
 from symcal.base.cores import in_pool_thread, mark_pool_thread, thread_count
 from symcal.base.errors import SymcalError
+from symcal.base.forks import ForkLock
 
 T = TypeVar("T")
 P = ParamSpec("P")
@@ -84,7 +84,8 @@ class ThreadExecutor:
     ----------
     workers
         Threads (at least 1).  The pool is created on first use and kept, so that the
-        threads' evaluation buffers are reused from pass to pass.
+        threads' evaluation buffers are reused from pass to pass; a forked child (which
+        has none of its threads) creates its own.
     """
 
     remote = False
@@ -94,13 +95,15 @@ class ThreadExecutor:
             raise SymcalError(f"a thread executor needs at least one worker, not {workers}")
         self.workers = workers
         self._pool: ThreadPoolExecutor | None = None
-        self._lock = threading.Lock()
+        self._pid = 0
+        self._lock = ForkLock()
 
     def _get_pool(self) -> ThreadPoolExecutor:
         with self._lock:
-            if self._pool is None:
+            if self._pool is None or self._pid != os.getpid():
                 self._pool = ThreadPoolExecutor(self.workers, "symcal-pass",
                                                 initializer=mark_pool_thread)
+                self._pid = os.getpid()
             return self._pool
 
     def map(self, task: Callable[[Any], T], pieces: Iterable[Any]) -> Iterator[T]:
@@ -129,7 +132,7 @@ class ThreadExecutor:
 
 _SERIAL = SerialExecutor()
 _THREADS: dict[int, ThreadExecutor] = {}
-_THREADS_LOCK = threading.Lock()
+_THREADS_LOCK = ForkLock()
 
 
 def threads(workers: int) -> ThreadExecutor:
@@ -189,7 +192,7 @@ class _BlasLimit:
     one limit: the first in sets it, the last out restores it)."""
 
     def __init__(self) -> None:
-        self.lock = threading.Lock()
+        self.lock = ForkLock()
         self.depth = 0
         self.controller: Any = None
         self.scanned_scipy = False
