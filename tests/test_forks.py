@@ -123,6 +123,33 @@ def test_sigterm_ends_a_forked_child_as_by_default() -> None:
     assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGTERM
 
 
+def test_ctrl_c_in_a_forked_child_is_pythons_own(monkeypatch) -> None:
+    """The command's SIGINT handler records the stop in the command's process only; a
+    forked child gets Python's KeyboardInterrupt, records nothing and inherits no
+    record."""
+    from symcal.base import stops
+
+    real_getsignal = signal.getsignal
+
+    def check() -> int:
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+        except KeyboardInterrupt:
+            return 0 if not stops._REQUESTED and \
+                real_getsignal(signal.SIGINT) is signal.default_int_handler else 2
+        return 1
+
+    monkeypatch.setattr(signal, "getsignal", lambda s: (     # as from a terminal
+        signal.default_int_handler if s == signal.SIGINT else real_getsignal(s)))
+    with signals_handled():
+        stops.request(Terminated)           # the parent's record is not the child's
+        status = in_child(check)
+        assert stops._REQUESTED == [Terminated]
+    monkeypatch.undo()
+    assert exit_code(status) == 0 and stops._REQUESTED == []   # cleared with the command
+
+
 def test_a_forked_child_starts_its_own_compile_tallies(monkeypatch) -> None:
     class Key:                                       # weakly referenced, as a Mapped
         pass

@@ -308,6 +308,45 @@ def test_sigterm_while_a_set_moves_in_is_held_until_it_is_whole(tmp_path: Path,
                                                      "result.json"]
 
 
+@pytest.mark.parametrize(("sig", "code", "words"), [
+    (signal.SIGTERM, 143, "terminated by SIGTERM"),
+    (signal.SIGINT, 130, "interrupted by SIGINT (Ctrl-C)"),
+])
+def test_a_stop_that_other_code_swallowed_still_stops_the_command(
+        toy: Path, capsys, monkeypatch, sig: signal.Signals, code: int, words: str) -> None:
+    """A signal whose exception library code swallowed (CasADi converts a numpy argument
+    under a bare ``except:``) stops the command at its next pass over the data, before
+    any output is written; the next command runs as usual."""
+    from contextlib import contextmanager
+
+    from symcal.solvers import passes
+
+    real = passes.blas_limit
+    calls: list[int] = []
+
+    @contextmanager
+    def blas_limit():
+        calls.append(1)
+        if len(calls) == 1:          # inside the first pass: the stop is swallowed
+            try:
+                os.kill(os.getpid(), sig)
+                time.sleep(5)        # the handler runs here (Python checks at once)
+            except BaseException:    # noqa: BLE001 - as code that catches everything
+                pass
+        with real():
+            yield
+
+    monkeypatch.setattr(signal, "getsignal", lambda s, real=signal.getsignal: (
+        signal.default_int_handler if s == signal.SIGINT else real(s)))  # as a terminal
+    monkeypatch.setattr(passes, "blas_limit", blas_limit)
+    got, out, err = _run(["solve", "prob.yaml", "--out", "res"], capsys)
+    assert (got, err.splitlines()[-1]) == (
+        code, f"symcal: error: {words}; no output was written or changed")
+    assert len(calls) == 1 and not (toy / "res").exists()   # no pass after it
+    monkeypatch.setattr(passes, "blas_limit", real)
+    assert _run(["solve", "prob.yaml", "--out", "res", "--quiet"], capsys)[0] == 0
+
+
 def _dead_pid() -> int:
     proc = subprocess.Popen([sys.executable, "-c", "pass"])
     proc.wait()

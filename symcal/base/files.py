@@ -47,6 +47,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+from symcal.base import stops
 from symcal.base.errors import SymcalError
 from symcal.base.forks import in_forked_child
 
@@ -724,6 +725,7 @@ class OutputSet:
                               f"{exc.strerror or exc}; {state}") from None
 
     def _commit(self, stage: Path) -> None:
+        stops.check()           # a stop asked for and swallowed: nothing moves in
         names = sorted(p.name for p in stage.iterdir())
         with _locked(self.folder):
             for name in names:

@@ -17,6 +17,7 @@ from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING
 
+from symcal.base import stops
 from symcal.base.errors import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
@@ -170,10 +171,13 @@ def wants_json(argv: Sequence[str]) -> bool:
 
 @contextlib.contextmanager
 def signals_handled() -> Iterator[None]:
-    """Make SIGTERM raise :class:`Terminated` while the command runs (main thread only).
+    """Make SIGTERM raise :class:`Terminated`, and Ctrl-C (SIGINT, where Python's own
+    handler has it) ``KeyboardInterrupt``, while the command runs (main thread only).
 
-    A process forked meanwhile (the embedded cluster's workers on Linux) ends on SIGTERM
-    as a process does by default."""
+    Each also records the stop (:mod:`symcal.base.stops`), so that a stop some library
+    swallowed is raised again at the next pass over the data or before an output set
+    moves in; the record ends with the block.  A process forked meanwhile (the embedded
+    cluster's workers on Linux) takes each signal as a fresh process does."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -185,13 +189,25 @@ def signals_handled() -> Iterator[None]:
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
             return
+        stops.request(Terminated)
         raise Terminated()
 
-    previous = signal.signal(signal.SIGTERM, terminate)
+    def interrupt(signum: int, frame: FrameType | None) -> None:
+        if os.getpid() != owner:     # a forked child: Python's own handling
+            signal.signal(signum, signal.default_int_handler)
+            raise KeyboardInterrupt
+        stops.request(KeyboardInterrupt)
+        raise KeyboardInterrupt
+
+    previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, terminate)}
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, interrupt)
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        stops.clear()
 
 
 def _interrupted(exc: KeyboardInterrupt) -> tuple[str, int]:

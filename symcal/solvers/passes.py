@@ -26,6 +26,7 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 
+from symcal.base import stops
 from symcal.base.numeric import Mapped, chunks
 from symcal.solvers.executor import Executor, blas_limit, blas_loaded
 
@@ -259,7 +260,10 @@ def run_pass(task: Pass, pieces: Iterable[np.ndarray | Piece], executor: Executo
 
     ``residuals`` results are concatenated once at the end (not pairwise).  BLAS is held
     to its threads for symcal (:func:`~symcal.solvers.executor.blas_limit`) meanwhile.
+    A stop the user asked for that other code swallowed is raised first
+    (:func:`symcal.base.stops.check`).
     """
+    stops.check()
     with blas_limit():
         if task.kind == "residuals":
             parts = list(executor.map(task, pieces))
