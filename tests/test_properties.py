@@ -6,8 +6,9 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import symcal
@@ -241,3 +242,37 @@ def npz_files(draw: st.DrawFn) -> bytes:
 @given(data=npz_files(), pick=st.integers(0, 1))
 def test_random_npz_through_every_command(capsys, data: bytes, pick: int) -> None:
     _run_hostile("data.npz", data, TARGETS["data.npz"][pick], capsys)
+
+
+# ------------------------------------------------------------------ JSON text
+
+json_scalars = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True), st.integers(-10 ** 30, 10 ** 30),
+    st.booleans(), st.none(), st.text(max_size=8),
+    st.sampled_from([", ", "[1,2]", '"', "\\", "NaN", "-Infinity", "é", "\u2028"]),
+    st.floats(allow_nan=True).map(np.float64))
+json_keys = st.one_of(st.text(max_size=5), st.sampled_from(["null", "true", "1", "NaN"]),
+                      st.integers(-3, 3), st.floats(), st.booleans(), st.none())
+json_documents = st.recursive(json_scalars, lambda inner: st.one_of(
+    st.lists(inner, max_size=6), st.lists(inner, max_size=6).map(tuple),
+    st.dictionaries(json_keys, inner, max_size=5)), max_leaves=40)
+
+
+@settings(max_examples=600, deadline=None)
+@given(doc=json_documents)
+@example(doc={"null": 1.0, None: [2, float("nan")], 1: {}, "1": ()})
+def test_json_text_is_pythons_indented_json_of_the_plain_document(doc) -> None:
+    """symcal's JSON writer (containers laid out in Python, leaves and lists of numbers
+    by the C encoder) gives exactly ``json.dumps(json_plain(doc), indent=2)``: non-finite
+    numbers as null, keys as JSON writes them, a later duplicate key winning."""
+    from symcal.base.files import json_plain, json_text
+
+    assert json_text(doc) == json.dumps(json_plain(doc), indent=2) + "\n"
+
+
+def test_json_text_refuses_what_json_cannot_write() -> None:
+    from symcal.base.files import json_text
+
+    for doc in ({"a": [1.0, object()]}, [1, {2}], object()):
+        with pytest.raises(TypeError, match="is not JSON serializable"):
+            json_text(doc)

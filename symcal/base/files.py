@@ -45,7 +45,7 @@ import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, cast
 
 from symcal.base import stops
 from symcal.base.errors import SymcalError
@@ -106,8 +106,116 @@ def json_plain(doc: object) -> object:
 
 
 def json_text(doc: object) -> str:
-    """JSON text of plain data, indented; non-finite numbers become null."""
-    return json.dumps(json_plain(doc), indent=2) + "\n"
+    """JSON text of plain data, indented by 2; non-finite numbers become null.
+
+    The same text as ``json.dumps(json_plain(doc), indent=2) + "\\n"`` (tested on random
+    documents), written faster: Python's JSON encoder runs in pure Python whenever it
+    indents, so containers are laid out here and what they hold is encoded by its C
+    encoder (a list of numbers at once).  A fleet's command wrote 200 result documents
+    and their 55 MB summary in 3.4 s of its CPU before."""
+    out: list[str] = []
+    _json_into(doc, "", out)
+    out.append("\n")
+    return "".join(out)
+
+
+#: Python's JSON encoder without indent, for what :func:`_json_into` does not lay out.
+_ENCODER = json.JSONEncoder(separators=(",", ":"))
+_COMPACT = _ENCODER.encode
+#: Its C encoder made once (``JSONEncoder.encode`` makes one per call), or None.
+_MAKE = getattr(json.encoder, "c_make_encoder", None)
+_C_ENCODE = None if _MAKE is None else _MAKE(
+    None, _ENCODER.default, json.encoder.encode_basestring_ascii, None, ":", ",", False, False,
+    True)
+#: Encoded text of string keys seen (a document repeats its keys in every entry).
+_KEYS: dict[str, str] = {}
+#: The JSON text of the singletons.
+_WORDS = {True: "true", False: "false", None: "null"}
+
+
+def _flat(values: list[object] | tuple[object, ...]) -> str:
+    """JSON text of a list without indent (C-encoded where Python has its encoder in C)."""
+    if _C_ENCODE is None:   # pragma: no cover - a Python without the _json module
+        return _COMPACT(values)
+    return "".join(_C_ENCODE(values, 0))
+
+
+def _scalar(value: object) -> str | None:
+    """The JSON text of a number, a bool, None or a string; None for anything else
+    (exact types: a float subclass goes the general way, as ``json.dumps`` takes it)."""
+    kind = type(value)
+    if kind is float:
+        number = cast(float, value)
+        return float.__repr__(number) if math.isfinite(number) else "null"
+    if kind is str:
+        return json.encoder.encode_basestring_ascii(cast(str, value))
+    if kind is int:
+        return int.__repr__(cast(int, value))
+    if kind is bool or value is None:
+        return _WORDS[cast(bool | None, value)]
+    return None
+
+
+def _json_into(doc: object, pad: str, out: list[str]) -> None:
+    """Append ``doc``'s indented JSON text (as :func:`json_text`) at indentation ``pad``."""
+    text = _scalar(doc)
+    if text is not None:
+        out.append(text)
+    elif isinstance(doc, dict):
+        if not doc:
+            out.append("{}")
+            return
+        inner = pad + "  "
+        sep = "{\n" + inner
+        if not all(type(key) is str for key in doc):    # keys as JSON writes them (a
+            doc = {(k if isinstance(k, str) else json.dumps(k)): v   # later duplicate
+                   for k, v in doc.items()}                          # wins)
+        for key, value in doc.items():
+            name = _KEYS.get(key)
+            if name is None:
+                name = json.encoder.encode_basestring_ascii(key) + ": "
+                if len(_KEYS) < 65536:
+                    _KEYS[key] = name
+            text = _scalar(value)
+            if text is not None:
+                out.append(sep + name + text)
+            else:
+                out.append(sep + name)
+                _json_into(value, inner, out)
+            sep = ",\n" + inner
+        out.append("\n" + pad + "}")
+    elif isinstance(doc, list | tuple):
+        if not doc:
+            out.append("[]")
+            return
+        inner = pad + "  "
+        if type(doc[0]) in _FLAT:     # numbers (a float subclass too), bools, None
+            try:
+                flat = _flat(doc)[1:-1]
+            except TypeError:         # something JSON cannot write: said below
+                flat = '"'
+            if not any(c in flat for c in '"[{NI'):    # no string, container, NaN, inf
+                out.append("[\n" + inner + flat.replace(",", ",\n" + inner)
+                           + "\n" + pad + "]")
+                return
+        sep = "[\n" + inner
+        for value in doc:
+            text = _scalar(value)
+            if text is not None:
+                out.append(sep + text)
+            else:
+                out.append(sep)
+                _json_into(value, inner, out)
+            sep = ",\n" + inner
+        out.append("\n" + pad + "]")
+    elif isinstance(doc, float):
+        out.append(float.__repr__(doc) if math.isfinite(doc) else "null")
+    else:
+        out.append(_COMPACT(doc))
+
+
+#: Types whose list :func:`_json_into` tries to encode at once.
+_FLAT = frozenset({float, int, bool, type(None)})
 
 
 # ------------------------------------------------------------------------ paths and inputs
@@ -323,6 +431,19 @@ def check_output_folder(folder: str | Path, option: str) -> None:
                           f"{exc.strerror or exc}") from None
 
 
+class ResolvedPaths(frozenset[Path]):
+    """Paths already resolved (:func:`resolved_paths`), compared with as they are."""
+
+
+def resolved_paths(paths: Iterable[str | Path]) -> ResolvedPaths:
+    """Every path resolved (symbolic links followed), once: the output checks compare
+    each output with them (a fleet's command checked each of its 800 outputs against
+    its 400 inputs resolved again, 330 000 resolutions)."""
+    if isinstance(paths, ResolvedPaths):
+        return paths
+    return ResolvedPaths(Path(p).resolve() for p in paths)
+
+
 def check_output_file(
     path: str | Path, inputs: Iterable[str | Path], option: str, force: bool = False,
     hint: str = "",
@@ -349,7 +470,7 @@ def check_output_file(
     """
     path = Path(path)
     shown = display_path(path)
-    if path.resolve() in {Path(p).resolve() for p in inputs}:
+    if path.resolve() in resolved_paths(inputs):
         raise SymcalError(f"{option}: refusing to overwrite input file {shown}")
     try:
         mode = os.lstat(path).st_mode
@@ -374,7 +495,7 @@ def check_outputs(
     folder of each (see there); a folder that is a file is named first, and folders are
     probed for writing last."""
     targets = [Path(p) for p in paths]
-    inputs = list(inputs)
+    inputs = resolved_paths(inputs)
     folders = list(dict.fromkeys(p.parent for p in targets))
     for folder in folders:
         _existing_folder(folder, option)
@@ -692,7 +813,7 @@ class OutputSet:
     def __init__(self, folder: str | Path, inputs: Iterable[str | Path] = (), option: str = "",
                  force: bool = False, hint: str = "") -> None:
         self.folder = Path(folder)
-        self.inputs = [Path(p) for p in inputs]
+        self.inputs = resolved_paths(inputs)
         self.option = option or str(folder)
         self.force = force
         self.hint = hint

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +23,7 @@ FLEET_OUTPUTS = ("fleet.json", "fleet.txt", "fleet.png")
 UNIT_OUTPUTS = ("result.json", "report.txt")
 
 
-def _check_out(out: Path, fleet: Path, units: list[str], inputs: set[Path]) -> None:
+def _check_out(out: Path, fleet: Path, units: list[str], inputs: Iterable[Path]) -> None:
     """Refuse outputs before any work: an input or a foreign file replaced, or a result
     folder that the next run would take for a unit."""
     from symcal.base.files import check_outputs, display_path
@@ -42,7 +42,7 @@ def _check_out(out: Path, fleet: Path, units: list[str], inputs: set[Path]) -> N
     check_outputs(paths, inputs, option)
 
 
-def _unit_writer(out: Path, inputs: set[Path]) -> Any:
+def _unit_writer(out: Path, inputs: Iterable[Path]) -> Any:
     """Write each unit's folder as it finishes: its ``result.json`` and ``report.txt``,
     or, for a unit without a result, ``{"error": MESSAGE}`` and the message."""
     from symcal.base.files import OutputSet, atomic_write_text, json_text
@@ -59,7 +59,13 @@ def _unit_writer(out: Path, inputs: set[Path]) -> Any:
 def run_fleet(args: argparse.Namespace) -> int:
     """Solve the fleet of ``args.fleet``; print the summary (or ``--json``); write
     ``--out``; return the exit code."""
-    from symcal.base.files import OutputSet, atomic_write_bytes, atomic_write_text, json_text
+    from symcal.base.files import (
+        OutputSet,
+        atomic_write_bytes,
+        atomic_write_text,
+        json_text,
+        resolved_paths,
+    )
     from symcal.calibrate.fleet import find_units, solve_fleet
     from symcal.problem.build import load_problem
     from symcal.report.fleet import fleet_png, fleet_text
@@ -83,7 +89,8 @@ def run_fleet(args: argparse.Namespace) -> int:
     data = data_map(args)
     fleet = Path(args.fleet)
     units = find_units(problem, fleet)
-    inputs = inputs_of(args, [problem]) | {p.resolve() for u in units for p in u.files.values()}
+    inputs = resolved_paths(inputs_of(args, [problem])
+                            | {p for u in units for p in u.files.values()})
     out = Path(args.out) if args.out else None
     if out is not None:
         _check_out(out, fleet, [u.name for u in units], inputs)

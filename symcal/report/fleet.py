@@ -137,16 +137,22 @@ def fleet_figure(summary: Summary) -> Figure:
                     ha="center", va="center", transform=ax.transAxes, color="0.4")
             ax.set_xticks([])
             continue
+        points: dict[bool, tuple[list[int], list[float]]] = {False: ([], []),
+                                                               True: ([], [])}
         named = 0
         for x, dist in enumerate(dists.values()):
             for unit, score in _scores(dist).items():
                 odd = unit in outliers and abs(score) > OUTLIER_SCORE
-                ax.plot(x, score, "o", ms=4 if odd else 3, alpha=0.9 if odd else 0.5,
-                        color="tab:red" if odd else "tab:blue", zorder=3 if odd else 2)
+                points[odd][0].append(x)
+                points[odd][1].append(score)
                 if odd and named < MAX_NAMED:
                     ax.annotate(unit, (x, score), xytext=(4, 2), textcoords="offset points",
                                 fontsize=7, color="tab:red")
                     named += 1
+        for odd, (xs, ys) in points.items():   # one artist per kind, not one per point
+            if xs:
+                ax.plot(xs, ys, "o", ms=4 if odd else 3, alpha=0.9 if odd else 0.5,
+                        color="tab:red" if odd else "tab:blue", zorder=3 if odd else 2)
         ax.set_yscale("symlog", linthresh=OUTLIER_SCORE)
         low, high = ax.get_ylim()
         ticks = [t for t in SCORE_TICKS if low <= t <= high]
