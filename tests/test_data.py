@@ -126,3 +126,25 @@ def test_npz_headers_are_parsed_one_at_a_time(tmp_path, monkeypatch) -> None:
     assert [float(t["x"][0]) for t in tables] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
     assert rows == [5] * 6 and mixed[0] == 5 and float(mixed[1]["x"][0]) == 1.0
     assert most[0] == 1
+
+
+def test_a_column_view_reads_blocks_of_the_matrix() -> None:
+    """A pass reads a dataset's columns block by block (``view[:, part]``): the same
+    values as the whole matrix's block, NaN for an absent column, a fresh C-ordered
+    array of that block alone."""
+    rng = np.random.default_rng(3)
+    cols = {"a": rng.normal(size=1000), "b": rng.normal(size=1000), "t": np.arange(1000.0)}
+    ds = make_dataset("calibration", "memory", cols, ("a", "b", "t"))
+    names = ("b", "missing", "a")
+    view, whole = ds.columns_view(names), ds.matrix(names)
+    assert view.shape == whole.shape == (3, 1000)
+    for part in (slice(0, 1000), slice(0, 1), slice(512, 1000), slice(999, 1000),
+                 slice(40, 40), slice(0, 1000, 7)):
+        block = view[:, part]
+        np.testing.assert_array_equal(block, whole[:, part])     # NaN where NaN
+        assert block.flags.c_contiguous and block.shape == whole[:, part].shape
+        assert not np.shares_memory(block, ds.columns["a"])
+    assert np.isnan(view[:, 0:5][1]).all()
+    for key in (0, (0, slice(0, 5)), (slice(None), 3)):
+        with pytest.raises(TypeError, match=r"read as view\[:, start:stop\]"):
+            view[key]  # type: ignore[index]

@@ -413,7 +413,7 @@ class SharePlan:
         """``(A, B, t)``: ``Σ J_iᵀW_iJ_i``, ``Σ J_iᵀW_iC_iW_iJ_i`` and ``Σ tr(W_iC_i)`` over
         the rows of ``ds``."""
         prop = self.prop
-        u = ds.matrix(prop.columns)
+        u = ds.columns_view(prop.columns)
         fn = jit.select(prop.fn, ds.n)
 
         def piece(part: slice) -> tuple[np.ndarray, np.ndarray, float]:
@@ -572,7 +572,7 @@ class RowsPlan:
         out = RowSums([_Sums() for _ in range(n)], [_Sums() for _ in range(n)], [None] * n,
                       [None] * n)
         prop, theta0 = self.prop, self.theta0
-        u = ds.matrix(prop.columns)
+        u = ds.columns_view(prop.columns)
         fn = jit.select(prop.fn if theta0 is None else prop.with_start, ds.n)
 
         def piece(part: slice) -> _Chunk:

@@ -18,7 +18,7 @@ import numpy as np
 from symcal.base import jit
 from symcal.base.forks import ForkLock
 from symcal.base.numeric import Mapped, chunks, mapped, owned
-from symcal.data.dataset import Dataset
+from symcal.data.dataset import ColumnView, Dataset
 from symcal.problem.symbolic import Problem
 from symcal.solvers.executor import default_executor
 
@@ -147,7 +147,7 @@ class RowPropagation:
         self.__dict__.update(state)
         self._lock = ForkLock()
 
-    def at(self, fn: Mapped, u: np.ndarray, theta: np.ndarray, part: slice
+    def at(self, fn: Mapped, u: np.ndarray | ColumnView, theta: np.ndarray, part: slice
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(r, L, J)`` of the observations ``part`` of ``u`` (the dataset's columns) by
         ``fn`` (:attr:`fn` or its twin): ``r`` m × n_e, ``L`` m × n_e × n_ε, ``J``
@@ -156,7 +156,7 @@ class RowPropagation:
         m = r.shape[0]
         return r, lt.reshape(m, self.n_e, self.n_eps), jt.reshape(m, self.n_e, self.n_p)
 
-    def at_and_start(self, fn: Mapped, u: np.ndarray, theta: np.ndarray,
+    def at_and_start(self, fn: Mapped, u: np.ndarray | ColumnView, theta: np.ndarray,
                      theta0: np.ndarray, part: slice
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`at` and the residuals at ``theta0`` (m × n_e), by ``fn``
@@ -170,7 +170,7 @@ class RowPropagation:
              ) -> Iterator[tuple[slice, np.ndarray, np.ndarray, np.ndarray]]:
         """``(rows, r, L, J)`` chunk by chunk, in order (evaluated on the in-memory
         passes' executor: threads for a large dataset, the same bits)."""
-        u = ds.matrix(self.columns)
+        u = ds.columns_view(self.columns)
         fn = jit.select(self.fn, ds.n)
         parts = list(chunks(ds.n))
         for part, (r, lmat, jac) in zip(parts, default_executor(ds.n).map(

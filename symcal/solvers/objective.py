@@ -232,7 +232,7 @@ class Objective:
         instrument.record_pass("linearised", "score_chunks", dataset.n)
         fn = jit.select(self._mapped("linearised", [self.g, self.jac.T]), dataset.n)
         ng, n = self.g.shape[0], int(self.free.sum())
-        u = dataset.matrix(self.problem.columns)
+        u = dataset.columns_view(self.problem.columns)
 
         def scores(part: slice) -> np.ndarray:
             g, jt = (np.array(x) for x in fn.evaluate(theta, u[:, part]))
@@ -381,7 +381,7 @@ class Objective:
                                  "dataset")
             return run_pass(task, dataset.shards,
                             self.executor or current() or SerialExecutor())
-        u = dataset.matrix(self.problem.columns)
+        u = dataset.columns_view(self.problem.columns)
         weights = self.row_weights
         pieces: Iterable[Any] = (u[:, part] if weights is None else (u[:, part], weights[part])
                                  for part in chunks(dataset.n))

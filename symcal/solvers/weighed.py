@@ -281,7 +281,7 @@ class Weighed(Objective):
         if isinstance(dataset, ShardedDataset):
             return run_pass(task, dataset.shards,   # type: ignore[arg-type]
                             self.executor or current() or SerialExecutor())
-        u = dataset.matrix(self.problem.columns)
+        u = dataset.columns_view(self.problem.columns)
         pieces: Iterable[Any] = (u[:, part] for part in chunks(dataset.n))
         ambient = current()
         executor = self.executor or (ambient if ambient is not None and not ambient.remote
