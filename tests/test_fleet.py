@@ -122,15 +122,15 @@ def test_each_unit_equals_its_local_solve(fleet, result) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("start", ["fork", "spawn"])
+@pytest.mark.parametrize("start", ["auto", "fork", "forkserver", "spawn"])
 def test_the_embedded_clusters_units_equal_their_local_solves(fleet, monkeypatch,
                                                               start) -> None:
-    """The embedded cluster (``workers=2``: forked workers by default on Linux, or
-    ``SYMCAL_WORKER_START=spawn``) gives every unit its local solve's estimate, standard
+    """The embedded cluster (``workers=2``), its workers started each way
+    ``SYMCAL_WORKER_START`` names, gives every unit its local solve's estimate, standard
     errors and RSS to 1e-12."""
     import symcal.calibrate.fleet as fleet_module
 
-    if start not in multiprocessing.get_all_start_methods():
+    if start != "auto" and start not in multiprocessing.get_all_start_methods():
         pytest.skip(f"no {start} on this platform")
     monkeypatch.setenv("SYMCAL_WORKER_START", start)
     fleet_dir, _ = fleet

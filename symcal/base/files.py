@@ -525,13 +525,19 @@ def forget_committed() -> None:
 _HELD: dict[tuple[int, int], int] = {}
 
 
+#: Descriptors of the folders locked for one commit at this moment (:func:`_locked`).
+_COMMITTING: set[int] = set()
+
+
 def _release_in_child() -> None:
     """A forked child (a Dask worker of the embedded cluster) closes its copies of the
-    held folders' descriptors: the lock stays its parent's alone, and ends with it."""
-    for fd in _HELD.values():
+    locked folders' descriptors, held for the command or for a commit under way: the
+    lock stays its parent's alone, and ends with it."""
+    for fd in (*_HELD.values(), *_COMMITTING):
         with contextlib.suppress(OSError):
             os.close(fd)
     _HELD.clear()
+    _COMMITTING.clear()
 
 
 in_forked_child(_release_in_child)
@@ -555,10 +561,12 @@ def _locked(folder: Path) -> Iterator[None]:
         yield
         return
     fd = os.open(folder, os.O_RDONLY)
+    _COMMITTING.add(fd)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)
         yield
     finally:
+        _COMMITTING.discard(fd)
         os.close(fd)
 
 

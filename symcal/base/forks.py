@@ -55,8 +55,10 @@ _LOCKS: weakref.WeakSet[ForkLock] = weakref.WeakSet()
 
 
 def in_forked_child(action: Callable[[], None]) -> None:
-    """Run ``action`` in every child this process forks (after its locks are renewed)."""
-    os.register_at_fork(after_in_child=action)
+    """Run ``action`` in every child this process forks (after its locks are renewed);
+    nothing where the platform does not fork."""
+    if hasattr(os, "register_at_fork"):
+        os.register_at_fork(after_in_child=action)
 
 
 def _renew_locks() -> None:

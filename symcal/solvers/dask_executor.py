@@ -16,6 +16,7 @@ import functools
 import logging
 import os
 import sys
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -29,10 +30,13 @@ T = TypeVar("T")
 
 #: Environment of the embedded cluster's workers: one BLAS thread and one symcal thread
 #: each (a worker process is one core's worth: its passes and evaluations stay serial).
+#: A worker forked from this process (:func:`worker_start`) gets it after its BLAS was
+#: set up: symcal's passes still hold BLAS to one thread (``blas_limit`` reads it), BLAS
+#: elsewhere in it keeps this process's thread count.
 WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
               "SYMCAL_THREADS": "1"}
 #: How the embedded cluster's worker processes may start (``SYMCAL_WORKER_START``).
-START_METHODS = ("fork", "spawn", "forkserver")
+START_METHODS = ("auto", "fork", "spawn", "forkserver")
 #: Dask settings of the embedded cluster beside the start method.  Its diagnostics run
 #: less often: they feed a dashboard and logs the embedded cluster does not show (the
 #: workers' statistical profiler sampled every thread's stack every 10 ms, the event
@@ -99,8 +103,9 @@ def _pool_task(task: Callable[[Any], T], piece: Any) -> T:
 def dask_client(scheduler: str | None = None, workers: int | None = None,
                 option: str | None = None) -> Iterator[Client]:
     """A ``distributed.Client`` to the scheduler at ``scheduler``, or to an embedded local
-    cluster of ``workers`` processes (default: one per usable core, one thread and one
-    BLAS thread each), closed when the block ends.
+    cluster of ``workers`` processes (default: one per usable core, one thread each and
+    symcal's passes on one BLAS thread; started as :func:`worker_start` says), closed
+    when the block ends.
 
     Parameters
     ----------
@@ -134,25 +139,32 @@ def dask_client(scheduler: str | None = None, workers: int | None = None,
             return
         # no dashboard; the scheduler's own HTTP server on a free port of this host only
         # (its default, 8787 on every interface, warns when another cluster has it)
-        with _malloc_as_usual(), _started_as_configured(), \
-                LocalCluster(n_workers=workers or usable_cores(), threads_per_worker=1,
-                             processes=True, dashboard_address="127.0.0.1:0",
-                             silence_logs=DASK_LOG_LEVEL, env=dict(WORKER_ENV)) as cluster, \
-                Client(cluster) as client:
+        with _malloc_as_usual(), _started_as_configured():   # for the first workers: one
+            cluster = LocalCluster(                              # restarted later starts
+                n_workers=workers or usable_cores(), threads_per_worker=1,  # Dask's way
+                processes=True, dashboard_address="127.0.0.1:0",
+                silence_logs=DASK_LOG_LEVEL, env=dict(WORKER_ENV))
+        with cluster, Client(cluster) as client:
             yield client
 
 
 def worker_start() -> str:
-    """How the embedded cluster starts its worker processes: ``SYMCAL_WORKER_START``, else
-    ``fork`` on Linux and ``spawn`` elsewhere.
+    """How the embedded cluster starts its worker processes: ``SYMCAL_WORKER_START``
+    (``auto``, ``fork``, ``spawn`` or ``forkserver``; default ``auto``).
 
-    ``fork`` starts a worker as a copy of this process, with symcal, Dask and the problem's
-    modules already imported: a fleet's workers solve their first unit about half a
-    second sooner than ``spawn``'s fresh interpreters (measured on the benchmark's fleet,
-    2 workers).  A forked worker holds none of this process's locks
-    (:mod:`symcal.base.forks`), pass threads or output-folder locks, and ends on SIGTERM
-    as a process does by default.  ``spawn`` and ``forkserver`` are Python's own
-    (:mod:`multiprocessing`).
+    ``auto`` forks the workers from this process on Linux when it runs nothing else
+    (:func:`running_alone`), else starts them from a forkserver where the platform has
+    one (Linux, macOS), else spawns them.  Forked workers start with symcal and Dask
+    imported: the quickest start (the benchmark's fleet of 200 units on 2 workers: 1.67-1.76
+    times a plain loop against 1.64-1.67 from a forkserver and 1.55-1.62 spawned).  But a
+    fork is safe only when no other thread of this process is inside BLAS at that moment:
+    OpenBLAS's own fork handler then waits for ever (a thread solving beside a fleet
+    forced to ``fork`` hung it in 4 runs of 5).  A forkserver is one fresh process that
+    imports Dask and symcal's worker side (:data:`WORKER_PRELOAD`) once and forks the
+    workers itself, with no other thread.  A forked worker holds none of this process's
+    symcal locks (:mod:`symcal.base.forks`), pass threads or output-folder locks, and
+    ends on SIGTERM as a process does by default; outside symcal's passes it keeps this
+    process's BLAS thread count.
 
     Raises
     ------
@@ -161,26 +173,64 @@ def worker_start() -> str:
     """
     import multiprocessing
 
-    default = "fork" if sys.platform.startswith("linux") else "spawn"
-    value = os.environ.get("SYMCAL_WORKER_START", "").strip().lower() or default
+    methods = multiprocessing.get_all_start_methods()
+    value = os.environ.get("SYMCAL_WORKER_START", "").strip().lower() or "auto"
     if value not in START_METHODS:
-        raise SymcalError(f"SYMCAL_WORKER_START must be fork, spawn or forkserver, not "
-                          f"'{excerpt(value, 40)}'")
-    if value not in multiprocessing.get_all_start_methods():
+        raise SymcalError(f"SYMCAL_WORKER_START must be auto, fork, spawn or forkserver, "
+                          f"not '{excerpt(value, 40)}'")
+    if value == "auto":
+        if sys.platform.startswith("linux") and "fork" in methods and running_alone():
+            return "fork"
+        return "forkserver" if "forkserver" in methods else "spawn"
+    if value not in methods:
         raise SymcalError(f"SYMCAL_WORKER_START={value}: this platform cannot start "
-                          f"processes that way (it can: "
-                          f"{', '.join(multiprocessing.get_all_start_methods())})")
+                          f"processes that way (it can: {', '.join(methods)})")
     return value
+
+
+def running_alone() -> bool:
+    """Whether this is the main thread and every other thread of the process is one of
+    symcal's own pass threads (waiting: the passes are driven from here), one of its
+    background compiles, or tqdm's monitor: nothing else can be inside BLAS while a
+    worker is forked from this process."""
+    here = threading.current_thread()
+    if here is not threading.main_thread():
+        return False
+    return all(t is here or t.name.startswith(("symcal-pass", "symcal-jit"))
+               or type(t).__name__ == "TMonitor" for t in threading.enumerate())
+
+
+#: What a ``forkserver`` imports before it forks the workers: Dask and symcal's side of
+#: a fleet's or a sharded log's tasks (the problem's build, the solve, the passes).
+WORKER_PRELOAD = ("distributed", "numpy", "casadi", "symcal.problem.build",
+                  "symcal.calibrate.fleet", "symcal.solvers.dask_executor")
+
+
+def _preload_forkserver() -> None:
+    """Have this process's forkserver, when it starts, import :data:`WORKER_PRELOAD`.
+
+    Dask sets the forkserver's preload list once per process, the first time it asks for
+    the context; it is asked first here, then the list replaced.  A forkserver already
+    running keeps what it imported."""
+    import multiprocessing
+
+    from distributed.utils import get_mp_context
+
+    get_mp_context()
+    multiprocessing.get_context("forkserver").set_forkserver_preload(list(WORKER_PRELOAD))
 
 
 @contextlib.contextmanager
 def _started_as_configured() -> Iterator[None]:
     """Dask's settings for the embedded cluster: the workers' start method
-    (:func:`worker_start`) and :data:`CLUSTER_CONFIG`."""
+    (:func:`worker_start`; a forkserver preloaded) and :data:`CLUSTER_CONFIG`."""
     import dask
 
-    with dask.config.set({"distributed.worker.multiprocessing-method": worker_start(),
+    method = worker_start()
+    with dask.config.set({"distributed.worker.multiprocessing-method": method,
                           **CLUSTER_CONFIG}):
+        if method == "forkserver":
+            _preload_forkserver()
         yield
 
 
