@@ -1168,3 +1168,47 @@ def test_dask_logging_never_reaches_the_terminal(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr == ""
     assert "answers, but not as a Dask scheduler (it says it is Worker)" in proc.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("start", ["auto", "spawn"])
+def test_ctrl_c_on_a_fleet_prints_no_worker_traceback(tmp_path: Path, start: str) -> None:
+    """A terminal's Ctrl-C reaches every process of the command: the command stops with
+    exit 130 and its one message, its workers (forked or not) print nothing, and none
+    outlives it."""
+    from symcal.data.dataset import write_table
+    from symcal.simulation import load_scenario, simulate_run
+
+    scenario = load_scenario(ROOT / "problems" / "scenarios" / "courier_platen.yaml")
+    for k in range(40):
+        (tmp_path / "fleet" / f"unit-{k:02d}").mkdir(parents=True)
+        write_table(tmp_path / "fleet" / f"unit-{k:02d}" / "calibration.npz",
+                    simulate_run(scenario, "calibration", seed=k, n=5000))
+    env = {**os.environ, "SYMCAL_WORKER_START": start}
+    proc = subprocess.Popen([sys.executable, "-m", "symcal", "solve",
+                             str(ROOT / "problems" / "platen_self_calibration.yaml"),
+                             "--fleet", "fleet"], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)   # a process group, as a terminal's
+    assert proc.stderr is not None
+    seen = b""
+    while b"fleet: 1/40" not in seen:
+        chunk = os.read(proc.stderr.fileno(), 65536)
+        assert chunk, seen.decode()
+        seen += chunk
+    workers = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True,
+                             text=True).stdout.split()
+    os.killpg(proc.pid, signal.SIGINT)
+    _, after = proc.communicate(timeout=120)
+    err = seen.decode() + after.decode()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert err.splitlines()[-1] == ("symcal: error: interrupted by SIGINT (Ctrl-C); no "
+                                    "output was written or changed")
+    assert workers                                      # the cluster's processes...
+    deadline = time.monotonic() + 30
+    while any(Path(f"/proc/{w}").exists() for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(Path(f"/proc/{w}/status").exists()
+                   and "zombie" not in Path(f"/proc/{w}/status").read_text()
+                   for w in workers)                    # ...did not outlive it

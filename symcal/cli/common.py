@@ -177,7 +177,9 @@ def signals_handled() -> Iterator[None]:
     Each also records the stop (:mod:`symcal.base.stops`), so that a stop some library
     swallowed is raised again at the next pass over the data or before an output set
     moves in; the record ends with the block.  A process forked meanwhile (the embedded
-    cluster's workers on Linux) takes each signal as a fresh process does."""
+    cluster's workers on Linux) ends on SIGTERM as a fresh process does, and ignores
+    Ctrl-C, which a terminal sends to every process of the command: the command itself
+    stops its cluster."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -193,9 +195,9 @@ def signals_handled() -> Iterator[None]:
         raise Terminated()
 
     def interrupt(signum: int, frame: FrameType | None) -> None:
-        if os.getpid() != owner:     # a forked child: Python's own handling
-            signal.signal(signum, signal.default_int_handler)
-            raise KeyboardInterrupt
+        if os.getpid() != owner:     # a forked worker: the command stops its cluster
+            signal.signal(signum, signal.SIG_IGN)
+            return
         stops.request(KeyboardInterrupt)
         raise KeyboardInterrupt
 

@@ -15,6 +15,7 @@ import contextlib
 import functools
 import logging
 import os
+import signal
 import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator
@@ -37,13 +38,15 @@ WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THRE
               "SYMCAL_THREADS": "1"}
 #: How the embedded cluster's worker processes may start (``SYMCAL_WORKER_START``).
 START_METHODS = ("auto", "fork", "spawn", "forkserver")
-#: Dask settings of the embedded cluster beside the start method.  Its diagnostics run
+#: Dask settings of the embedded cluster beside the start method (and its workers'
+#: preload, :func:`dask_setup`).  Its diagnostics run
 #: less often: they feed a dashboard and logs the embedded cluster does not show (the
 #: workers' statistical profiler sampled every thread's stack every 10 ms, the event
 #: loops' tick ran every 20 ms in each of its servers), and they took about 0.4 s of the
 #: client's and the workers' CPU from a 10 s fleet of the benchmark (2 workers, 2 cores).
 #: The nannies' memory watchdog keeps its own interval.
-CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
+CLUSTER_CONFIG = {"distributed.worker.preload": ["symcal.solvers.dask_executor"],
+                  "distributed.worker.profile.enabled": False,
                   "distributed.admin.tick.interval": "1s",
                   "distributed.admin.system-monitor.interval": "2s",
                   "distributed.client.scheduler-info-interval": "10s"}
@@ -146,6 +149,15 @@ def dask_client(scheduler: str | None = None, workers: int | None = None,
                 silence_logs=DASK_LOG_LEVEL, env=dict(WORKER_ENV))
         with cluster, Client(cluster) as client:
             yield client
+
+
+def dask_setup(worker: Any) -> None:
+    """Run by each worker of the embedded cluster as it starts (Dask's preload): ignore
+    Ctrl-C.  A terminal sends it to every process of the command, and a worker's
+    ``KeyboardInterrupt`` only printed a traceback there; the process that started the
+    cluster stops it."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def worker_start() -> str:
