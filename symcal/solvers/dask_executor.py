@@ -38,13 +38,13 @@ WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THRE
               "SYMCAL_THREADS": "1"}
 #: How the embedded cluster's worker processes may start (``SYMCAL_WORKER_START``).
 START_METHODS = ("auto", "fork", "spawn", "forkserver")
-#: Dask settings of the embedded cluster beside the start method (and its workers'
-#: preload, :func:`dask_setup`).  Its diagnostics run
-#: less often: they feed a dashboard and logs the embedded cluster does not show (the
-#: workers' statistical profiler sampled every thread's stack every 10 ms, the event
-#: loops' tick ran every 20 ms in each of its servers), and they took about 0.4 s of the
-#: client's and the workers' CPU from a 10 s fleet of the benchmark (2 workers, 2 cores).
-#: The nannies' memory watchdog keeps its own interval.
+#: Dask settings of the embedded cluster beside the start method: its workers' preload
+#: (:func:`dask_setup`), and its diagnostics run less often.  These feed a dashboard and
+#: logs the embedded cluster does not show (the workers' statistical profiler sampled
+#: every thread's stack every 10 ms, the event loops' tick ran every 20 ms in each of its
+#: servers) and took about 0.4 s of the client's and the workers' CPU from a 10 s fleet
+#: of the benchmark (2 workers, 2 cores).  The nannies' memory watchdog keeps its own
+#: interval.
 CLUSTER_CONFIG = {"distributed.worker.preload": ["symcal.solvers.dask_executor"],
                   "distributed.worker.profile.enabled": False,
                   "distributed.admin.tick.interval": "1s",
@@ -142,12 +142,19 @@ def dask_client(scheduler: str | None = None, workers: int | None = None,
             return
         # no dashboard; the scheduler's own HTTP server on a free port of this host only
         # (its default, 8787 on every interface, warns when another cluster has it)
-        with _malloc_as_usual(), _started_as_configured():   # for the first workers: one
-            cluster = LocalCluster(                              # restarted later starts
-                n_workers=workers or usable_cores(), threads_per_worker=1,  # Dask's way
-                processes=True, dashboard_address="127.0.0.1:0",
-                silence_logs=DASK_LOG_LEVEL, env=dict(WORKER_ENV))
-        with cluster, Client(cluster) as client:
+        # the settings hold while the cluster and its client start: a worker restarted
+        # later starts Dask's own way
+        with _malloc_as_usual(), _started_as_configured():
+            cluster = LocalCluster(
+                n_workers=workers or usable_cores(), threads_per_worker=1, processes=True,
+                dashboard_address="127.0.0.1:0", silence_logs=DASK_LOG_LEVEL,
+                env=dict(WORKER_ENV))
+            try:
+                client = Client(cluster)
+            except BaseException:
+                cluster.close()
+                raise
+        with cluster, client:
             yield client
 
 
