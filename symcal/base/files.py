@@ -140,13 +140,27 @@ def _flat(values: list[object] | tuple[object, ...]) -> str:
     return "".join(_C_ENCODE(values, 0))
 
 
+def _number(value: float) -> str:
+    """A float as JSON writes it (``repr``), null where it is not finite."""
+    return float.__repr__(value) if math.isfinite(value) else "null"
+
+
+def _item(value: object, lead: str, pad: str, out: list[str]) -> None:
+    """Append ``lead`` and the JSON text of a container's entry ``value`` (at ``pad``)."""
+    text = _scalar(value)
+    if text is not None:
+        out.append(lead + text)
+    else:
+        out.append(lead)
+        _json_into(value, pad, out)
+
+
 def _scalar(value: object) -> str | None:
     """The JSON text of a number, a bool, None or a string; None for anything else
     (exact types: a float subclass goes the general way, as ``json.dumps`` takes it)."""
     kind = type(value)
     if kind is float:
-        number = cast(float, value)
-        return float.__repr__(number) if math.isfinite(number) else "null"
+        return _number(cast(float, value))
     if kind is str:
         return json.encoder.encode_basestring_ascii(cast(str, value))
     if kind is int:
@@ -158,10 +172,7 @@ def _scalar(value: object) -> str | None:
 
 def _json_into(doc: object, pad: str, out: list[str]) -> None:
     """Append ``doc``'s indented JSON text (as :func:`json_text`) at indentation ``pad``."""
-    text = _scalar(doc)
-    if text is not None:
-        out.append(text)
-    elif isinstance(doc, dict):
+    if isinstance(doc, dict):
         if not doc:
             out.append("{}")
             return
@@ -176,12 +187,7 @@ def _json_into(doc: object, pad: str, out: list[str]) -> None:
                 name = json.encoder.encode_basestring_ascii(key) + ": "
                 if len(_KEYS) < 65536:
                     _KEYS[key] = name
-            text = _scalar(value)
-            if text is not None:
-                out.append(sep + name + text)
-            else:
-                out.append(sep + name)
-                _json_into(value, inner, out)
+            _item(value, sep + name, inner, out)
             sep = ",\n" + inner
         out.append("\n" + pad + "}")
     elif isinstance(doc, list | tuple):
@@ -200,18 +206,14 @@ def _json_into(doc: object, pad: str, out: list[str]) -> None:
                 return
         sep = "[\n" + inner
         for value in doc:
-            text = _scalar(value)
-            if text is not None:
-                out.append(sep + text)
-            else:
-                out.append(sep)
-                _json_into(value, inner, out)
+            _item(value, sep, inner, out)
             sep = ",\n" + inner
         out.append("\n" + pad + "]")
-    elif isinstance(doc, float):
-        out.append(float.__repr__(doc) if math.isfinite(doc) else "null")
+    elif isinstance(doc, float):         # a float subclass (numpy's)
+        out.append(_number(doc))
     else:
-        out.append(_COMPACT(doc))
+        text = _scalar(doc)
+        out.append(_COMPACT(doc) if text is None else text)
 
 
 #: Types whose list :func:`_json_into` tries to encode at once.
