@@ -183,3 +183,24 @@ def test_a_fleet_reports_each_unit(tmp_path) -> None:
     symcal.solve_fleet(problem, tmp_path, workers=1, progress=quiet.append, bars=bars)
     assert quiet == [] and bars.made == [("fleet", 3, "unit")] and bars.count == 3
     assert any("(failed=1)" in n for n in bars.notes)
+
+
+def test_a_line_of_progress_is_one_write() -> None:
+    """A line and its newline go out in one write, so that an interrupt cannot fall
+    between them (the command's error message then continued the cut line)."""
+    from symcal.base.progress import write_line
+
+    class Stream:
+        def __init__(self) -> None:
+            self.writes: list[str] = []
+
+        def write(self, text: str) -> int:
+            self.writes.append(text)
+            return len(text)
+
+        def flush(self) -> None:
+            pass
+
+    stream = Stream()
+    write_line("  fleet: 1/40 unit unit-00: solved", stream)  # type: ignore[arg-type]
+    assert stream.writes == ["  fleet: 1/40 unit unit-00: solved\n"]

@@ -157,7 +157,8 @@ def write_line(line: str, stream: TextIO | None = None) -> None:
 
         tqdm.write(line, file=out)
         return
-    print(line, file=out, flush=True)
+    out.write(line + "\n")      # one write: an interrupt cannot fall between a line and
+    out.flush()                 # its newline (the command's message then joined it)
 
 
 #: Where the lines of progress go: called with one line of text (no newline); see the

@@ -294,7 +294,7 @@ def report_failure(exc: BaseException, as_json: bool) -> int:
     message, code = failure(exc)
     if isinstance(exc, UsageError):
         sys.stderr.write(exc.usage)
-    print(f"symcal: error: {escape_controls(message)}", file=sys.stderr)
+    sys.stderr.write(f"symcal: error: {escape_controls(message)}\n")   # one write
     if as_json:
         sys.stdout.write(json_text({"error": {"message": message, "exit_code": code}}))
     return code
