@@ -608,3 +608,56 @@ def test_a_block_of_entries_is_the_same_picked_as_a_run_or_one_by_one() -> None:
     assert isinstance(_span((1, 2, 3)), slice)
     assert _span((0, 2)) == [0, 2]
     assert _span((4, 1)) == [4, 1]
+
+
+def test_increasing_root_finds_quantiles_in_flat_tails() -> None:
+    """Regula falsi, the Illinois way: the root to within its tolerance, also where the
+    bracket's ends lie deep in a flat tail and at an end that is the root."""
+    from statistics import NormalDist
+
+    from symcal.analysis.bands import increasing_root
+
+    for p in (1e-6, 0.025, 0.5, 0.975):
+        want = NormalDist().inv_cdf(p)
+        f = lambda t, p=p: NormalDist().cdf(t) - p               # noqa: E731
+        got = increasing_root(f, -40.0, 40.0, f(-40.0), f(40.0), 1e-9)
+        assert abs(got - want) <= 1e-9, (p, got, want)
+    steep = lambda t: 1.0 / (1.0 + np.exp(min(-200.0 * (t - 0.3), 700.0))) - 0.5   # noqa: E731
+    assert increasing_root(steep, -5.0, 5.0, steep(-5.0), steep(5.0), 1e-12) == \
+        pytest.approx(0.3, abs=1e-12)
+    assert increasing_root(steep, 0.3, 5.0, 0.0, steep(5.0), 1e-12) == 0.3
+
+
+@pytest.mark.parametrize(("n", "centred", "extra", "sd"), [
+    (300, False, 30.0, 0.12), (600, True, 40.0, 0.08), (20_000, False, 900.0, 0.02)])
+def test_the_shared_bands_quantiles_against_scipy(n, centred, extra, sd) -> None:
+    """The band of an estimated floor with the estimate's share is the quantiles of a
+    mixture over 64 equal-probability nodes of the share (``shared_ratio_band``'s
+    docstring); the same mixture written here with scipy's beta and χ² and solved by
+    ``brentq`` to 1e-12 gives the same band to 1e-7 of the degrees of freedom."""
+    from scipy import optimize, stats
+
+    from symcal.analysis.bands import _ratio_moments, ratio_sd, shared_ratio_band
+
+    dof = n - centred + extra
+    k = float(n - 1 if centred else n)
+    mean_y, var_x = dof - k, (k * ratio_sd(n, centred)) ** 2
+    var_y = (sd * dof) ** 2 - var_x
+    cross = min(4.0 * mean_y, var_y) / mean_y
+    var_q = var_y - cross * mean_y
+    c, m1, var = _ratio_moments(n, centred)
+    mu, v = m1 / 4.0, var / 16.0
+    a, b = mu * (mu * (1 - mu) / v - 1), (1 - mu) * (mu * (1 - mu) / v - 1)
+    f, scale = 2.0 * mean_y**2 / var_q, var_q / (2.0 * mean_y)
+    nodes = scale * stats.chi2.ppf((np.arange(64) + 0.5) / 64, f)
+
+    def cdf(t: float) -> float:
+        noise = k + (t - nodes - k) / np.sqrt(1.0 + cross * np.maximum(nodes, 0) / var_x)
+        x = c * k / (4.0 * np.where(noise > 0, noise, np.inf))
+        return float(np.mean(np.where(noise > 0, stats.beta.sf(x, a, b), 0.0)))
+
+    want = [optimize.brentq(lambda t, p=p: cdf(t) - p, 0.2 * dof, 3.0 * dof, xtol=1e-12)
+            for p in (0.025, 0.975)]
+    got = shared_ratio_band(n, centred, dof, sd)
+    assert abs(got[0] * dof - want[0]) <= 1e-7 * dof and abs(got[1] * dof - want[1]) <= \
+        1e-7 * dof, (got, [w / dof for w in want])
