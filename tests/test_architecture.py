@@ -4,6 +4,7 @@ layer, or stays inside its own package without a cycle."""
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 from conftest import ROOT
@@ -56,6 +57,14 @@ def _imports(path: Path, modules: dict[str, Path]) -> set[str]:
     return found
 
 
+@functools.cache
+def _graph() -> dict[str, frozenset[str]]:
+    """Every module's symcal imports, itself left out (parsed once per test process: the
+    tests below read the same graph)."""
+    modules = _modules()
+    return {n: frozenset(_imports(p, modules) - {n}) for n, p in modules.items()}
+
+
 def _layer(name: str) -> int:
     for i, layer in enumerate(LAYERS):
         for unit in layer:
@@ -69,10 +78,9 @@ def _package(name: str) -> str | None:
 
 
 def test_every_import_goes_down_the_layers() -> None:
-    modules = _modules()
     wrong = []
-    for name, path in modules.items():
-        for dep in _imports(path, modules) - {name}:
+    for name, deps in _graph().items():
+        for dep in deps:
             same_package = _package(name) is not None and _package(name) == _package(dep)
             if not same_package and _layer(dep) >= _layer(name):
                 wrong.append(f"{name} imports {dep}")
@@ -80,8 +88,7 @@ def test_every_import_goes_down_the_layers() -> None:
 
 
 def test_no_import_cycle() -> None:
-    modules = _modules()
-    graph = {n: _imports(p, modules) - {n} for n, p in modules.items()}
+    graph = _graph()
     state: dict[str, int] = {}
 
     def visit(node: str, path: list[str]) -> list[str] | None:
@@ -103,10 +110,9 @@ def test_no_import_cycle() -> None:
 
 
 def test_objects_never_import_their_presenters() -> None:
-    modules = _modules()
-    for name, path in modules.items():
+    for name, deps in _graph().items():
         if _layer(name) < _layer("symcal.report"):
-            presenters = {d for d in _imports(path, modules) if _package(d) == "symcal.report"}
+            presenters = {d for d in deps if _package(d) == "symcal.report"}
             assert not presenters, name
 
 
