@@ -66,7 +66,8 @@ def _chi2_density(x: float, nu: float) -> float:
 
 @functools.lru_cache(maxsize=4096)
 def chi2_quantile(p: float, nu: float) -> float:
-    """The ``p`` quantile of χ²_ν, to 1e-12 relative (SciPy is not needed for a solve):
+    """The ``p`` quantile of χ²_ν, to 1e-12 relative (in Python: a declared floor's band
+    needs no SciPy import):
     Newton's method on the distribution function from the Wilson–Hilferty
     approximation, kept inside a bracket (bisection where a step leaves it).  Kept per
     (p, ν): a result's bands are asked for again by its report and its document."""
