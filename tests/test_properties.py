@@ -276,3 +276,20 @@ def test_json_text_refuses_what_json_cannot_write() -> None:
     for doc in ({"a": [1.0, object()]}, [1, {2}], object()):
         with pytest.raises(TypeError, match="is not JSON serializable"):
             json_text(doc)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(1, 3), st.integers(1, 3),
+       st.lists(st.floats(-1.0, 1.0), min_size=9, max_size=9), st.integers(-8, 8))
+def test_top_singular_value_agrees_with_the_svd(rows, cols, values, power) -> None:
+    """The largest canonical correlation's singular value (closed forms for one row or
+    column and for 2 × 2) against numpy's SVD: to 1e-12 of its largest entry, to 1e-7
+    where a 2 × 2's two singular values nearly coincide."""
+    from symcal.analysis.discovery import top_singular_value
+
+    c = np.array(values[:rows * cols]).reshape(rows, cols) * 10.0**power
+    want = float(np.linalg.svd(c, compute_uv=False)[0])
+    sv = np.linalg.svd(c, compute_uv=False)
+    close = c.shape == (2, 2) and sv[0] - sv[-1] < 1e-3 * max(sv[0], 1e-300)
+    scale = float(np.max(np.abs(c)))          # the norm within a factor 3, no underflow
+    assert abs(top_singular_value(c) - want) <= (1e-7 if close else 1e-12) * scale
