@@ -23,6 +23,7 @@ regressor with each column scaled to a term of RMS one unit (:attr:`Basis.scales
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
@@ -571,17 +572,18 @@ def top_singular_value(c: np.ndarray) -> float:
     of 1 × 1 to 2 × 2 products per diagnosis, where a library's SVD costs its calling
     overhead many times over.  The closed form loses digits where the two singular
     values nearly coincide (about 1e-8 relative): a threshold of 0.98 is all it serves."""
-    if min(c.shape) != 1 and c.shape != (2, 2):
-        return float(np.linalg.svd(c, compute_uv=False)[0]) if c.size else 0.0
-    big = float(np.max(np.abs(c)))
-    if not big > 0.0 or not np.isfinite(big):       # zero, or not a number to scale
-        return float(np.linalg.svd(c, compute_uv=False)[0])
-    c = c / big                                      # no square under- or overflows
-    s = float(np.sum(c * c))
     if min(c.shape) == 1:
-        return big * float(np.sqrt(s))
-    det = float(c[0, 0] * c[1, 1] - c[0, 1] * c[1, 0])
-    return big * float(np.sqrt(0.5 * (s + np.sqrt(max(s * s - 4.0 * det * det, 0.0)))))
+        return math.hypot(*c.ravel().tolist())
+    if c.shape != (2, 2):
+        return float(np.linalg.svd(c, compute_uv=False)[0]) if c.size else 0.0
+    values = c.ravel().tolist()                      # Python floats: no array overhead
+    big = max(abs(v) for v in values)
+    if not 0.0 < big < math.inf:                     # zero, or not a number to scale
+        return float(np.linalg.svd(c, compute_uv=False)[0])
+    a, b, d, e = (v / big for v in values)          # no square under- or overflows
+    s = a * a + b * b + d * d + e * e
+    det = a * e - b * d
+    return big * math.sqrt(0.5 * (s + math.sqrt(max(s * s - 4.0 * det * det, 0.0))))
 
 
 def _group(ranked: list[Candidate], local: Callable[[Candidate], bool] | None,
