@@ -30,7 +30,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 import scipy.special
-import scipy.stats
 
 from symcal.analysis.bands import f_log_sf
 from symcal.base.linalg import rank_tolerance
@@ -507,9 +506,12 @@ def noncentrality(m: int, level: float, power: float = POWER) -> float:
     with probability ``power``."""
     key = (m, level)
     if key not in _NONCENTRALITY:
+        # imported here: scipy.stats is the largest import of a command that reports a
+        # solve (0.4-1 s), and a solve's report needs none of it
+        import scipy.stats
         from scipy.optimize import brentq
 
-        crit = float(scipy.stats.chi2.isf(level, m))
+        crit = float(scipy.special.chdtri(m, level))      # scipy.stats.chi2.isf's own
         _NONCENTRALITY[key] = float(brentq(
             lambda lam: float(scipy.stats.ncx2.sf(crit, m, lam)) - power, 1e-9, 1e4))
     return _NONCENTRALITY[key]

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import scipy.stats
+import scipy.special
 
 from symcal.base.digits import estimate_text
 from symcal.base.units import UnitError, parse_unit
@@ -60,7 +60,7 @@ def wald(new: Result, names: list[str]) -> tuple[float, float] | None:
     # pseudo-inverse of the covariance as it is drops the smaller direction
     z = value / se
     chi2 = float(z @ np.linalg.pinv(cov / np.outer(se, se), hermitian=True) @ z)
-    return chi2, float(scipy.stats.chi2.sf(chi2, len(index)))
+    return chi2, float(scipy.special.chdtrc(len(index), chi2))   # scipy.stats.chi2.sf's own
 
 
 @dataclass(frozen=True)
