@@ -51,8 +51,10 @@ def test_the_public_api_is_imported_on_first_use() -> None:
 
 def test_a_solve_from_the_command_line_does_not_import_scipy_stats(tmp_path) -> None:
     """scipy.stats was the largest import of ``symcal solve`` (about 1 s of a 3.2 s
-    command on a slow machine), pulled in by the candidate tests' module for functions
-    that scipy.special has; only a minimal detectable effect's non-centrality needs it."""
+    command on a slow machine), pulled in by the candidate tests' module (which a solve's
+    report imports) for functions that scipy.special has; only a minimal detectable
+    effect's non-centrality needs it, and the candidate tests' module imports SciPy only
+    where its functions run."""
     scenario = ROOT / "problems" / "scenarios" / "courier_platen.yaml"
     problem = ROOT / "problems" / "platen_self_calibration.yaml"
     code = ("import sys\nfrom symcal.cli import main\n"
@@ -62,10 +64,10 @@ def test_a_solve_from_the_command_line_does_not_import_scipy_stats(tmp_path) -> 
             f"'calibration=' + {str(tmp_path / 'c.calibration.csv')!r}, '--data', "
             f"'flyby=' + {str(tmp_path / 'c.flyby.csv')!r}, '--out', "
             f"{str(tmp_path / 'out')!r}, '--quiet'])\n"
-            "print(rc, 'scipy.stats' in sys.modules, 'scipy.special' in sys.modules)")
+            "print(rc, 'scipy.stats' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=tmp_path, timeout=600)
-    assert out.stdout.split()[-3:] == ["0", "False", "True"], out.stdout + out.stderr
+    assert out.stdout.split()[-2:] == ["0", "False"], out.stdout + out.stderr
     assert (tmp_path / "out" / "result.json").is_file()
 
 

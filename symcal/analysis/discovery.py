@@ -28,8 +28,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
-import scipy.special
 
 from symcal.analysis.bands import f_log_sf
 from symcal.base.linalg import rank_tolerance
@@ -357,6 +355,8 @@ def test_candidates(
     their affine part, never tested, since what is left of them is the variable's own
     noise (their test would test it).
     """
+    from scipy.special import fdtrc  # here: a solve's report imports this module
+
     nuisance = _nuisance(design)
     qn = nuisance.u
     r = _project(design.r, qn)
@@ -421,7 +421,7 @@ def test_candidates(
         denom = (rb - delta) / rest
         cand.f_stat = (delta / m) / denom if denom > 0 else float("inf")
         # scipy.stats.f.sf's own function, without its argument checks (the same bits)
-        cand.p_value = float(scipy.special.fdtrc(m, rest, cand.f_stat))
+        cand.p_value = float(fdtrc(m, rest, cand.f_stat))
         cand.log_p = f_log_sf(cand.f_stat, m, rest)     # finite where p underflows
         cand.significant = cand.p_value < level
         cand.reduction, cand.scatter = _reduction(design, r, base - q @ proj)
@@ -477,7 +477,9 @@ def _reach_bound(x: np.ndarray, xp: np.ndarray, level: float) -> float:
     if whole.shape == (1, 1):      # one column: the generalised eigenvalue is the ratio
         ratio = float(whole[0, 0] / gram_p[0, 0])
     else:
-        ratio = float(np.max(np.real(scipy.linalg.eigvals(whole, gram_p))))
+        from scipy.linalg import eigvals
+
+        ratio = float(np.max(np.real(eigvals(whole, gram_p))))
     return float(np.sqrt(noncentrality(rank, level) * max(ratio - 1.0, 0.0)))
 
 
@@ -510,8 +512,9 @@ def noncentrality(m: int, level: float, power: float = POWER) -> float:
         # solve (0.4-1 s), and a solve's report needs none of it
         import scipy.stats
         from scipy.optimize import brentq
+        from scipy.special import chdtri
 
-        crit = float(scipy.special.chdtri(m, level))      # scipy.stats.chi2.isf's own
+        crit = float(chdtri(m, level))                    # scipy.stats.chi2.isf's own
         _NONCENTRALITY[key] = float(brentq(
             lambda lam: float(scipy.stats.ncx2.sf(crit, m, lam)) - power, 1e-9, 1e4))
     return _NONCENTRALITY[key]
