@@ -661,3 +661,12 @@ def test_the_shared_bands_quantiles_against_scipy(n, centred, extra, sd) -> None
     got = shared_ratio_band(n, centred, dof, sd)
     assert abs(got[0] * dof - want[0]) <= 1e-7 * dof and abs(got[1] * dof - want[1]) <= \
         1e-7 * dof, (got, [w / dof for w in want])
+
+
+def test_a_shared_band_without_a_spread_is_no_band() -> None:
+    """A NaN spread (no standard deviation to bracket the quantiles with) gives no band;
+    the bracket's widening had never ended."""
+    from symcal.analysis.bands import shared_ratio_band
+
+    lo, hi = shared_ratio_band(300, False, 330.0, float("nan"))
+    assert np.isnan(lo) and np.isnan(hi)

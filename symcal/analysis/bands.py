@@ -337,6 +337,8 @@ def shared_ratio_band(n: int, centred: bool, dof: float, sd: float,
         # quantile (widened, doubling, where the tail is longer), where the distribution
         # function is nearly straight and the root is found in a few steps
         step = sd * dof
+        if not 0.0 < step < math.inf:      # no spread to bracket with (NaN): no band,
+            return math.nan                # where widening the bracket never ends
         guess = dof + normal_quantile(p) * step
         low, high = guess - step, guess + step
         at_low, at_high = cdf(low), math.nan
