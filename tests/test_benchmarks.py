@@ -88,3 +88,18 @@ def test_a_partial_run_replaces_only_its_sections() -> None:
     assert "from the earlier run (produced by `make bench` on 2026-01-01)" in again
     assert "## Machine of the earlier run\n\n- old machine" in again
     assert again.count("## Machine") == 2 and "old kept" in again
+    # a partial run of other sections after a partial run: the first partial run's
+    # sections say they come from it, the rest is still from the run before both
+    other = ("# symcal benchmarks\n\nProduced by `run.py --jobs z` on 2026-04-04.\n\n"
+             "## Machine\n\n- newest machine\n- **symcal measured**: commit ccc\n\n"
+             "## Kept\n\nkept anew\n\n"
+             "## Targets\n\n| target | measured | verdict |\n|---|---|---|\n")
+    third = splice(text.replace("- new machine", "- new machine\n- **symcal measured**: "
+                                "commit bbb"), other, {"date": "2026-04-04"})
+    assert "from the earlier run (produced by `make bench` on 2026-01-01)" in third
+    assert "## Machine of the earlier run\n\n- old machine" in third
+    assert ("## Redone: 1e3\n\n*This section comes from the partial run produced by "
+            "`run.py --jobs x` on 2026-02-02: symcal measured: commit bbb.*") in third
+    assert "## Added\n\n*This section comes from the partial run" in third
+    assert "kept anew" in third and "old kept" not in third
+    assert "## Kept\n\n*This section" not in third

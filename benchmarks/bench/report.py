@@ -329,12 +329,22 @@ def splice(old: str, new: str, report: dict[str, Any]) -> str:
     fresh = {_title(h): lines for h, lines in new_parts
              if h and h not in ("Machine", "How it was measured", "Targets")}
     header = "\n".join(old_parts[0][1])
-    earlier = header.split("Produced by ", 1)[-1].split(";")[0]
+    # the run's command and date: the header's first line, up to its first clause
+    earlier = header.split("Produced by ", 1)[-1].split("\n", 1)[0].split(";")[0].rstrip(".")
     machine = dict(old_parts).get("Machine", ["## Machine"])[1:]
     partial = _partial_sections(header)
-    if partial and partial <= set(fresh):
-        # the old file was itself a partial run whose sections this one replaces: what it
-        # kept from its earlier run is still from that run (its machine block too)
+    noted: dict[str, str] = {}
+    if partial:
+        # the old file was itself a partial run: what it kept from its earlier run is
+        # still from that run (its machine block too); its own sections that this run
+        # does not replace are from it, and say so where they stand (the header names
+        # two runs only)
+        if not partial <= set(fresh):
+            measured = [ln.strip("- ").replace("**", "") for ln in machine
+                        if ln.startswith(("- **symcal measured**", "- **load average**"))]
+            note = (f"*This section comes from the partial run produced by {earlier}"
+                    f"{': ' if measured else ''}{'; '.join(measured)}.*")
+            noted = {t: note for t in partial - set(fresh)}
         earlier = header.split("from the earlier run (produced by ", 1)[1].split(
             "), whose machine", 1)[0]
         machine = dict(old_parts).get("Machine of the earlier run", ["## x"])[1:]
@@ -372,6 +382,9 @@ def splice(old: str, new: str, report: dict[str, Any]) -> str:
             done.add(name)
         elif heading.startswith("Machine of the earlier run"):
             continue
+        elif name in noted and not any(ln.startswith("*This section comes from")
+                                       for ln in lines):
+            out += [lines[0], "", noted[name], *lines[1:]]
         else:
             out += lines
     for t, lines_new in fresh.items():
