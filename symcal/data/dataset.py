@@ -53,13 +53,9 @@ class Dataset:
         return len(next(iter(self.columns.values()))) if self.columns else 0
 
     def matrix(self, names: Iterable[str]) -> np.ndarray:
-        """Columns ``names`` stacked as rows (shape ``len(names) × n``); NaN where absent."""
-        names = list(names)
-        out = np.full((len(names), self.n), np.nan)
-        for i, name in enumerate(names):
-            if name in self.columns:
-                out[i] = self.columns[name]
-        return out
+        """Columns ``names`` stacked as rows (shape ``len(names) × n``); NaN where absent
+        (the whole of :meth:`columns_view`)."""
+        return self.columns_view(names)[:, :]
 
     def columns_view(self, names: Iterable[str]) -> ColumnView:
         """:meth:`matrix`'s rows of observations as a pass reads them, ``view[:, part]``,
